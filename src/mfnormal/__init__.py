@@ -1,0 +1,46 @@
+"""mfnormal: microfacet-based normal mapping (Schüßler et al. 2017) for Mitsuba 3.
+
+``import mfnormal`` first makes sure Dr.Jit will load a compatible libLLVM (see
+``mfnormal._llvm``), then registers the ``normalmap_microfacet`` BSDF plugin for
+the active Mitsuba variant. Call ``mfnormal.register()`` again after
+``mi.set_variant(...)``.
+"""
+
+from ._llvm import LLVMError, ensure_llvm
+
+LLVM_PATH = ensure_llvm()
+
+import warnings  # noqa: E402
+
+import mitsuba as mi  # noqa: E402
+
+__version__ = "0.1.0"
+__all__ = ["register", "LLVM_PATH", "LLVMError", "__version__"]
+
+_registered: set[str] = set()
+_warned_scalar = False
+
+
+def register(variant: str | None = None) -> str | None:
+    """Register the plugins for ``variant`` (default: the active one); idempotent.
+
+    Returns the variant registered for, or None when no variant is active.
+    """
+    global _warned_scalar
+    if variant is not None:
+        mi.set_variant(variant)
+    variant = mi.variant()
+    if variant is None:
+        return None
+    if variant.startswith("scalar") and not _warned_scalar:
+        _warned_scalar = True
+        warnings.warn(f"mfnormal: the Python BSDF runs ~100x slower in '{variant}' than in "
+                      "'llvm_ad_rgb'; use a JIT variant for rendering", RuntimeWarning, stacklevel=2)
+    if variant not in _registered:
+        from . import plugin
+        mi.register_bsdf("normalmap_microfacet", lambda props: plugin.NormalMapMicrofacet(props))
+        _registered.add(variant)
+    return variant
+
+
+register()

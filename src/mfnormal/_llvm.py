@@ -1,0 +1,125 @@
+"""Pick a libLLVM that Dr.Jit 1.5 can use, before Dr.Jit first loads.
+
+Dr.Jit's LLVM backend aborts the whole process ("LLVM ERROR: Cannot select:
+fminimum") with libLLVM 14, 15 and 16, which is what Debian 12 ships by
+default. This module finds a compatible libLLVM (major version >= 17) and points
+``DRJIT_LIBLLVM_PATH`` at it, so that users never see that crash.
+
+Search order:
+
+1. ``DRJIT_LIBLLVM_PATH`` if the user set it (respected as is);
+2. system libraries: ``libLLVM.so.<N>*``, ``libLLVM-<N>.so*`` and
+   ``/usr/lib/llvm-<N>/lib`` for N >= 17 (Debian's ``libllvm19``, ...);
+3. the ``karellen-llvm-core`` wheel (libLLVM 23) inside the active Python
+   prefix, whose bundled libc++/libc++abi/libunwind are preloaded first.
+
+It must not import drjit or mitsuba.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import glob
+import os
+import re
+import sys
+
+MIN_MAJOR = 17
+
+FIX = ("install a libLLVM >= 17: 'apt-get install libllvm19' (Debian/Ubuntu), or "
+       "'pip install karellen-llvm-core', or set DRJIT_LIBLLVM_PATH to such a libLLVM.so")
+
+
+class LLVMError(ImportError):
+    """No usable libLLVM: the message names the fix."""
+
+
+def llvm_major(path: str) -> int | None:
+    """Major version encoded in a libLLVM file name, e.g. libLLVM.so.19.1 -> 19."""
+    name = os.path.basename(os.path.realpath(path)) if os.path.exists(path) else os.path.basename(path)
+    for candidate in (name, os.path.basename(path)):
+        m = (re.search(r"libLLVM[-.]so\.(\d+)", candidate)
+             or re.search(r"libLLVM-(\d+)", candidate)
+             or re.search(r"llvm-(\d+)", path))
+        if m:
+            return int(m.group(1))
+    return None
+
+
+def _system_candidates() -> list[str]:
+    patterns = [
+        "/usr/lib/*/libLLVM.so.*", "/usr/lib/*/libLLVM-*.so*", "/usr/lib/llvm-*/lib/libLLVM*.so*",
+        "/usr/lib64/libLLVM*.so*", "/usr/lib/libLLVM*.so*", "/usr/local/lib/libLLVM*.so*",
+        "/opt/homebrew/opt/llvm/lib/libLLVM.dylib", "/usr/local/opt/llvm/lib/libLLVM.dylib",
+    ]
+    found = []
+    for pattern in patterns:
+        found += [p for p in glob.glob(pattern) if os.path.isfile(p)]
+    return found
+
+
+def _wheel_candidates() -> list[tuple[str, list[str]]]:
+    """libLLVM from the karellen-llvm-core wheel, with the runtime it needs preloaded."""
+    out = []
+    for prefix in dict.fromkeys([sys.prefix, sys.base_prefix, os.path.dirname(os.path.dirname(sys.executable))]):
+        for lib in glob.glob(os.path.join(prefix, "lib", "libLLVM.so.*")):
+            runtime_dir = glob.glob(os.path.join(prefix, "lib", "*-linux-gnu"))
+            preload = []
+            for d in runtime_dir:
+                for stem in ("libunwind.so", "libc++abi.so", "libc++.so"):
+                    hits = sorted(glob.glob(os.path.join(d, stem + ".*")), key=len)
+                    preload += hits[:1]
+            out.append((lib, preload))
+    return out
+
+
+def _loaded_llvm() -> list[str]:
+    """libLLVM files already mapped into this process (Linux only)."""
+    try:
+        with open("/proc/self/maps") as f:
+            return sorted({line.split()[-1] for line in f if "libLLVM" in line and "/" in line})
+    except OSError:
+        return []
+
+
+def find_llvm() -> tuple[str, list[str]] | None:
+    """Best compatible libLLVM as (path, libraries to preload), or None."""
+    best = None
+    for path in _system_candidates():
+        major = llvm_major(path)
+        if major is not None and major >= MIN_MAJOR and (best is None or major > best[0]):
+            best = (major, path, [])
+    for path, preload in _wheel_candidates():
+        major = llvm_major(path)
+        if major is not None and major >= MIN_MAJOR and best is None:
+            best = (major, path, preload)
+    return None if best is None else (best[1], best[2])
+
+
+def ensure_llvm() -> str:
+    """Make sure Dr.Jit will load a compatible libLLVM; return its path.
+
+    Raises LLVMError (a one-line message naming the fix) when there is none, or
+    when Dr.Jit already loaded an incompatible one in this process.
+    """
+    for lib in _loaded_llvm():
+        major = llvm_major(lib)
+        if major is not None and major < MIN_MAJOR:
+            raise LLVMError(f"Dr.Jit already loaded {lib} (LLVM {major}), which crashes Dr.Jit 1.5; "
+                            f"import mfnormal before drjit/mitsuba, or {FIX}")
+    user = os.environ.get("DRJIT_LIBLLVM_PATH")
+    if user:
+        major = llvm_major(user)
+        if major is not None and major < MIN_MAJOR:
+            raise LLVMError(f"DRJIT_LIBLLVM_PATH={user} is LLVM {major}, which crashes Dr.Jit 1.5; {FIX}")
+        return user
+    if "drjit" in sys.modules and _loaded_llvm():
+        return _loaded_llvm()[0]
+    found = find_llvm()
+    if found is None:
+        raise LLVMError(f"mfnormal: no compatible libLLVM found (Dr.Jit 1.5 crashes with LLVM <= 16); {FIX}")
+    path, preload = found
+    for lib in preload:
+        ctypes.CDLL(lib, mode=ctypes.RTLD_GLOBAL)
+    os.environ["DRJIT_LIBLLVM_PATH"] = path
+    return path

@@ -1,0 +1,113 @@
+"""The two-facet microsurface of Schüßler et al. 2017 (MODEL.md §2.1-2.2, §3.2).
+
+Pure functions on Dr.Jit arrays of the active Mitsuba variant. Every direction is
+expressed in the local frame whose +z axis is the geometric (base shading) normal
+ω_g; directions point away from the surface.
+
+- ``wp``: perturbed facet normal ω_p (unit, wp.z > 0);
+- ``wt``: tangent facet normal ω_t, a vertical wall facing away from where ω_p
+  leans; ``sin_p`` = sinθ_p is its area factor;
+- λ_p, λ_t: probability that a ray from ω hits p or t first;
+- G1(ω, ω_m): visible fraction of facet m seen from ω (Smith form, robust t̃
+  variant of MODEL.md §2.1: no division by sinθ_p).
+"""
+
+from __future__ import annotations
+
+import drjit as dr
+import mitsuba as mi
+
+# Smallest cosθ_p we accept: steeper normals are clamped to this (MODEL.md §2.9).
+COS_P_MIN = 0.02
+# Below this sinθ_p the tangent facet has no area and ω_t is arbitrary.
+SIN_P_EPS = 1e-7
+
+
+def decode_normal(rgb, strength, directx):
+    """Tangent-space normal from a raw normal-map texel, robust to bad texels.
+
+    n = (2·rgb − 1) with x, y scaled by ``strength`` (and y negated for the
+    DirectX convention), normalised, clamped so that cosθ_p ≥ COS_P_MIN.
+    NaN/Inf/zero texels and normals pointing straight down decode to the flat
+    normal (0, 0, 1).
+    """
+    n = mi.Vector3f(dr.fma(rgb[0], 2.0, -1.0),
+                    dr.fma(rgb[1], 2.0, -1.0),
+                    dr.fma(rgb[2], 2.0, -1.0))
+    n.y = dr.select(directx, -n.y, n.y)
+    n.x *= strength
+    n.y *= strength
+    bad = ~(dr.isfinite(n.x) & dr.isfinite(n.y) & dr.isfinite(n.z))
+    norm2 = dr.squared_norm(n)
+    bad |= ~(norm2 > 1e-20) | ~dr.isfinite(norm2)
+    n = dr.select(bad, mi.Vector3f(0, 0, 1), n)
+    n = n * dr.rsqrt(dr.select(bad, 1.0, norm2))
+    # Clamp into the upper hemisphere: keep the azimuth, limit the tilt.
+    xy2 = dr.fma(n.x, n.x, n.y * n.y)
+    lean = xy2 > 1e-30
+    too_steep = n.z < COS_P_MIN
+    scale = dr.sqrt((1.0 - COS_P_MIN * COS_P_MIN) / dr.select(lean, xy2, 1.0))
+    clamped = mi.Vector3f(n.x * scale, n.y * scale, COS_P_MIN)
+    n = dr.select(too_steep & lean, clamped, n)
+    n = dr.select(too_steep & ~lean, mi.Vector3f(0, 0, 1), n)
+    return n
+
+
+def tangent_facet(wp):
+    """(ω_t, sinθ_p): the unit tangent-facet normal and the tilt's sine.
+
+    ω_t = (−p_x, −p_y, 0)/sinθ_p; for ω_p = ω_g we return an arbitrary
+    horizontal ω_t with sinθ_p = 0, which gives the tangent facet zero area.
+    """
+    sin_p = dr.sqrt(dr.fma(wp.x, wp.x, wp.y * wp.y))
+    flat = sin_p < SIN_P_EPS
+    inv = dr.select(flat, 0.0, dr.rcp(sin_p))
+    wt = mi.Vector3f(dr.select(flat, 1.0, -wp.x * inv), -wp.y * inv, 0.0)
+    return wt, dr.select(flat, 0.0, sin_p)
+
+
+def _pos(x):
+    return dr.maximum(x, 0.0)
+
+
+def projected_area_sum(w, wp, wt, sin_p):
+    """Ã(ω) = ⟨ω,ω_p⟩₊ + sinθ_p⟨ω,ω_t⟩₊ = cosθ_p · (a_p(ω) + a_t(ω))."""
+    return _pos(dr.dot(w, wp)) + sin_p * _pos(dr.dot(w, wt))
+
+
+def lambda_p(w, wp, wt, sin_p):
+    """Probability that a ray arriving from direction ω hits the p facet first."""
+    a_p = _pos(dr.dot(w, wp))
+    total = a_p + sin_p * _pos(dr.dot(w, wt))
+    return dr.select(total > 0, a_p / dr.select(total > 0, total, 1.0), 1.0)
+
+
+def G1(w, wm, wp, wt, sin_p):
+    """Masking of facet ω_m (ω_p or ω_t) seen from ω: χ⁺⟨ω,ω_m⟩·min(1, cosθ_p⟨ω,ω_g⟩₊/Ã(ω))."""
+    total = projected_area_sum(w, wp, wt, sin_p)
+    g = wp.z * _pos(w.z) / dr.select(total > 0, total, 1.0)
+    return dr.select((dr.dot(w, wm) > 0) & (total > 0), dr.minimum(g, 1.0), 0.0)
+
+
+def G1_p(w, wp, wt, sin_p):
+    return G1(w, wp, wp, wt, sin_p)
+
+
+def G1_t(w, wp, wt, sin_p):
+    return G1(w, wt, wp, wt, sin_p)
+
+
+def flip_t(w, wt):
+    """Mirror image across the tangent-facet plane: ω − 2⟨ω,ω_t⟩ω_t."""
+    return w - 2.0 * dr.dot(w, wt) * wt
+
+
+def facet_frame(wm):
+    """Local frame of facet m: the minimal rotation taking ω_g = z to ω_m.
+
+    Continuous in ω_m, identity at ω_m = z (MODEL.md §2.10); needs wm.z > -1.
+    """
+    k = dr.rcp(1.0 + wm.z)
+    s = mi.Vector3f(1.0 - wm.x * wm.x * k, -wm.x * wm.y * k, -wm.x)
+    t = mi.Vector3f(-wm.x * wm.y * k, 1.0 - wm.y * wm.y * k, -wm.y)
+    return mi.Frame3f(s, t, wm)
