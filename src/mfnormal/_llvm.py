@@ -123,3 +123,9 @@ def ensure_llvm() -> str:
         ctypes.CDLL(lib, mode=ctypes.RTLD_GLOBAL)
     os.environ["DRJIT_LIBLLVM_PATH"] = path
     return path
+
+
+if __name__ == "__main__":  # used by scripts/setup.sh: exit 0 if a compatible libLLVM exists
+    found = find_llvm()
+    print(found[0] if found else "none")
+    sys.exit(0 if found else 1)

@@ -37,9 +37,9 @@ def decode_normal(rgb, strength, directx):
     n.y = dr.select(directx, -n.y, n.y)
     n.x *= strength
     n.y *= strength
-    bad = ~(dr.isfinite(n.x) & dr.isfinite(n.y) & dr.isfinite(n.z))
+    bad = negate(dr.isfinite(n.x) & dr.isfinite(n.y) & dr.isfinite(n.z))
     norm2 = dr.squared_norm(n)
-    bad |= ~(norm2 > 1e-20) | ~dr.isfinite(norm2)
+    bad |= negate((norm2 > 1e-20) & dr.isfinite(norm2))
     n = dr.select(bad, mi.Vector3f(0, 0, 1), n)
     n = n * dr.rsqrt(dr.select(bad, 1.0, norm2))
     # Clamp into the upper hemisphere: keep the azimuth, limit the tilt.
@@ -49,7 +49,7 @@ def decode_normal(rgb, strength, directx):
     scale = dr.sqrt((1.0 - COS_P_MIN * COS_P_MIN) / dr.select(lean, xy2, 1.0))
     clamped = mi.Vector3f(n.x * scale, n.y * scale, COS_P_MIN)
     n = dr.select(too_steep & lean, clamped, n)
-    n = dr.select(too_steep & ~lean, mi.Vector3f(0, 0, 1), n)
+    n = dr.select(too_steep & negate(lean), mi.Vector3f(0, 0, 1), n)
     return n
 
 
@@ -61,9 +61,14 @@ def tangent_facet(wp):
     """
     sin_p = dr.sqrt(dr.fma(wp.x, wp.x, wp.y * wp.y))
     flat = sin_p < SIN_P_EPS
-    inv = dr.select(flat, 0.0, dr.rcp(sin_p))
+    inv = dr.select(flat, 0.0, dr.rcp(dr.maximum(sin_p, SIN_P_EPS)))
     wt = mi.Vector3f(dr.select(flat, 1.0, -wp.x * inv), -wp.y * inv, 0.0)
     return wt, dr.select(flat, 0.0, sin_p)
+
+
+def negate(mask):
+    """Logical not that also works on the Python bools of scalar variants."""
+    return dr.select(mask, False, True)
 
 
 def _pos(x):

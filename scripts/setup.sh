@@ -1,0 +1,42 @@
+#!/usr/bin/env bash
+# Set up mfnormal on a fresh machine: a libLLVM >= 17 for Dr.Jit, a virtual
+# environment in .venv with the pinned Mitsuba/Dr.Jit, and the package itself.
+# Idempotent: re-running it only checks what is already there.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+PYTHON=${PYTHON:-python3}
+
+have_llvm() {
+    # Dr.Jit 1.5 crashes with libLLVM <= 16; the package's own search decides.
+    "${1:-$PYTHON}" src/mfnormal/_llvm.py >/dev/null 2>&1
+}
+
+# 1. A working libLLVM: Debian's libllvm19 when we can install system packages.
+if ! have_llvm && [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then
+    echo "setup: installing libllvm19 (Dr.Jit needs libLLVM >= 17)"
+    export DEBIAN_FRONTEND=noninteractive
+    if ! apt-get install -y -qq libllvm19 >/dev/null 2>&1; then
+        apt-get update -qq >/dev/null 2>&1 || true
+        apt-get install -y -qq libllvm19 >/dev/null 2>&1 || echo "setup: apt could not install libllvm19"
+    fi
+fi
+
+# 2. The virtual environment and the package (pins live in pyproject.toml).
+if [ ! -x .venv/bin/python ]; then
+    "$PYTHON" -m venv .venv
+fi
+.venv/bin/python -m pip install -q --disable-pip-version-check -e '.[test]' 2>&1 | grep -v '^WARNING: Location' || true
+
+# 3. No system LLVM: fall back to the libLLVM wheel inside the venv.
+if ! have_llvm .venv/bin/python; then
+    echo "setup: no system libLLVM >= 17; installing karellen-llvm-core into .venv"
+    .venv/bin/python -m pip install -q --disable-pip-version-check karellen-llvm-core 2>&1 | grep -v '^WARNING: Location' || true
+fi
+
+# 4. Check: importing mfnormal picks the LLVM and runs a JIT kernel.
+.venv/bin/python -c "
+import mfnormal, mitsuba as mi, drjit as dr
+mi.set_variant('llvm_ad_rgb')
+assert dr.minimum(dr.arange(mi.Float, 4), 2.0)[3] == 2.0
+print('setup: ok (mitsuba', mi.__version__ + ', libLLVM', mfnormal.LLVM_PATH + ')')
+"
