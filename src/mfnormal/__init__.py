@@ -38,7 +38,8 @@ def register(variant: str | None = None) -> str | None:
                       "'llvm_ad_rgb'; use a JIT variant for rendering", RuntimeWarning, stacklevel=2)
     if variant not in _registered:
         from . import plugin
-        mi.register_bsdf("normalmap_microfacet", lambda props: plugin.NormalMapMicrofacet(props))
+        cls = plugin.bsdf_class()
+        mi.register_bsdf("normalmap_microfacet", lambda props: cls(props))
         _registered.add(variant)
     return variant
 

@@ -116,3 +116,40 @@ def facet_frame(wm):
     s = mi.Vector3f(1.0 - wm.x * wm.x * k, -wm.x * wm.y * k, -wm.x)
     t = mi.Vector3f(-wm.x * wm.y * k, 1.0 - wm.y * wm.y * k, -wm.y)
     return mi.Frame3f(s, t, wm)
+
+
+# -- The sawtooth height map (MODEL.md §3.1-3.2) --------------------------------
+#
+# Crest height 1; heights h ∈ [0, 1] measured from the foot of the t wall.
+# A ray leaving facet m at height h with travel direction d hits the other facet
+# at height κ_m(d)·h; κ = ∞ (or h' > 1) means it leaves the microsurface.
+
+INF = float("inf")
+
+
+def cot_p(wp, sin_p):
+    """cotθ_p, huge but finite for the flat normal (the t facet then has no area)."""
+    return wp.z / dr.maximum(sin_p, 1e-30)
+
+
+def kappa(on_p, d, wt, cot):
+    """Height ratio κ_m(d) for a ray leaving p (on_p) or t in travel direction d."""
+    x = -dr.dot(d, wt)   # across-groove component, > 0 toward the wall ahead of p
+    z = d.z
+    ax = dr.maximum(dr.abs(x), 1e-30)
+    k_p = dr.select(x > 0, 1.0 + cot * z / ax, INF)
+    den = 1.0 - cot * z / ax
+    k_t = dr.select((x < 0) & (den > 0), dr.rcp(dr.maximum(den, 1e-30)), INF)
+    return dr.select(on_p, k_p, k_t)
+
+
+def escape_fraction(a, b, k):
+    """|κH ∩ [1, ∞)| / |κH| for H = [a, b]: the chance that a ray from a uniform height leaves."""
+    width = dr.maximum(k * (b - a), 1e-30)
+    frac = dr.maximum(k * b - dr.maximum(1.0, k * a), 0.0) / width
+    return dr.select(k < INF, dr.minimum(frac, 1.0), 1.0)
+
+
+def overlap(a, b, lo, hi):
+    """|[a, b] ∩ [lo, hi]|."""
+    return dr.maximum(dr.minimum(b, hi) - dr.maximum(a, lo), 0.0)

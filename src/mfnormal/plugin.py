@@ -18,8 +18,20 @@ Microfacet-based normal mapping (:monosp:`normalmap_microfacet`)
    - |string|
    - ``analytic`` (default): the paper's default model, paths of up to two
      facet bounces with a mirror tangent facet, deterministic ``eval`` and the
-     exact ``pdf`` of its sampler. (``separable`` and ``nonseparable``: the
-     random-walk models, not available yet.)
+     exact ``pdf`` of its sampler. ``separable``: the main paper's random walk
+     over all bounce orders (separable masking-shadowing). ``nonseparable``:
+     the supplemental's walk with height-correlated masking-shadowing, which
+     equals ray tracing the sawtooth microsurface exactly.
+ * - tangent_facet
+   - |string|
+   - Random-walk models only: ``specular`` (default; the tangent facet is a
+     perfect mirror) or ``same`` (the nested BSDF on both facets). ``analytic``
+     always uses a mirror and rejects ``same``.
+ * - max_bounces
+   - |int|
+   - Random-walk models only: bounce cap of the walk (default 1024). Paths
+     still on the microsurface after it are dropped; the energy this loses is
+     measured by the test suite (below 1e-4 of the albedo for θ_p ≤ 80°).
  * - normalmap_convention
    - |string|
    - ``opengl`` (default, +Y up, what Mitsuba's ``normalmap`` assumes) or
@@ -51,8 +63,27 @@ Contracts (each one is tested):
   produce NaN: they decode to the flat normal, or are clamped to
   :math:`\cos\theta_p \ge 0.02`. A flat map reproduces the nested BSDF.
 
-Cost of ``analytic``: 3 nested ``eval_pdf`` per ``eval``/``pdf`` query and
-1 nested ``sample`` + 3 nested ``eval_pdf`` per ``sample`` query.
+For the random-walk models ``eval`` is an unbiased stochastic estimate
+(next-event estimation along a walk whose random numbers are a hash of the
+query, so it is deterministic per query), ``sample`` returns the walk's exit
+direction and throughput, and ``pdf`` is a deterministic approximation of the
+walk's density used for multiple importance sampling (the explicit low-order
+terms plus a cosine lobe): MIS stays unbiased with any such density.
+
+Which model? ``analytic`` is the default: no extra variance, about 3 nested
+evaluations per query, exactly reciprocal, but it drops paths with three or
+more facet bounces (it darkens steep normals). ``separable`` and
+``nonseparable`` conserve energy (a white nested BSDF stays white) at the cost
+of a stochastic ``eval`` and a walk of a few bounces per query (more for steep
+normals); ``nonseparable`` is the physically exact one (height-correlated),
+``separable`` the main paper's approximation. ``tangent_facet=specular`` keeps
+the look closest to classic normal mapping; ``same`` spreads the material over
+both facets.
+
+Costs per query: ``analytic`` 3 nested ``eval_pdf`` per ``eval``/``pdf``, and
+1 nested ``sample`` + 3 nested ``eval_pdf`` per ``sample``. Random walks: per
+bounce 1 nested ``sample`` and (``eval`` only) 1 nested ``eval``, 2 with a mirror
+tangent facet; plus the MIS pdf (2-3 nested ``pdf``).
 
 .. tabs::
     .. code-tab:: xml
@@ -76,45 +107,27 @@ Cost of ``analytic``: 3 nested ``eval_pdf`` per ``eval``/``pdf`` query and
 
 from __future__ import annotations
 
-import struct
-
 import drjit as dr
 import mitsuba as mi
 
-from . import microsurface as ms
+from . import analytic, walk
+from .microsurface import decode_normal
+from .shading import ShadingPoint
 
-MODELS = ("analytic",)
-FUTURE_MODELS = ("separable", "nonseparable")
+MODELS = ("analytic", "separable", "nonseparable")
+TANGENT_FACETS = ("specular", "same")
 CONVENTIONS = ("opengl", "directx")
-ONE_MINUS_EPS = 0.99999994  # largest float32 below 1
 
 
 def _fail(msg: str):
     raise ValueError(f"normalmap_microfacet: {msg}")
 
 
-def _bits(x):
-    """The IEEE bits of a float32 (Dr.Jit array or, in scalar variants, a Python float)."""
-    if isinstance(x, float):
-        return struct.unpack("<I", struct.pack("<f", x))[0]
-    return dr.reinterpret_array(mi.UInt32, mi.Float32(x))
+class NormalMapMicrofacet:
+    """The plugin's methods; :func:`bsdf_class` binds them to the active variant's ``mi.BSDF``."""
 
-
-def _hash01(sample1, sample2):
-    """An extra uniform number derived from the sample (for the masking test).
-
-    The nested sampler receives (sample1, sample2) untouched where possible, so
-    a flat normal map reproduces its samples exactly; this hash of their bits is
-    independent of the nested sample in practice.
-    """
-    a, b, c = _bits(sample1), _bits(sample2.x), _bits(sample2.y)
-    v0, v1 = mi.sample_tea_32(a ^ ((c * 0x9E3779B9) & 0xFFFFFFFF), b, 4)
-    return mi.Float(dr.minimum(mi.Float32(v0 ^ v1) * (1.0 / 4294967296.0), ONE_MINUS_EPS))
-
-
-class NormalMapMicrofacet(mi.BSDF):
     def __init__(self, props: mi.Properties):
-        mi.BSDF.__init__(self, props)
+        type(self).__mro__[1].__init__(self, props)   # the variant's mi.BSDF
 
         # Nested BSDF and normal map
         self.nested = None
@@ -138,29 +151,29 @@ class NormalMapMicrofacet(mi.BSDF):
 
         # Model parameters
         self.model = props.get("model", "analytic")
-        if self.model in FUTURE_MODELS:
-            _fail(f"model '{self.model}' is not implemented yet; use model='analytic'")
         if self.model not in MODELS:
             _fail(f"unknown model '{self.model}'; choose one of {', '.join(MODELS)}")
-        tangent_facet = props.get("tangent_facet", "specular")
-        if tangent_facet != "specular":
-            _fail(f"tangent_facet '{tangent_facet}' is not available for model '{self.model}', "
-                  "whose tangent facet is always a mirror ('specular')")
+        self.tangent_facet = props.get("tangent_facet", "specular")
+        if self.tangent_facet not in TANGENT_FACETS:
+            _fail(f"unknown tangent_facet '{self.tangent_facet}'; use 'specular' or 'same'")
+        if self.model == "analytic" and self.tangent_facet != "specular":
+            _fail("tangent_facet 'same' needs model='separable' or 'nonseparable'; the analytic "
+                  "model's tangent facet is always a mirror")
+        self.max_bounces = int(props.get("max_bounces", 1024))
+        if self.max_bounces < 1:
+            _fail(f"max_bounces must be >= 1, got {self.max_bounces}")
         convention = props.get("normalmap_convention", "opengl")
         if convention not in CONVENTIONS:
             _fail(f"unknown normalmap_convention '{convention}'; use 'opengl' or 'directx'")
         self.directx = convention == "directx"
         strength = float(props.get("strength", 1.0))
-        if not (strength >= 0.0 and strength < float("inf")):
+        if not (0.0 <= strength < float("inf")):
             _fail(f"strength must be a finite number >= 0, got {strength}")
         self.strength = mi.Float(strength)
         dr.make_opaque(self.strength)
 
-        # Reflection components of the nested BSDF
-        components = []
-        for i in range(self.nested.component_count()):
-            components.append(self.nested.flags(i))
-        self.m_components = components
+        # The nested BSDF's components; the microsurface only reflects.
+        self.m_components = [self.nested.flags(i) for i in range(self.nested.component_count())]
         self.m_flags = self.nested.flags() | mi.BSDFFlags.FrontSide
 
     def traverse(self, callback):
@@ -172,120 +185,52 @@ class NormalMapMicrofacet(mi.BSDF):
         if "strength" in keys:
             dr.make_opaque(self.strength)
 
-    # -- Geometry of the microsurface at a shading point ----------------------
-
-    def _microsurface(self, si, active):
-        """(ω_p, ω_t, sinθ_p, p-facet frame) in the base shading frame."""
+    def _shading_point(self, ctx, si, active):
+        """The microsurface at ``si``: ω_p from the normal map, in the base shading frame."""
         rgb = self.normalmap.eval_3(si, active)
-        wp = ms.decode_normal(rgb, self.strength, self.directx)
-        wt, sin_p = ms.tangent_facet(wp)
-        return wp, wt, sin_p, ms.facet_frame(wp)
+        return ShadingPoint(self.nested, ctx, si, decode_normal(rgb, self.strength, self.directx))
 
-    @staticmethod
-    def _facet_si(si, frame, wi):
-        """Copy of ``si`` whose shading frame is the facet's, seen from ``wi``."""
-        si_f = mi.SurfaceInteraction3f(si)
-        si_f.sh_frame = mi.Frame3f(si.to_world(frame.s), si.to_world(frame.t), si.to_world(frame.n))
-        si_f.wi = frame.to_local(wi)
-        return si_f
-
-    # -- The analytic model (MODEL.md §2.6) ------------------------------------
-
-    def _analytic(self, ctx, si, wo, active, want_value=True, want_pdf=True):
-        wp, wt, sin_p, frame = self._microsurface(si, active)
-        wi = si.wi
-        active = active & (wi.z > 0) & (wo.z > 0)
-        lp = ms.lambda_p(wi, wp, wt, sin_p)
-        lt = 1.0 - lp
-
-        wo_m = ms.flip_t(wo, wt)
-        si_i = self._facet_si(si, frame, wi)
-        si_im = self._facet_si(si, frame, ms.flip_t(wi, wt))
-        g_o_p = ms.G1_p(wo, wp, wt, sin_p)
-        g_om_p = ms.G1_p(wo_m, wp, wt, sin_p)
-        g_o_t = ms.G1_t(wo, wp, wt, sin_p)
-
-        # Path weights: i→p→o, i→p→t→o, i→t→p→o
-        c1 = lp * g_o_p
-        c2 = dr.select(g_o_t > 0, lp * (1.0 - g_om_p), 0.0)
-        c3 = dr.select(g_o_p > 0, lt, 0.0)
-        a1, a2, a3 = active & (c1 > 0), active & (c2 > 0), active & (c3 > 0)
-        wo_f, wo_mf = frame.to_local(wo), frame.to_local(wo_m)
-
-        value, pdf = mi.Spectrum(0.0), mi.Float(0.0)
-        if want_value and want_pdf:
-            f1, p1 = self.nested.eval_pdf(ctx, si_i, wo_f, a1)
-            f2, p2 = self.nested.eval_pdf(ctx, si_i, wo_mf, a2)
-            f3, p3 = self.nested.eval_pdf(ctx, si_im, wo_f, a3)
-        elif want_value:
-            f1 = self.nested.eval(ctx, si_i, wo_f, a1)
-            f2 = self.nested.eval(ctx, si_i, wo_mf, a2)
-            f3 = self.nested.eval(ctx, si_im, wo_f, a3)
-        else:
-            p1 = self.nested.pdf(ctx, si_i, wo_f, a1)
-            p2 = self.nested.pdf(ctx, si_i, wo_mf, a2)
-            p3 = self.nested.pdf(ctx, si_im, wo_f, a3)
-
-        if want_value:
-            value = (dr.select(a1, f1, 0.0) * c1
-                     + dr.select(a2, f2, 0.0) * (c2 * g_o_t)
-                     + dr.select(a3, f3, 0.0) * (c3 * g_o_p))
-            value = dr.select(active & dr.all(dr.isfinite(value)), dr.maximum(value, 0.0), 0.0)
-        if want_pdf:
-            pdf = (dr.select(a1, p1, 0.0) * c1 + dr.select(a2, p2, 0.0) * c2
-                   + dr.select(a3, p3, 0.0) * c3)
-            pdf = dr.select(active & dr.isfinite(pdf), dr.maximum(pdf, 0.0), 0.0)
-        return value, pdf
-
-    # -- BSDF interface ----------------------------------------------------------
+    def _walk_args(self):
+        return self.model == "separable", self.tangent_facet == "specular", self.max_bounces
 
     def sample(self, ctx, si, sample1, sample2, active=True):
-        wp, wt, sin_p, frame = self._microsurface(si, active)
-        wi = si.wi
-        active = mi.Bool(active) & (wi.z > 0)
-
-        # Choose the first facet hit from wi; reuse sample1 for the nested BSDF.
-        lp = ms.lambda_p(wi, wp, wt, sin_p)
-        on_p = sample1 < lp
-        s1 = dr.select(on_p, sample1 / dr.maximum(lp, 1e-30), (sample1 - lp) / dr.maximum(1.0 - lp, 1e-30))
-        s1 = dr.clip(s1, 0.0, ONE_MINUS_EPS)
-
-        # Light reaches p directly, or after mirroring off the tangent facet.
-        wi_p = dr.select(on_p, wi, ms.flip_t(wi, wt))
-        bs, w = self.nested.sample(ctx, self._facet_si(si, frame, wi_p), s1, sample2, active)
-        w_p = frame.to_world(bs.wo)
-        g_p = ms.G1_p(w_p, wp, wt, sin_p)
-
-        # Leave after p, or hit the tangent facet and mirror (p→t→o).
-        to_t = on_p & (_hash01(sample1, sample2) >= g_p)
-        wo = dr.select(to_t, ms.flip_t(w_p, wt), w_p)
-        g_o_t = ms.G1_t(wo, wp, wt, sin_p)
-        path = dr.select(to_t, g_o_t, g_p)
-        prob = dr.select(on_p, lp * dr.select(to_t, 1.0 - g_p, g_p), 1.0 - lp)
-        active &= (bs.pdf > 0) & (path > 0) & (wo.z > 0) & dr.all(dr.isfinite(wo))
-
-        # Smooth lobes: weight = eval/pdf with the exact pdf. Delta lobes: path weight.
-        delta = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
-        value, pdf = self._analytic(ctx, si, wo, active & ms.negate(delta))
-        weight = dr.select(delta, w * path, value / dr.select(pdf > 0, pdf, 1.0))
-        bs.pdf = dr.select(delta, bs.pdf * prob, pdf)
-        active &= (bs.pdf > 0) & dr.all(dr.isfinite(weight))
-
-        bs.wo = wo
-        bs.pdf = dr.select(active, bs.pdf, 0.0)
-        return bs, dr.select(active, dr.maximum(weight, 0.0), 0.0)
+        sp = self._shading_point(ctx, si, active)
+        if self.model == "analytic":
+            return analytic.sample(sp, sample1, sample2, mi.Bool(active))
+        return walk.sample(sp, sample1, sample2, *self._walk_args(), mi.Bool(active))
 
     def eval(self, ctx, si, wo, active=True):
-        return self._analytic(ctx, si, wo, mi.Bool(active), want_pdf=False)[0]
+        sp = self._shading_point(ctx, si, active)
+        if self.model == "analytic":
+            return analytic.eval_pdf(sp, wo, mi.Bool(active), want_pdf=False)[0]
+        return walk.eval(sp, wo, *self._walk_args(), mi.Bool(active))
 
     def pdf(self, ctx, si, wo, active=True):
-        return self._analytic(ctx, si, wo, mi.Bool(active), want_value=False)[1]
+        sp = self._shading_point(ctx, si, active)
+        if self.model == "analytic":
+            return analytic.eval_pdf(sp, wo, mi.Bool(active), want_value=False)[1]
+        return walk.mis_pdf(sp, wo, self.tangent_facet == "specular", mi.Bool(active))
 
     def eval_pdf(self, ctx, si, wo, active=True):
-        return self._analytic(ctx, si, wo, mi.Bool(active))
+        sp = self._shading_point(ctx, si, active)
+        if self.model == "analytic":
+            return analytic.eval_pdf(sp, wo, mi.Bool(active))
+        return (walk.eval(sp, wo, *self._walk_args(), mi.Bool(active)),
+                walk.mis_pdf(sp, wo, self.tangent_facet == "specular", mi.Bool(active)))
 
     def to_string(self):
-        return (f"NormalMapMicrofacet[model={self.model}, strength={self.strength}, "
-                f"convention={'directx' if self.directx else 'opengl'},\n"
+        return (f"NormalMapMicrofacet[model={self.model}, tangent_facet={self.tangent_facet}, "
+                f"strength={self.strength}, convention={'directx' if self.directx else 'opengl'},\n"
                 f"  normalmap={self.normalmap},\n  bsdf={self.nested}]")
 
+
+_classes: dict[str, type] = {}
+
+
+def bsdf_class() -> type:
+    """``NormalMapMicrofacet`` as a subclass of the active variant's ``mi.BSDF``."""
+    variant = mi.variant()
+    if variant not in _classes:
+        methods = {k: v for k, v in vars(NormalMapMicrofacet).items() if k not in ("__dict__", "__weakref__")}
+        _classes[variant] = type("NormalMapMicrofacet", (mi.BSDF,), methods)
+    return _classes[variant]

@@ -1,0 +1,86 @@
+"""The paper's default model: up to two facet bounces, mirror tangent facet (MODEL.md §2.6).
+
+    f(ω_i,ω_o)⟨ω_o,ω_g⟩ = λ_p(ω_i)·[ f_p(ω_i,ω_o) G1(ω_o,p)                                   i→p→o
+                                   + f_p(ω_i,ω'_o)(1 − G1(ω'_o,p)) G1(ω_o,t) ]            i→p→t→o
+                        + λ_t(ω_i)·  f_p(ω'_i,ω_o) G1(ω_o,p)                                i→t→p→o
+
+with ω' = flip_t(ω) and f_p the nested f·cos in the p frame. Its sampler's pdf
+has the same three terms with the nested pdf in place of f and no G1(ω_o,t)
+factor on the middle term.
+"""
+
+from __future__ import annotations
+
+import drjit as dr
+import mitsuba as mi
+
+from .microsurface import negate
+from .shading import ONE_MINUS_EPS, hash_floats, uniform
+
+
+def eval_pdf(sp, wo, active, want_value=True, want_pdf=True):
+    """(f·⟨wo,z⟩, pdf) of the analytic model at the shading point ``sp``."""
+    wi = sp.wi
+    active = active & (wi.z > 0) & (wo.z > 0)
+    lp = sp.lambda_p(wi)
+    wo_m = sp.flip_t(wo)
+    wi_m = sp.flip_t(wi)
+    g_o_p, g_om_p, g_o_t = sp.G1_p(wo), sp.G1_p(wo_m), sp.G1_t(wo)
+
+    # Probability of each path's facet sequence: i→p→o, i→p→t→o, i→t→p→o
+    c1 = lp * g_o_p
+    c2 = dr.select(g_o_t > 0, lp * (1.0 - g_om_p), 0.0)
+    c3 = dr.select(g_o_p > 0, 1.0 - lp, 0.0)
+    a1, a2, a3 = active & (c1 > 0), active & (c2 > 0), active & (c3 > 0)
+    frame = sp.frame_p
+
+    value, pdf = mi.Spectrum(0.0), mi.Float(0.0)
+    if want_value and want_pdf:
+        (f1, p1), (f2, p2), (f3, p3) = (sp.eval_pdf(frame, wi, wo, a1), sp.eval_pdf(frame, wi, wo_m, a2),
+                                        sp.eval_pdf(frame, wi_m, wo, a3))
+    elif want_value:
+        f1, f2, f3 = sp.eval(frame, wi, wo, a1), sp.eval(frame, wi, wo_m, a2), sp.eval(frame, wi_m, wo, a3)
+    else:
+        p1, p2, p3 = sp.pdf(frame, wi, wo, a1), sp.pdf(frame, wi, wo_m, a2), sp.pdf(frame, wi_m, wo, a3)
+
+    if want_value:
+        value = f1 * c1 + f2 * (c2 * g_o_t) + f3 * (c3 * g_o_p)
+        value = dr.select(active & dr.all(dr.isfinite(value)), dr.maximum(value, 0.0), 0.0)
+    if want_pdf:
+        pdf = p1 * c1 + p2 * c2 + p3 * c3
+        pdf = dr.select(active & dr.isfinite(pdf), dr.maximum(pdf, 0.0), 0.0)
+    return value, pdf
+
+
+def sample(sp, sample1, sample2, active):
+    """Sample the analytic model; returns (BSDFSample3f, weight = eval/pdf)."""
+    wi = sp.wi
+    active = active & (wi.z > 0)
+
+    # Choose the first facet hit from wi; reuse sample1 for the nested BSDF.
+    lp = sp.lambda_p(wi)
+    on_p = sample1 < lp
+    s1 = dr.select(on_p, sample1 / dr.maximum(lp, 1e-30), (sample1 - lp) / dr.maximum(1.0 - lp, 1e-30))
+    s1 = dr.clip(s1, 0.0, ONE_MINUS_EPS)
+
+    # Light reaches p directly, or after mirroring off the tangent facet.
+    bs, w = sp.sample(sp.frame_p, dr.select(on_p, wi, sp.flip_t(wi)), s1, sample2, active)
+    g_p = sp.G1_p(bs.wo)
+
+    # Leave after p, or hit the tangent facet and mirror (p→t→o).
+    to_t = on_p & (uniform(hash_floats(0x6d666e31, sample1, sample2.x, sample2.y), 0) >= g_p)
+    wo = dr.select(to_t, sp.flip_t(bs.wo), bs.wo)
+    path = dr.select(to_t, sp.G1_t(wo), g_p)
+    prob = dr.select(on_p, lp * dr.select(to_t, 1.0 - g_p, g_p), 1.0 - lp)
+    active &= (bs.pdf > 0) & (path > 0) & (wo.z > 0) & dr.all(dr.isfinite(wo))
+
+    # Smooth lobes: weight = eval/pdf with the exact pdf. Delta lobes: the path weight.
+    delta = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
+    value, pdf = eval_pdf(sp, wo, active & negate(delta))
+    weight = dr.select(delta, w * path, value / dr.select(pdf > 0, pdf, 1.0))
+    bs.pdf = dr.select(delta, bs.pdf * prob, pdf)
+    active &= (bs.pdf > 0) & dr.all(dr.isfinite(weight))
+
+    bs.wo = wo
+    bs.pdf = dr.select(active, bs.pdf, 0.0)
+    return bs, dr.select(active, dr.maximum(weight, 0.0), 0.0)

@@ -1,0 +1,167 @@
+"""The random-walk models: separable (main paper) and non-separable (supplemental).
+
+One walk serves both (MODEL.md §2.4-2.5, §3.3-3.5). It starts on the facet that
+a ray from ω_i hits first and bounces between the two facets until it leaves
+the microsurface. The non-separable model tracks the interval H of heights the
+walk can be at on the current facet (supplemental Algorithms 1-3: rays from a
+uniform height in H stay uniform after each bounce, because the facets are
+planar); the separable model is the same walk with H reset to [0, 1] at every
+vertex, which forgets height correlation.
+
+- ``sample``: the walk's exit direction and throughput (Algorithm 1, with the
+  exit decided from the interval's escape fraction, which is the same random
+  variable as tracing a ray from a uniformly drawn height);
+- ``eval``: next-event estimation toward ω_o at every vertex (Algorithm 2; with
+  a mirror tangent facet, Algorithm 3 and its H_r term), an unbiased estimate of
+  f·⟨ω_o, ω_g⟩;
+- ``mis_pdf``: a deterministic density for MIS (MODEL.md §2.8): the explicit
+  low-order terms plus a cosine lobe for the rest.
+"""
+
+from __future__ import annotations
+
+import drjit as dr
+import mitsuba as mi
+
+from . import analytic
+from . import microsurface as ms
+from .microsurface import negate
+from .shading import ONE_MINUS_EPS, hash_floats, select_frame, uniform
+
+SAMPLE_SALT = 0x6d666e32
+EVAL_SALT = 0x6d666e33
+
+
+def _walk(sp, separable, specular_t, max_bounces, active, wo=None, sample1=None, sample2=None):
+    """Run the walk; in eval mode (``wo`` given) accumulate NEE toward wo.
+
+    Returns (exit direction, throughput, escaped, non-delta, L).
+    """
+    eval_mode = wo is not None
+    wi = sp.wi
+    n = dr.width(wi)
+    wt, cot = sp.wt, ms.cot_p(sp.wp, sp.sin_p)
+    active = mi.Bool(active) & (wi.z > 0)
+
+    if eval_mode:
+        seed = hash_floats(EVAL_SALT, wi.x, wi.y, wo.x, wo.y, sp.si.p.x, sp.si.p.y, sp.si.p.z)
+        u0 = uniform(seed, 0xFFFFFFFF)
+    else:
+        seed = hash_floats(SAMPLE_SALT, sample1, sample2.x, sample2.y)
+        u0 = sample1
+
+    # First facet, chosen by the intersection probability from wi.
+    lp = sp.lambda_p(wi)
+    on_p = u0 < lp
+    s1_first = dr.clip(dr.select(on_p, u0 / dr.maximum(lp, 1e-30), (u0 - lp) / dr.maximum(1.0 - lp, 1e-30)),
+                       0.0, ONE_MINUS_EPS)
+    # Initial height interval: the part of the facet visible from wi (Algorithm 2).
+    a = mi.Float(0.0) if separable else 1.0 - sp.G1(wi, on_p)
+    b = mi.Float(1.0)
+
+    if eval_mode:
+        g_o_p, g_o_t = sp.G1_p(wo), sp.G1_t(wo)
+        if specular_t:
+            # Heights on p whose ray along ω'_o = flip_t(ω_o) reflects off t toward ω_o (H_r, §3.5)
+            wo_m = sp.flip_t(wo)
+            r_hi = 1.0 - sp.G1_p(wo_m)
+            r_lo = dr.select(g_o_t > 0, (1.0 - g_o_t) * r_hi, r_hi)
+
+    state = (
+        dr.zeros(mi.Vector3f, n) - wi,          # d: travel direction
+        dr.full(mi.Spectrum, 1.0, n),           # e: throughput
+        mi.Bool(on_p),                          # current facet
+        dr.zeros(mi.Float, n) + a, dr.zeros(mi.Float, n) + b,  # H = [a, b]
+        dr.zeros(mi.Spectrum, n),               # L: NEE estimate
+        dr.zeros(mi.UInt32, n),                 # bounce count
+        mi.Bool(active),                        # still walking
+        dr.zeros(mi.Bool, n),                   # left the microsurface
+        dr.zeros(mi.Bool, n),                   # sampled a non-delta lobe on the way
+    )
+
+    def cond(d, e, on_p, a, b, L, depth, walking, escaped, nondelta):
+        return walking
+
+    def body(d, e, on_p, a, b, L, depth, walking, escaped, nondelta):
+        frame = select_frame(on_p, sp.frame_p, sp.frame_t)
+        mirror = negate(on_p) if specular_t else mi.Bool(False)
+        width = dr.maximum(b - a, 1e-30)
+
+        # Next-event estimation toward wo from this vertex (Algorithms 2 and 3).
+        if eval_mode:
+            g_o = dr.select(on_p, g_o_p, g_o_t)
+            w2 = ms.overlap(a, b, 1.0 - g_o, 1.0) / width
+            L += e * sp.eval(frame, -d, wo, walking & negate(mirror) & (w2 > 0)) * w2
+            if specular_t:
+                wr = dr.select(g_o_t > 0, ms.overlap(a, b, r_lo, r_hi) / width, 0.0)
+                L += e * sp.eval(sp.frame_p, -d, wo_m, walking & on_p & (wr > 0)) * wr
+
+        # Continue: sample the facet's BSDF, or mirror off a specular tangent facet.
+        first = depth == 0
+        c = depth * 4
+        s1 = uniform(seed, c + 1)
+        if not eval_mode:
+            s1 = dr.select(first, s1_first, s1)
+        s2 = mi.Point2f(uniform(seed, c + 2), uniform(seed, c + 3))
+        if not eval_mode:
+            s2 = dr.select(first, mi.Point2f(sample2), s2)
+        bs, w = sp.sample(frame, -d, s1, s2, walking & negate(mirror))
+        d_new = dr.select(mirror, ms.flip_t(d, wt), bs.wo)
+        w = dr.select(mirror, 1.0, w)
+        ok = (dr.dot(d_new, frame.n) > 0) & (mirror | (bs.pdf > 0)) & dr.any(w > 0) & dr.all(dr.isfinite(w))
+        nondelta |= walking & negate(mirror) & negate(mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta))
+        e = e * w
+
+        # Where does the ray hit the other facet, or does it leave (κ, §3.2)?
+        k = ms.kappa(on_p, d_new, wt, cot)
+        leaves = ok & (uniform(seed, c) < ms.escape_fraction(a, b, k))
+        stays = ok & negate(leaves)
+        a = dr.select(stays, 0.0 if separable else k * a, a)
+        b = dr.select(stays, 1.0 if separable else dr.minimum(k * b, 1.0), b)
+        depth += 1
+        escaped |= leaves
+        return (d_new, e, on_p ^ stays, a, b, L, depth, stays & (depth < max_bounces), escaped, nondelta)
+
+    d, e, _, _, _, L, _, _, escaped, nondelta = dr.while_loop(state, cond, body, label="mfnormal_walk")
+    return d, e, escaped, nondelta, L
+
+
+def eval(sp, wo, separable, specular_t, max_bounces, active):
+    """Unbiased NEE estimate of f·⟨wo, z⟩, deterministic per query."""
+    active = mi.Bool(active) & (sp.wi.z > 0) & (wo.z > 0)
+    L = _walk(sp, separable, specular_t, max_bounces, active, wo=wo)[4]
+    return dr.select(active & dr.all(dr.isfinite(L)), dr.maximum(L, 0.0), 0.0)
+
+
+def mis_pdf(sp, wo, specular_t, active):
+    """Deterministic density for MIS: explicit low-order terms + (1 − cosθ_p)·cos/π."""
+    wi = sp.wi
+    active = mi.Bool(active) & (wi.z > 0) & (wo.z > 0)
+    if specular_t:
+        explicit = analytic.eval_pdf(sp, wo, active, want_value=False)[1]
+    else:
+        lp = sp.lambda_p(wi)
+        g_p, g_t = sp.G1_p(wo), sp.G1_t(wo)
+        explicit = (lp * g_p * sp.pdf(sp.frame_p, wi, wo, active & (lp * g_p > 0))
+                    + (1.0 - lp) * g_t * sp.pdf(sp.frame_t, wi, wo, active & ((1.0 - lp) * g_t > 0)))
+    rest = (1.0 - sp.wp.z) * dr.maximum(wo.z, 0.0) * dr.inv_pi
+    pdf = explicit + rest
+    return dr.select(active & dr.isfinite(pdf), pdf, 0.0)
+
+
+def sample(sp, sample1, sample2, separable, specular_t, max_bounces, active):
+    """Walk from wi until the ray leaves: (BSDFSample3f, throughput)."""
+    d, e, escaped, nondelta, _ = _walk(sp, separable, specular_t, max_bounces, active,
+                                       sample1=sample1, sample2=sample2)
+    valid = escaped & (d.z > 0) & dr.all(dr.isfinite(e)) & dr.all(dr.isfinite(d))
+    bs = dr.zeros(mi.BSDFSample3f, dr.width(d))
+    bs.wo = d
+    bs.eta = 1.0
+    bs.sampled_component = 0
+    bs.sampled_type = dr.select(nondelta, mi.UInt32(+mi.BSDFFlags.GlossyReflection),
+                                mi.UInt32(+mi.BSDFFlags.DeltaReflection))
+    pdf = mis_pdf(sp, d, specular_t, valid & nondelta)
+    bs.pdf = dr.select(nondelta, pdf, 1.0)
+    valid &= bs.pdf > 0
+    bs.pdf = dr.select(valid, bs.pdf, 0.0)
+    return bs, dr.select(valid, dr.maximum(e, 0.0), 0.0)
