@@ -153,3 +153,10 @@ def escape_fraction(a, b, k):
 def overlap(a, b, lo, hi):
     """|[a, b] ∩ [lo, hi]|."""
     return dr.maximum(dr.minimum(b, hi) - dr.maximum(a, lo), 0.0)
+
+
+def fraction_inside(a, b, lo, hi):
+    """|[a, b] ∩ [lo, hi]| / |[a, b]|; for a point (a = b), whether it lies in [lo, hi]."""
+    point = (a >= lo) & (a <= hi)
+    return dr.select(b - a > 0, overlap(a, b, lo, hi) / dr.maximum(b - a, 1e-30),
+                     dr.select(point, 1.0, 0.0))

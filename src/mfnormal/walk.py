@@ -32,9 +32,13 @@ SAMPLE_SALT = 0x6d666e32
 EVAL_SALT = 0x6d666e33
 
 
-def _walk(sp, separable, specular_t, max_bounces, active, wo=None, sample1=None, sample2=None):
+def _walk(sp, separable, specular_t, max_bounces, active, wo=None, sample1=None, sample2=None,
+          sampled_height=False):
     """Run the walk; in eval mode (``wo`` given) accumulate NEE toward wo.
 
+    ``sampled_height`` (non-separable only) replaces the height interval by one
+    height drawn uniformly in it, with binary shadow tests: the naive evaluation
+    that the supplemental's interval tracking improves on (kept for validation).
     Returns (exit direction, throughput, escaped, non-delta, L).
     """
     eval_mode = wo is not None
@@ -58,6 +62,8 @@ def _walk(sp, separable, specular_t, max_bounces, active, wo=None, sample1=None,
     # Initial height interval: the part of the facet visible from wi (Algorithm 2).
     a = mi.Float(0.0) if separable else 1.0 - sp.G1(wi, on_p)
     b = mi.Float(1.0)
+    if sampled_height and not separable:
+        a = b = 1.0 - uniform(seed, 0xFFFFFFFE) * sp.G1(wi, on_p)
 
     if eval_mode:
         g_o_p, g_o_t = sp.G1_p(wo), sp.G1_t(wo)
@@ -85,15 +91,14 @@ def _walk(sp, separable, specular_t, max_bounces, active, wo=None, sample1=None,
     def body(d, e, on_p, a, b, L, depth, walking, escaped, nondelta):
         frame = select_frame(on_p, sp.frame_p, sp.frame_t)
         mirror = negate(on_p) if specular_t else mi.Bool(False)
-        width = dr.maximum(b - a, 1e-30)
 
         # Next-event estimation toward wo from this vertex (Algorithms 2 and 3).
         if eval_mode:
             g_o = dr.select(on_p, g_o_p, g_o_t)
-            w2 = ms.overlap(a, b, 1.0 - g_o, 1.0) / width
+            w2 = ms.fraction_inside(a, b, 1.0 - g_o, 1.0)
             L += e * sp.eval(frame, -d, wo, walking & negate(mirror) & (w2 > 0)) * w2
             if specular_t:
-                wr = dr.select(g_o_t > 0, ms.overlap(a, b, r_lo, r_hi) / width, 0.0)
+                wr = dr.select(g_o_t > 0, ms.fraction_inside(a, b, r_lo, r_hi), 0.0)
                 L += e * sp.eval(sp.frame_p, -d, wo_m, walking & on_p & (wr > 0)) * wr
 
         # Continue: sample the facet's BSDF, or mirror off a specular tangent facet.
@@ -115,6 +120,8 @@ def _walk(sp, separable, specular_t, max_bounces, active, wo=None, sample1=None,
         # Where does the ray hit the other facet, or does it leave (κ, §3.2)?
         k = ms.kappa(on_p, d_new, wt, cot)
         leaves = ok & (uniform(seed, c) < ms.escape_fraction(a, b, k))
+        if sampled_height:
+            leaves = ok & (k * a > 1.0)
         stays = ok & negate(leaves)
         a = dr.select(stays, 0.0 if separable else k * a, a)
         b = dr.select(stays, 1.0 if separable else dr.minimum(k * b, 1.0), b)
@@ -126,10 +133,10 @@ def _walk(sp, separable, specular_t, max_bounces, active, wo=None, sample1=None,
     return d, e, escaped, nondelta, L
 
 
-def eval(sp, wo, separable, specular_t, max_bounces, active):
+def eval(sp, wo, separable, specular_t, max_bounces, active, sampled_height=False):
     """Unbiased NEE estimate of f·⟨wo, z⟩, deterministic per query."""
     active = mi.Bool(active) & (sp.wi.z > 0) & (wo.z > 0)
-    L = _walk(sp, separable, specular_t, max_bounces, active, wo=wo)[4]
+    L = _walk(sp, separable, specular_t, max_bounces, active, wo=wo, sampled_height=sampled_height)[4]
     return dr.select(active & dr.all(dr.isfinite(L)), dr.maximum(L, 0.0), 0.0)
 
 

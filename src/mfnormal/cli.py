@@ -1,0 +1,193 @@
+"""The ``mfnormal`` command line: render scenes that use the plugin, and the bundled demo.
+
+    mfnormal render SCENE.xml [-o OUT] [--spp N] [--variant V] [-D key=value ...]
+    mfnormal demo [-o OUT] [--spp N] [--model M]
+
+Every error is one line on stderr and a non-zero exit code; outputs are written
+atomically (a linear EXR and a tonemapped PNG).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import re
+import sys
+import time
+from pathlib import Path
+
+DEFAULT_VARIANT = "llvm_ad_rgb"
+
+
+class CLIError(Exception):
+    """An error to report as one line, without a traceback."""
+
+
+def _one_line(exc: BaseException) -> str:
+    """The gist of a (possibly multi-line, nested) Mitsuba error."""
+    text = str(exc).strip()
+    # Mitsuba wraps plugin errors: keep the innermost message.
+    lines = [ln.strip() for ln in text.splitlines() if ln.strip()]
+    for ln in reversed(lines):
+        if re.match(r"^(ValueError|TypeError|RuntimeError|KeyError|Exception):", ln):
+            return ln.split(":", 1)[1].strip()
+    msg = lines[0] if lines else type(exc).__name__
+    return re.sub(r"\[[\w./]+:\d+\]\s*", "", msg)
+
+
+def setup_variant(variant: str):
+    """Import Mitsuba in ``variant`` with the plugin registered, or raise CLIError."""
+    import mfnormal
+    import mitsuba as mi
+
+    if variant not in mi.variants():
+        raise CLIError(f"variant '{variant}' is not available in this Mitsuba build; "
+                       f"choose one of: {', '.join(v for v in mi.variants() if 'rgb' in v)}")
+    try:
+        mi.set_variant(variant)
+    except Exception as exc:  # e.g. cuda_* without a GPU
+        raise CLIError(f"cannot use variant '{variant}': {_one_line(exc)}") from None
+    mfnormal.register()
+    return mi
+
+
+def parse_defines(defines: list[str]) -> dict[str, str]:
+    params = {}
+    for item in defines or []:
+        if "=" not in item:
+            raise CLIError(f"-D expects key=value, got '{item}'")
+        key, value = item.split("=", 1)
+        params[key.strip()] = value
+    return params
+
+
+def load_scene(mi, path, params: dict[str, str]):
+    path = Path(path)
+    if not path.is_file():
+        raise CLIError(f"scene file not found: {path}")
+    try:
+        return mi.load_file(str(path), **params)
+    except Exception as exc:
+        raise CLIError(f"cannot load {path}: {_one_line(exc)}") from None
+
+
+class Progress:
+    """A one-line progress bar with ETA on a terminal; silent when piped."""
+
+    def __init__(self, total: int, stream=sys.stderr):
+        self.total, self.stream = total, stream
+        self.enabled = stream.isatty()
+        self.start = time.time()
+
+    def update(self, done: int):
+        if not self.enabled:
+            return
+        elapsed = time.time() - self.start
+        eta = elapsed / done * (self.total - done) if done else 0.0
+        bar = "#" * int(30 * done / self.total)
+        self.stream.write(f"\r[{bar:<30}] {done}/{self.total} passes, {elapsed:5.1f}s, ETA {eta:5.1f}s")
+        if done == self.total:
+            self.stream.write("\n")
+        self.stream.flush()
+
+
+def render_scene(mi, scene, spp: int | None = None, passes: int | None = None, seed: int = 0, progress=True):
+    """Render in passes (for the progress bar) and average them; returns linear RGB (numpy)."""
+    import numpy as np
+
+    sensor = scene.sensors()[0]
+    total = int(spp or sensor.sampler().sample_count())
+    passes = max(1, min(total, passes or (8 if total >= 8 else total)))
+    counts = [total // passes + (1 if i < total % passes else 0) for i in range(passes)]
+    bar = Progress(passes) if progress else None
+    acc = None
+    for i, n in enumerate(counts):
+        img = np.array(mi.render(scene, spp=n, seed=seed * 1000003 + i), dtype=np.float64)
+        acc = img * n if acc is None else acc + img * n
+        if bar:
+            bar.update(i + 1)
+    rgb = (acc / total).astype(np.float32)
+    return rgb[..., :3] if rgb.ndim == 3 else rgb
+
+
+def _finish(mi, rgb, output, started, spp, variant):
+    import mfnormal
+
+    from .images import sanitize, save_render
+
+    rgb, bad = sanitize(rgb)
+    if bad:
+        print(f"warning: {bad} pixel(s) were NaN/Inf and were written as 0", file=sys.stderr)
+    exr, png = save_render(rgb, output)
+    print(f"variant {variant}, libLLVM {mfnormal.LLVM_PATH}")
+    print(f"rendered {rgb.shape[1]}x{rgb.shape[0]} at {spp} spp in {time.time() - started:.1f}s")
+    print(f"wrote {exr}\nwrote {png}")
+    return 0
+
+
+def cmd_render(args) -> int:
+    mi = setup_variant(args.variant)
+    params = parse_defines(args.define)
+    started = time.time()
+    scene = load_scene(mi, args.scene, params)
+    spp = args.spp or scene.sensors()[0].sampler().sample_count()
+    try:
+        rgb = render_scene(mi, scene, spp, seed=args.seed)
+    except Exception as exc:
+        raise CLIError(f"render failed: {_one_line(exc)}") from None
+    output = args.output or Path("out") / Path(args.scene).stem
+    return _finish(mi, rgb, output, started, spp, args.variant)
+
+
+def cmd_demo(args) -> int:
+    from . import demo
+
+    argv = ["-o", str(args.output)] if args.output else []
+    if args.spp:
+        argv += ["--spp", str(args.spp)]
+    if args.model:
+        argv += ["--model", args.model]
+    return demo.main(argv)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="mfnormal", description=__doc__.split("\n\n")[0])
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    r = sub.add_parser("render", help="render a Mitsuba 3 scene (XML) that may use normalmap_microfacet")
+    r.add_argument("scene", help="scene file (.xml)")
+    r.add_argument("-o", "--output", help="output path without extension (writes .exr and .png)")
+    r.add_argument("--spp", type=int, help="samples per pixel (default: the scene's)")
+    r.add_argument("--variant", default=DEFAULT_VARIANT, help=f"Mitsuba variant (default {DEFAULT_VARIANT})")
+    r.add_argument("--seed", type=int, default=0)
+    r.add_argument("-D", "--define", action="append", metavar="KEY=VALUE", help="scene parameter ($KEY)")
+    r.set_defaults(func=cmd_render)
+
+    d = sub.add_parser("demo", help="render the bundled demo scene")
+    d.add_argument("-o", "--output", help="output path (default out/demo.png)")
+    d.add_argument("--spp", type=int)
+    d.add_argument("--model")
+    d.set_defaults(func=cmd_demo)
+    return parser
+
+
+def main(argv=None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if getattr(args, "spp", None) is not None and args.spp < 1:
+        parser.error("--spp must be >= 1")
+    try:
+        return args.func(args)
+    except CLIError as exc:
+        print(f"mfnormal: error: {exc}", file=sys.stderr)
+        return 2
+    except ImportError as exc:  # e.g. no usable libLLVM
+        print(f"mfnormal: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("mfnormal: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())
