@@ -21,20 +21,22 @@ from __future__ import annotations
 import argparse
 import copy
 import os
+import re
 import sys
-import tempfile
 import time
 import warnings
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
-import mfnormal
+import numpy as np
 
-import numpy as np  # noqa: E402
-import mitsuba as mi  # noqa: E402
+import mfnormal  # before mitsuba: selects a working libLLVM for Dr.Jit
+import mitsuba as mi
 
-__all__ = ["SCENE_XML", "generate_assets", "make_normalmap", "make_envmap",
-           "demo_scene", "render", "save_image", "main"]
+from .images import atomic_write, output_paths, sanitize, save_render
+
+__all__ = ["SCENE_XML", "generate_assets", "make_normalmap", "make_envmap", "demo_scene",
+           "xml_to_dict", "load_scene", "render_scene", "render", "main"]
 
 #: The demo scene (single source of truth).
 SCENE_XML = Path(__file__).resolve().parent / "scenes" / "demo.xml"
@@ -148,33 +150,16 @@ def make_envmap(width: int = 256, height: int = 128,
     return rgb.astype(np.float32)
 
 
-def _atomic_write(bitmap: "mi.Bitmap", path: Path, fmt: "mi.Bitmap.FileFormat") -> None:
-    """Write ``bitmap`` to a temporary file next to ``path``, then rename."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    os.close(fd)
-    try:
-        bitmap.write(tmp, fmt)
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except OSError:
-            pass
-        raise
-
-
 def generate_assets(assets_dir) -> dict:
     """Write the procedural textures into ``assets_dir``; returns their paths
     as ``{'normalmap': Path, 'envmap': Path}``. Deterministic and fast (well
     under a second), so the files are simply rewritten every time."""
     assets_dir = Path(assets_dir)
     paths = {"normalmap": assets_dir / NORMALMAP_NAME, "envmap": assets_dir / ENVMAP_NAME}
-    _atomic_write(mi.Bitmap(encode_normalmap(make_normalmap())), paths["normalmap"],
-                  mi.Bitmap.FileFormat.PNG)
-    _atomic_write(mi.Bitmap(make_envmap(), mi.Bitmap.PixelFormat.RGB), paths["envmap"],
-                  mi.Bitmap.FileFormat.OpenEXR)
+    normals = mi.Bitmap(encode_normalmap(make_normalmap()))
+    sky = mi.Bitmap(make_envmap(), mi.Bitmap.PixelFormat.RGB)
+    atomic_write(paths["normalmap"], lambda p: normals.write(str(p), mi.Bitmap.FileFormat.PNG))
+    atomic_write(paths["envmap"], lambda p: sky.write(str(p), mi.Bitmap.FileFormat.OpenEXR))
     return paths
 
 
@@ -291,10 +276,7 @@ def xml_to_dict(path, **params) -> dict:
     values.update({k: str(v) for k, v in params.items()})
 
     def subst(text: str) -> str:
-        # longest names first, so that $spp_x never matches $spp
-        for k in sorted(values, key=len, reverse=True):
-            text = text.replace("$" + k, values[k])
-        return text
+        return re.sub(r"\$(\w+)", lambda m: values.get(m.group(1), m.group(0)), text)
 
     scene = _element_to_dict(root, subst)
 
@@ -354,59 +336,32 @@ def demo_scene(model: str = "analytic", bsdf: dict | None = None, spp: int = DEF
 # Rendering and output
 # ---------------------------------------------------------------------------
 
-def render(model: str = "analytic", spp: int = DEFAULT_SPP, resolution=DEFAULT_RESOLUTION,
-           assets_dir=None, strength: float = 1.0, max_depth: int = DEFAULT_MAX_DEPTH,
-           seed: int = 0) -> np.ndarray:
-    """Render the demo scene in the active variant; returns linear RGB (H x W x 3).
+def load_scene(model: str = "analytic", spp: int = DEFAULT_SPP, resolution=DEFAULT_RESOLUTION,
+               assets_dir=None, strength: float = 1.0,
+               max_depth: int = DEFAULT_MAX_DEPTH) -> "mi.Scene":
+    """Generate the textures and load the demo scene in the active variant.
 
     Loads :data:`SCENE_XML` with ``mi.load_file``; ``model='classic'`` goes
     through :func:`demo_scene` instead (the XML names the plugin).
     """
     if model == CLASSIC:
-        scene = mi.load_dict(demo_scene(model=model, spp=spp, resolution=resolution,
-                                        assets_dir=assets_dir, strength=strength,
-                                        max_depth=max_depth))
-    else:
-        assets = generate_assets(default_assets_dir() if assets_dir is None else assets_dir)
-        params = scene_parameters(model=model, spp=spp, resolution=resolution,
-                                  assets=assets, strength=strength, max_depth=max_depth)
-        scene = mi.load_file(str(SCENE_XML), **params)
-    image = mi.render(scene, seed=seed)
-    return np.array(image, dtype=np.float32)[..., :3]
+        return mi.load_dict(demo_scene(model=model, spp=spp, resolution=resolution,
+                                       assets_dir=assets_dir, strength=strength,
+                                       max_depth=max_depth))
+    assets = generate_assets(default_assets_dir() if assets_dir is None else assets_dir)
+    params = scene_parameters(model=model, spp=spp, resolution=resolution,
+                              assets=assets, strength=strength, max_depth=max_depth)
+    return mi.load_file(str(SCENE_XML), **params)
 
 
-def tonemap(rgb: np.ndarray, exposure: float = 0.0) -> np.ndarray:
-    """Exposure (in stops), clamp to [0, 1] and sRGB-encode to uint8."""
-    x = np.clip(rgb * (2.0 ** exposure), 0.0, 1.0)
-    x = np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1.0 / 2.4) - 0.055)
-    return np.clip(np.round(x * 255.0), 0, 255).astype(np.uint8)
+def render_scene(scene: "mi.Scene", seed: int = 0) -> np.ndarray:
+    """Render ``scene``; returns linear RGB (H x W x 3, float32, evaluated)."""
+    return np.array(mi.render(scene, seed=seed), dtype=np.float32)[..., :3]
 
 
-def sanitize(rgb: np.ndarray) -> tuple:
-    """Replace NaN/Inf by 0; returns (clean image, number of bad pixels)."""
-    bad = ~np.isfinite(rgb)
-    count = int(np.count_nonzero(bad.any(axis=-1)))
-    if count:
-        rgb = np.where(bad, 0.0, rgb).astype(np.float32)
-    return rgb, count
-
-
-def output_paths(output) -> tuple:
-    """(exr, png) paths for an output name such as ``out/demo.png``."""
-    p = Path(output)
-    if p.suffix.lower() in (".png", ".exr"):
-        p = p.with_suffix("")
-    return p.with_name(p.name + ".exr"), p.with_name(p.name + ".png")
-
-
-def save_image(rgb: np.ndarray, output, exposure: float = 0.0) -> tuple:
-    """Write a linear EXR and a tonemapped sRGB PNG (atomically); returns their paths."""
-    exr, png = output_paths(output)
-    rgb = np.ascontiguousarray(rgb, dtype=np.float32)
-    _atomic_write(mi.Bitmap(rgb, mi.Bitmap.PixelFormat.RGB), exr, mi.Bitmap.FileFormat.OpenEXR)
-    _atomic_write(mi.Bitmap(tonemap(rgb, exposure), mi.Bitmap.PixelFormat.RGB), png,
-                  mi.Bitmap.FileFormat.PNG)
-    return exr, png
+def render(seed: int = 0, **kwargs) -> np.ndarray:
+    """:func:`load_scene` (``kwargs``) + :func:`render_scene`: linear RGB (H x W x 3)."""
+    return render_scene(load_scene(**kwargs), seed=seed)
 
 
 def _resolution(text: str) -> tuple:
@@ -465,17 +420,19 @@ def main(argv=None) -> int:
     sys.stdout.flush()
 
     t0 = time.perf_counter()
-    rgb = render(model=args.model, spp=args.spp, resolution=args.resolution,
-                 assets_dir=assets_dir, strength=args.strength, max_depth=args.max_depth,
-                 seed=args.seed)
-    elapsed = time.perf_counter() - t0
+    scene = load_scene(model=args.model, spp=args.spp, resolution=args.resolution,
+                       assets_dir=assets_dir, strength=args.strength, max_depth=args.max_depth)
+    t1 = time.perf_counter()
+    rgb = render_scene(scene, seed=args.seed)
+    t2 = time.perf_counter()
 
     rgb, bad = sanitize(rgb)
     if bad:
-        msg = f"{bad} pixel(s) had NaN/Inf values and were set to 0"
-        warnings.warn(msg, RuntimeWarning, stacklevel=2)
-    exr_path, png_path = save_image(rgb, args.output, exposure=args.exposure)
-    print(f"render  : {elapsed:.1f} s (scene loading, JIT compilation and rendering)")
+        warnings.warn(f"{bad} pixel(s) had NaN/Inf values and were written as 0",
+                      RuntimeWarning, stacklevel=2)
+    exr_path, png_path = save_render(rgb, args.output, exposure=args.exposure)
+    print(f"load    : {t1 - t0:.1f} s (texture generation and scene loading)")
+    print(f"render  : {t2 - t1:.1f} s (JIT compilation and rendering)")
     print(f"wrote   : {exr_path}")
     print(f"wrote   : {png_path}")
     return 0
