@@ -209,14 +209,14 @@ class NormalMapMicrofacet:
         sp = self._shading_point(ctx, si, active)
         if self.model == "analytic":
             return analytic.eval_pdf(sp, wo, mi.Bool(active), want_value=False)[1]
-        return walk.mis_pdf(sp, wo, self.tangent_facet == "specular", mi.Bool(active))
+        return walk.mis_pdf(sp, wo, *self._walk_args()[:2], mi.Bool(active))
 
     def eval_pdf(self, ctx, si, wo, active=True):
         sp = self._shading_point(ctx, si, active)
         if self.model == "analytic":
             return analytic.eval_pdf(sp, wo, mi.Bool(active))
         return (walk.eval(sp, wo, *self._walk_args(), mi.Bool(active)),
-                walk.mis_pdf(sp, wo, self.tangent_facet == "specular", mi.Bool(active)))
+                walk.mis_pdf(sp, wo, *self._walk_args()[:2], mi.Bool(active)))
 
     def to_string(self):
         return (f"NormalMapMicrofacet[model={self.model}, tangent_facet={self.tangent_facet}, "

@@ -140,17 +140,50 @@ def eval(sp, wo, separable, specular_t, max_bounces, active, sampled_height=Fals
     return dr.select(active & dr.all(dr.isfinite(L)), dr.maximum(L, 0.0), 0.0)
 
 
-def mis_pdf(sp, wo, specular_t, active):
-    """Deterministic density for MIS: explicit low-order terms + (1 − cosθ_p)·cos/π."""
+def mis_pdf(sp, wo, separable, specular_t, active):
+    """Deterministic density for MIS (MODEL.md §2.8).
+
+    The exact density of walks that leave after their first nested sample
+    (with a mirror tangent facet: including the mirror legs i→p→t→o and
+    i→t→p→o), using the model's own escape probabilities, plus a cosine lobe
+    of weight 1 − cosθ_p for the longer walks. For white Lambertian facets and
+    a mirror tangent facet the separable walk's density is exactly cosθ_o/π,
+    and so is this pdf when λ_t(ω_i) = 0.
+    """
     wi = sp.wi
     active = mi.Bool(active) & (wi.z > 0) & (wo.z > 0)
+    wt, cot = sp.wt, ms.cot_p(sp.wp, sp.sin_p)
+    lp = sp.lambda_p(wi)
+    true_, false_ = mi.Bool(True), mi.Bool(False)
+
+    def start(on_p):
+        """Initial height interval on facet m, seen from wi."""
+        return (mi.Float(0.0), mi.Float(1.0)) if separable else (1.0 - sp.G1(wi, on_p), mi.Float(1.0))
+
+    def escape(h, on_p, d):
+        return ms.escape_fraction(h[0], h[1], ms.kappa(on_p, d, wt, cot))
+
+    def land(h, on_p, d):
+        """Interval on the other facet reached by the rays that do not escape."""
+        if separable:
+            return mi.Float(0.0), mi.Float(1.0)
+        k = ms.kappa(on_p, d, wt, cot)
+        return k * h[0], dr.minimum(k * h[1], 1.0)
+
+    h_p = start(true_)
     if specular_t:
-        explicit = analytic.eval_pdf(sp, wo, active, want_value=False)[1]
+        wo_m, wi_m = sp.flip_t(wo), sp.flip_t(wi)
+        e1 = lp * escape(h_p, true_, wo)                                                  # i→p→o
+        e2 = lp * (1.0 - escape(h_p, true_, wo_m)) * escape(land(h_p, true_, wo_m), false_, wo)  # i→p→t→o
+        e3 = (1.0 - lp) * escape(land(start(false_), false_, -wi_m), true_, wo)         # i→t→p→o
+        explicit = (sp.pdf(sp.frame_p, wi, wo, active & (e1 > 0)) * e1
+                    + sp.pdf(sp.frame_p, wi, wo_m, active & (e2 > 0)) * e2
+                    + sp.pdf(sp.frame_p, wi_m, wo, active & (e3 > 0)) * e3)
     else:
-        lp = sp.lambda_p(wi)
-        g_p, g_t = sp.G1_p(wo), sp.G1_t(wo)
-        explicit = (lp * g_p * sp.pdf(sp.frame_p, wi, wo, active & (lp * g_p > 0))
-                    + (1.0 - lp) * g_t * sp.pdf(sp.frame_t, wi, wo, active & ((1.0 - lp) * g_t > 0)))
+        e1 = lp * escape(h_p, true_, wo)
+        e2 = (1.0 - lp) * escape(start(false_), false_, wo)
+        explicit = (sp.pdf(sp.frame_p, wi, wo, active & (e1 > 0)) * e1
+                    + sp.pdf(sp.frame_t, wi, wo, active & (e2 > 0)) * e2)
     rest = (1.0 - sp.wp.z) * dr.maximum(wo.z, 0.0) * dr.inv_pi
     pdf = explicit + rest
     return dr.select(active & dr.isfinite(pdf), pdf, 0.0)
@@ -167,7 +200,7 @@ def sample(sp, sample1, sample2, separable, specular_t, max_bounces, active):
     bs.sampled_component = 0
     bs.sampled_type = dr.select(nondelta, mi.UInt32(+mi.BSDFFlags.GlossyReflection),
                                 mi.UInt32(+mi.BSDFFlags.DeltaReflection))
-    pdf = mis_pdf(sp, d, specular_t, valid & nondelta)
+    pdf = mis_pdf(sp, d, separable, specular_t, valid & nondelta)
     bs.pdf = dr.select(nondelta, pdf, 1.0)
     valid &= bs.pdf > 0
     bs.pdf = dr.select(valid, bs.pdf, 0.0)
