@@ -21,6 +21,16 @@ if ! have_llvm && [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then
     fi
 fi
 
+# 1b. Headless Chromium for the report test (tests/test_report.py skips without it).
+if { ! command -v chromium >/dev/null 2>&1 || ! command -v chromedriver >/dev/null 2>&1; } && [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then
+    echo "setup: installing chromium and chromium-driver (browser test of the HTML report)"
+    export DEBIAN_FRONTEND=noninteractive
+    if ! apt-get install -y -qq chromium chromium-driver >/dev/null 2>&1; then
+        apt-get update -qq >/dev/null 2>&1 || true
+        apt-get install -y -qq chromium chromium-driver >/dev/null 2>&1 || echo "setup: apt could not install chromium"
+    fi
+fi
+
 # 2. The virtual environment and the package (pins live in pyproject.toml).
 if [ ! -x .venv/bin/python ]; then
     "$PYTHON" -m venv .venv

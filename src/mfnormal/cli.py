@@ -2,6 +2,7 @@
 
     mfnormal render SCENE.xml [-o OUT] [--spp N] [--variant V] [-D key=value ...]
     mfnormal demo [-o OUT] [--spp N] [--model M]
+    mfnormal compare SCENE [SCENE ...] [-o DIR] [--spp N] [--ref-spp N] [--quick]
 
 Every error is one line on stderr and a non-zero exit code; outputs are written
 atomically (a linear EXR and a tonemapped PNG).
@@ -12,6 +13,7 @@ from __future__ import annotations
 import argparse
 import os
 import re
+import shlex
 import sys
 import time
 from pathlib import Path
@@ -32,7 +34,10 @@ def _one_line(exc: BaseException) -> str:
         if re.match(r"^(ValueError|TypeError|RuntimeError|KeyError|Exception):", ln):
             return ln.split(":", 1)[1].strip()
     msg = lines[0] if lines else type(exc).__name__
-    return re.sub(r"\[[\w./]+:\d+\]\s*", "", msg)
+    msg = re.sub(r"\[[\w./]+:\d+\]\s*", "", msg)
+    # Mitsuba lists the culprits on the following lines ("  - float \"bogus\": 1").
+    items = [ln[1:].strip() for ln in lines[1:] if ln.startswith("- ")]
+    return msg.rstrip(":") + (": " + "; ".join(items) if items else "")
 
 
 def setup_variant(variant: str):
@@ -66,9 +71,15 @@ def load_scene(mi, path, params: dict[str, str]):
     if not path.is_file():
         raise CLIError(f"scene file not found: {path}")
     try:
-        return mi.load_file(str(path), **params)
+        scene = mi.load_file(str(path), **params)
     except Exception as exc:
         raise CLIError(f"cannot load {path}: {_one_line(exc)}") from None
+    from .scene_checks import check_scene
+    try:
+        check_scene(scene)
+    except ValueError as exc:
+        raise CLIError(f"{path}: {exc}") from None
+    return scene
 
 
 class Progress:
@@ -150,6 +161,55 @@ def cmd_demo(args) -> int:
     return demo.main(argv)
 
 
+def _width(text: str) -> int:
+    v = int(text)
+    if v < 8:
+        raise argparse.ArgumentTypeError(f"expected a width of at least 8 pixels, got {text!r}")
+    return v
+
+
+def cmd_compare(args) -> int:
+    """Render SCENE(s) with every normal-mapping method; write DIR/report.html."""
+    import dataclasses
+
+    setup_variant(args.variant)
+    from . import compare
+
+    settings = compare.QUICK if args.quick else compare.Settings()
+    changes = {"seed": args.seed}
+    if args.spp:
+        changes["spp"] = args.spp
+    if args.ref_spp or args.spp:
+        changes["ref_spp"] = args.ref_spp or 4 * changes.get("spp", settings.spp)
+    if args.width:
+        changes["width"] = args.width
+    settings = dataclasses.replace(settings, **changes)
+    methods = compare.METHODS
+    if args.methods:
+        keys = [k.strip() for k in args.methods.split(",") if k.strip()]
+        unknown = [k for k in keys if k not in compare.METHOD_BY_KEY]
+        if unknown:
+            raise CLIError(f"unknown method(s) {', '.join(unknown)}; choose from "
+                           f"{', '.join(compare.METHOD_BY_KEY)}")
+        methods = tuple(compare.METHOD_BY_KEY[k] for k in keys)
+    if args.validation and not Path(args.validation).is_dir():
+        raise CLIError(f"validation directory not found: {args.validation}")
+    for scene in args.scenes:
+        if scene not in compare.BUNDLED and not Path(scene).is_file():
+            raise CLIError(f"scene file not found: {scene} (bundled scenes: {', '.join(compare.BUNDLED)})")
+    out = Path(args.output)
+    command = "mfnormal " + " ".join(shlex.quote(a) for a in getattr(args, "argv", []))
+    try:
+        report = compare.compare(args.scenes, out, settings, methods, validation=args.validation,
+                                 params=parse_defines(args.define), command=command)
+    except compare.SceneError as exc:
+        raise CLIError(str(exc)) from None
+    except Exception as exc:  # e.g. a render that fails deep inside Dr.Jit
+        raise CLIError(f"compare failed: {_one_line(exc)}") from None
+    print(f"wrote {report}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="mfnormal", description=__doc__.split("\n\n")[0])
     sub = parser.add_subparsers(dest="command", required=True)
@@ -168,14 +228,39 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--spp", type=int)
     d.add_argument("--model")
     d.set_defaults(func=cmd_demo)
+
+    c = sub.add_parser("compare", help="render a scene with every normal-mapping method; write an HTML report",
+                       description="Render SCENE once per normal-mapping method (flat, Mitsuba's normalmap "
+                                   "without and with its fixes, normalmap_microfacet's analytic, separable "
+                                   "and non-separable models with both tangent facets) and write a "
+                                   "self-contained DIR/report.html. SCENE is an XML file whose normal-mapped "
+                                   "materials are normalmap_microfacet BSDFs, or a bundled scene: "
+                                   "'demo' (a) or 'model' (b).")
+    c.add_argument("scenes", nargs="+", metavar="SCENE", help="scene file (.xml), 'demo' or 'model'")
+    c.add_argument("-o", "--output", default=os.path.join("out", "compare"),
+                   help="output directory (default out/compare)")
+    c.add_argument("--spp", type=int, help="samples per pixel (default 32; --quick: 2)")
+    c.add_argument("--ref-spp", type=int, help="samples per pixel of the references (default 4x spp)")
+    c.add_argument("--width", type=_width,
+                   help="scale the film down to this width, keeping its aspect (default 320; --quick: 64)")
+    c.add_argument("--methods", help="comma-separated subset of the methods (default: all)")
+    c.add_argument("--validation", metavar="DIR", help="add the PNG figures in DIR to the report")
+    c.add_argument("--quick", action="store_true", help="tiny images and sample counts (for tests)")
+    c.add_argument("--variant", default=DEFAULT_VARIANT, help=f"Mitsuba variant (default {DEFAULT_VARIANT})")
+    c.add_argument("--seed", type=int, default=0)
+    c.add_argument("-D", "--define", action="append", metavar="KEY=VALUE", help="scene parameter ($KEY)")
+    c.set_defaults(func=cmd_compare)
     return parser
 
 
 def main(argv=None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    args.argv = list(sys.argv[1:] if argv is None else argv)
     if getattr(args, "spp", None) is not None and args.spp < 1:
         parser.error("--spp must be >= 1")
+    if getattr(args, "ref_spp", None) is not None and args.ref_spp < 1:
+        parser.error("--ref-spp must be >= 1")
     try:
         return args.func(args)
     except CLIError as exc:

@@ -1,0 +1,240 @@
+"""Bundled scene (b): a normal-mapped torus knot with a textured GGX roughness.
+
+The counterpart of the supplemental's Figures 3 and 5 (an object with strong
+normal-mapped detail and varying roughness, seen at grazing angles), built from
+procedural assets only, so nothing is downloaded:
+
+- :func:`torus_knot_mesh`: a (2, 3) torus knot tube of 20,000 triangles with
+  smooth vertex normals and a seamless UV parametrisation (u along the knot, v
+  around the tube, one UV unit ≈ one tube circumference in both directions);
+- :func:`make_domes_normalmap`: a hexagonal array of spherical domes whose rims
+  tilt to 70° (a strong, seamlessly tiling tangent-space normal map);
+- :func:`make_roughness_map`: GGX α in [0.04, 0.45] in soft bands along the knot;
+- the sky of the demo scene (:func:`mfnormal.demo.make_envmap`).
+
+The scene itself is ``scenes/model.xml`` (:data:`MODEL_XML`); its ``$``
+parameters name the generated files (:func:`model_parameters`).
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+from .images import atomic_write
+
+__all__ = ["MODEL_XML", "torus_knot_mesh", "write_ply", "make_domes_normalmap",
+           "make_roughness_map", "generate_model_assets", "model_parameters"]
+
+#: Scene (b): the model scene (single source of truth).
+MODEL_XML = Path(__file__).resolve().parent / "scenes" / "model.xml"
+
+MESH_NAME = "knot.ply"
+NORMALMAP_NAME = "domes.png"
+ROUGHNESS_NAME = "roughness.exr"
+ENVMAP_NAME = "envmap.exr"
+
+
+# ---------------------------------------------------------------------------
+# Mesh
+# ---------------------------------------------------------------------------
+
+def _knot_curve(t, p=2, q=3, R=1.0, a=0.42):
+    """Points on a (p, q) torus knot around the y axis (y up)."""
+    r = R + a * np.cos(q * t)
+    return np.stack([r * np.cos(p * t), a * np.sin(q * t), r * np.sin(p * t)], axis=-1)
+
+
+def _rotation_minimizing_frames(c):
+    """Normals of a rotation-minimising frame along the closed polyline ``c``
+    (double reflection, Wang et al. 2008), with the holonomy spread evenly so
+    the frame closes up."""
+    n = len(c)
+    tangent = np.roll(c, -1, axis=0) - np.roll(c, 1, axis=0)
+    tangent /= np.linalg.norm(tangent, axis=1, keepdims=True)
+    seed = np.cross(tangent[0], [0.0, 1.0, 0.0])
+    r = np.empty_like(c)
+    r[0] = seed / np.linalg.norm(seed)
+    for i in range(n):
+        j = (i + 1) % n
+        v1 = c[j] - c[i]
+        r_l = r[i] - 2.0 * v1 * (v1 @ r[i]) / (v1 @ v1)
+        t_l = tangent[i] - 2.0 * v1 * (v1 @ tangent[i]) / (v1 @ v1)
+        v2 = tangent[j] - t_l
+        r_next = r_l - 2.0 * v2 * (v2 @ r_l) / max(v2 @ v2, 1e-30)
+        if j == 0:
+            closing = r_next
+        else:
+            r[j] = r_next
+    # Twist the frames so that the last one meets the first.
+    b0 = np.cross(tangent[0], r[0])
+    twist = np.arctan2(closing @ b0, closing @ r[0])
+    angle = -twist * np.arange(n) / n
+    b = np.cross(tangent, r)
+    r = np.cos(angle)[:, None] * r + np.sin(angle)[:, None] * b
+    return tangent, r, np.cross(tangent, r)
+
+
+def torus_knot_mesh(n_u: int = 400, n_v: int = 25, tube: float = 0.27, lift: float = 0.74):
+    """The torus knot tube: ``(positions, normals, uvs, faces)`` as numpy arrays.
+
+    ``2 n_u n_v`` triangles (20,000 by default). The tube radius swells by ±15 %
+    along the knot. Seams are duplicated vertices with identical positions and
+    normals, so shading is continuous and the UVs are seamless: u runs over
+    ``[0, U]`` along the knot with U the (integer) number of tube circumferences
+    in its length, v over ``[1, 0]`` around the tube. Mitsuba's tangent frame is
+    s ∥ dp/du, t = n × s, and t points toward decreasing v, which is image up in
+    Mitsuba's bitmaps (v = 0 is the top row): the OpenGL convention. The knot
+    rests on the plane y = 0.
+    """
+    t = 2.0 * np.pi * np.arange(n_u) / n_u
+    c = _knot_curve(t)
+    _, r, b = _rotation_minimizing_frames(c)
+    rho = tube * (1.0 + 0.15 * np.cos(5.0 * t))[:, None, None]
+    phi = 2.0 * np.pi * np.arange(n_v) / n_v
+    # The minus sign makes v turn so that dp/du x dp/dv points outwards.
+    ring = (np.cos(phi)[None, :, None] * r[:, None, :]
+            - np.sin(phi)[None, :, None] * b[:, None, :])
+    p = c[:, None, :] + rho * ring                           # (n_u, n_v, 3), periodic
+
+    # Smooth normals from central differences on the periodic grid.
+    dpu = np.roll(p, -1, axis=0) - np.roll(p, 1, axis=0)
+    dpv = np.roll(p, -1, axis=1) - np.roll(p, 1, axis=1)
+    nrm = np.cross(dpu, dpv)
+    nrm /= np.linalg.norm(nrm, axis=-1, keepdims=True)
+    if np.mean(np.sum(nrm * ring, axis=-1)) < 0:
+        raise AssertionError("torus knot normals point inwards")
+
+    # Close the grid with duplicated seam vertices.
+    idx_u = np.arange(n_u + 1) % n_u
+    idx_v = np.arange(n_v + 1) % n_v
+    P = p[idx_u][:, idx_v]
+    N = nrm[idx_u][:, idx_v]
+    length = np.sum(np.linalg.norm(np.roll(c, -1, axis=0) - c, axis=1))
+    u_max = max(1, int(round(length / (2.0 * np.pi * tube))))
+    # v runs backwards: Mitsuba's bitmaps put v = 0 on the top row, and the normal
+    # map's +y (image up) must be the frame's t = n x dp/du.
+    uu, vv = np.meshgrid(np.linspace(0.0, u_max, n_u + 1), np.linspace(1.0, 0.0, n_v + 1),
+                         indexing="ij")
+    UV = np.stack([uu, vv], axis=-1)
+
+    P = P.reshape(-1, 3).copy()
+    P[:, 1] += lift
+    N = N.reshape(-1, 3)
+    UV = UV.reshape(-1, 2)
+    i, j = np.meshgrid(np.arange(n_u), np.arange(n_v), indexing="ij")
+    v00 = (i * (n_v + 1) + j).ravel()
+    v10, v01 = v00 + (n_v + 1), v00 + 1
+    v11 = v10 + 1
+    F = np.concatenate([np.stack([v00, v10, v11], 1), np.stack([v00, v11, v01], 1)])
+    return (P.astype(np.float32), N.astype(np.float32), UV.astype(np.float32),
+            F.astype(np.int32))
+
+
+def write_ply(path, positions, normals, uvs, faces) -> Path:
+    """Binary little-endian PLY with per-vertex normals and UVs (``u``, ``v``)."""
+    vert = np.empty(len(positions), dtype=[(k, "<f4") for k in ("x", "y", "z", "nx", "ny", "nz", "u", "v")])
+    for k, col in zip(("x", "y", "z"), positions.T):
+        vert[k] = col
+    for k, col in zip(("nx", "ny", "nz"), normals.T):
+        vert[k] = col
+    vert["u"], vert["v"] = uvs[:, 0], uvs[:, 1]
+    face = np.empty(len(faces), dtype=[("n", "u1"), ("i", "<i4", (3,))])
+    face["n"], face["i"] = 3, faces
+    header = ("ply\nformat binary_little_endian 1.0\ncomment mfnormal torus knot\n"
+              f"element vertex {len(vert)}\n"
+              + "".join(f"property float {k}\n" for k in vert.dtype.names)
+              + f"element face {len(face)}\nproperty list uchar int vertex_indices\nend_header\n")
+
+    def write(tmp):
+        with open(tmp, "wb") as f:
+            f.write(header.encode("ascii"))
+            f.write(vert.tobytes())
+            f.write(face.tobytes())
+    return atomic_write(path, write)
+
+
+# ---------------------------------------------------------------------------
+# Textures
+# ---------------------------------------------------------------------------
+
+def make_domes_normalmap(size: int = 512, columns: int = 7, rows: int = 4,
+                         radius: float = 0.46, rim_tilt_deg: float = 70.0) -> np.ndarray:
+    """Unit tangent-space normals (``size`` x ``size`` x 3, float32) of a
+    hexagonal array of spherical domes on a flat plate.
+
+    ``columns`` domes per row, ``2 rows`` rows (hexagonal rows are √3/2 apart,
+    so 7 x 4·√3 ≈ 7 x 6.93 keeps the domes round within 1 %). Each dome is a
+    spherical cap of footprint ``radius`` (units of the dome spacing) whose rim
+    tilts to ``rim_tilt_deg``. OpenGL convention (+y up in the image).
+    """
+    height = 2.0 * rows * np.sqrt(3.0) / 2.0
+    x, y = np.meshgrid((np.arange(size) + 0.5) * columns / size,
+                       (np.arange(size) + 0.5) * height / size)
+    # Nearest centre among the two rectangular sub-lattices of the hexagonal one.
+    best = None
+    for ox, oy in ((0.0, 0.0), (0.5, np.sqrt(3.0) / 2.0)):
+        gy = np.sqrt(3.0)
+        dx = x - ox - np.round(x - ox)
+        dy = y - oy - gy * np.round((y - oy) / gy)
+        d2 = dx * dx + dy * dy
+        best = (dx, dy, d2) if best is None else tuple(np.where(d2 < best[2], a, b)
+                                                       for a, b in zip((dx, dy, d2), best))
+    dx, dy, d2 = best
+    sphere_r = radius / np.sin(np.radians(rim_tilt_deg))
+    inside = d2 < radius * radius
+    nz = np.sqrt(np.maximum(sphere_r * sphere_r - d2, 0.0))
+    n = np.stack([np.where(inside, dx, 0.0), np.where(inside, -dy, 0.0),   # image y is down
+                  np.where(inside, nz, 1.0)], axis=-1)
+    n /= np.linalg.norm(n, axis=-1, keepdims=True)
+    return n.astype(np.float32)
+
+
+def make_roughness_map(width: int = 512, height: int = 16, bands: int = 7,
+                       alpha_min: float = 0.04, alpha_max: float = 0.45) -> np.ndarray:
+    """GGX α (``height`` x ``width`` x 1, float32): ``bands`` soft polished/rough
+    bands along u, with a gentle ripple around v. Periodic in u and v."""
+    u = (np.arange(width) + 0.5) / width
+    v = (np.arange(height) + 0.5) / height
+    uu, vv = np.meshgrid(u, v)
+    s = 0.5 + 0.5 * np.sin(2.0 * np.pi * (bands * uu + 0.15 * np.sin(2.0 * np.pi * vv)))
+    s = s * s * (3.0 - 2.0 * s)                        # smoothstep: sharper transitions
+    alpha = alpha_min + (alpha_max - alpha_min) * s
+    return alpha[..., None].astype(np.float32)
+
+
+def generate_model_assets(assets_dir) -> dict:
+    """Write the mesh and textures of scene (b) into ``assets_dir``; returns
+    ``{'mesh', 'normalmap', 'roughness', 'envmap', 'u_max'}`` (paths and the
+    knot's UV length). Deterministic; rewritten every time (≈ 0.5 s)."""
+    import mitsuba as mi
+
+    from .demo import encode_normalmap, make_envmap
+
+    assets_dir = Path(assets_dir)
+    P, N, UV, F = torus_knot_mesh()
+    paths = {"mesh": assets_dir / MESH_NAME, "normalmap": assets_dir / NORMALMAP_NAME,
+             "roughness": assets_dir / ROUGHNESS_NAME, "envmap": assets_dir / ENVMAP_NAME}
+    write_ply(paths["mesh"], P, N, UV, F)
+    normals = mi.Bitmap(encode_normalmap(make_domes_normalmap()))
+    alpha = mi.Bitmap(make_roughness_map(), mi.Bitmap.PixelFormat.Y)
+    sky = mi.Bitmap(make_envmap(), mi.Bitmap.PixelFormat.RGB)
+    atomic_write(paths["normalmap"], lambda p: normals.write(str(p), mi.Bitmap.FileFormat.PNG))
+    atomic_write(paths["roughness"], lambda p: alpha.write(str(p), mi.Bitmap.FileFormat.OpenEXR))
+    atomic_write(paths["envmap"], lambda p: sky.write(str(p), mi.Bitmap.FileFormat.OpenEXR))
+    paths["u_max"] = float(UV[:, 0].max())
+    return paths
+
+
+def model_parameters(assets: dict) -> dict:
+    """The ``$name`` substitutions of :data:`MODEL_XML` for generated ``assets``."""
+    params = {k: str(Path(assets[k]).resolve()) for k in ("mesh", "normalmap", "roughness", "envmap")}
+    params["roughness_scale"] = repr(1.0 / float(assets["u_max"]))
+    return params
+
+
+def default_assets_dir() -> Path:
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return Path(base) / "mfnormal" / "model_assets"

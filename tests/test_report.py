@@ -1,0 +1,292 @@
+"""``mfnormal compare`` and its HTML report; the bundled model scene (b).
+
+One ``mfnormal compare model --quick`` run (a subprocess, tiny images) feeds the
+report tests: the file is self-contained (every image an embedded PNG, nothing
+fetched), and in headless Chromium every image loads, the comparison slider,
+the flip mode and the method menus change what is shown, and the console stays
+free of errors. The browser test is skipped, with the reason, when Chromium,
+chromedriver or selenium is missing (``scripts/setup.sh`` installs them as root).
+
+The other tests need no renders: the XML rewriting per method, the crop choice,
+and the generated torus knot (seamless UVs, outward normals, and a tangent
+frame whose t axis is the normal map's +y in Mitsuba).
+"""
+
+import os
+import re
+import shutil
+import subprocess
+import sys
+import xml.etree.ElementTree as ET
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import mfnormal  # noqa: F401  (picks a working libLLVM before mitsuba loads)
+import drjit as dr
+import mitsuba as mi
+
+mi.set_variant("llvm_ad_rgb")
+mfnormal.register()
+
+from mfnormal import assets, compare, demo  # noqa: E402
+from mfnormal.report import png_bytes  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(autouse=True)
+def _llvm_variant():
+    mi.set_variant("llvm_ad_rgb")
+    mfnormal.register()
+
+
+@pytest.fixture(scope="module")
+def report(tmp_path_factory):
+    """``mfnormal compare model --quick`` with one validation figure: the report's path."""
+    d = tmp_path_factory.mktemp("report")
+    figures = d / "figures"
+    figures.mkdir()
+    (figures / "albedo.png").write_bytes(png_bytes(np.tile(np.arange(0, 256, 4, dtype=np.uint8), (32, 1))))
+    env = dict(os.environ, PYTHONPATH=str(ROOT / "src"))
+    proc = subprocess.run([sys.executable, "-m", "mfnormal", "compare", "model", "--quick",
+                           "-o", str(d / "out"), "--validation", str(figures)],
+                          env=env, capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    return d / "out" / "report.html"
+
+
+# ---------------------------------------------------------------------------
+# The report file
+# ---------------------------------------------------------------------------
+
+def test_report_embeds_every_image_and_fetches_nothing(report):
+    text = report.read_text(encoding="utf-8")
+    srcs = re.findall(r"""\bsrc=['"]([^'"]*)['"]""", text)
+    assert len(srcs) > 8 * 3
+    assert all(s.startswith("data:image/png;base64,") for s in srcs)
+    # No URL the browser would fetch: no external scripts, styles, images or fonts.
+    assert not re.search(r"""(src|href)=['"]?(https?:)?//""", text)
+    assert "@import" not in text and "url(" not in text
+    for method in compare.METHODS:
+        assert f"img-model-{method.key}" in text
+    assert "white furnace" in text.lower() and "albedo.png" in text
+
+
+def test_compare_writes_a_render_and_a_reference_per_method(report):
+    out = report.parent / "model"
+    for method in compare.METHODS:
+        for name in (method.key, f"{method.key}_ref"):
+            assert (out / f"{name}.exr").is_file() and (out / f"{name}.png").is_file()
+    img = np.array(mi.Bitmap(str(out / "nonseparable_same.exr")))
+    assert img.shape[1] == compare.QUICK.width and np.isfinite(img).all() and img.mean() > 0
+
+
+def _chromium():
+    for name in ("chromium", "chromium-browser", "google-chrome"):
+        path = shutil.which(name)
+        if path:
+            return path
+    return None
+
+
+BROWSER_FLAGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+                 "--disable-background-networking", "--disable-component-update", "--disable-sync",
+                 "--disable-dev-shm-usage", "--window-size=1400,1000"]
+
+
+@pytest.fixture(scope="module")
+def browser(tmp_path_factory):
+    webdriver = pytest.importorskip("selenium.webdriver", reason="selenium is not installed "
+                                    "(pip install -e '.[test]')")
+    chromium, driver = _chromium(), shutil.which("chromedriver")
+    if not chromium or not driver:
+        pytest.skip("no headless browser: install Debian's chromium and chromium-driver "
+                    "(scripts/setup.sh does, as root)")
+    from selenium.webdriver.chrome.service import Service
+
+    options = webdriver.ChromeOptions()
+    options.binary_location = chromium
+    for flag in BROWSER_FLAGS:
+        options.add_argument(flag)
+    options.add_argument(f"--user-data-dir={tmp_path_factory.mktemp('chromium-profile')}")
+    options.set_capability("goog:loggingPrefs", {"browser": "ALL"})
+    drv = webdriver.Chrome(service=Service(driver), options=options)
+    drv.set_page_load_timeout(60)
+    yield drv
+    drv.quit()
+
+
+def _wait(browser, script, timeout=20.0):
+    from selenium.webdriver.support.ui import WebDriverWait
+    WebDriverWait(browser, timeout).until(lambda d: d.execute_script(script))
+
+
+def test_report_works_in_headless_chromium(report, browser):
+    from selenium.webdriver.common.by import By
+    from selenium.webdriver.common.keys import Keys
+    from selenium.webdriver.support.ui import Select
+
+    browser.get(report.as_uri())
+    _wait(browser, "return document.readyState === 'complete' && "
+                   "Array.from(document.images).every(i => i.complete)")
+
+    # Every image decoded.
+    broken = browser.execute_script(
+        "return Array.from(document.images).filter(i => !(i.naturalWidth > 0)).map(i => i.alt)")
+    assert broken == []
+    assert browser.execute_script("return document.images.length") > 8 * 3
+
+    sec = browser.find_element(By.ID, "scene-model")
+    img_a = sec.find_element(By.CSS_SELECTOR, ".img-a")
+    img_b = sec.find_element(By.CSS_SELECTOR, ".img-b")
+    slider = sec.find_element(By.CSS_SELECTOR, ".slider")
+    clip = lambda: browser.execute_script("return getComputedStyle(arguments[0]).clipPath", img_a)  # noqa: E731
+
+    # The slider moves the split between the left and the right image.
+    before = clip()
+    assert "inset" in before
+    slider.send_keys(Keys.HOME)
+    at_left = clip()
+    assert at_left != before and "100%" in at_left        # all of the right image
+    slider.send_keys(Keys.END)
+    assert clip() not in (before, at_left)                 # all of the left image
+
+    # The menus choose which renders are compared.
+    src_b = img_b.get_attribute("src")
+    Select(sec.find_element(By.CSS_SELECTOR, ".sel-b")).select_by_value("flat")
+    assert img_b.get_attribute("src") != src_b
+    assert img_b.get_attribute("src") == sec.find_element(By.ID, "img-model-flat").get_attribute("src")
+
+    # Flip mode shows one whole image at a time, and the button swaps it.
+    sec.find_element(By.CSS_SELECTOR, "input.mode[value=flip]").click()
+    assert clip() == "none"
+    shown = img_a.value_of_css_property("visibility")
+    sec.find_element(By.CSS_SELECTOR, "button.flip").click()
+    assert img_a.value_of_css_property("visibility") != shown
+    browser.find_element(By.TAG_NAME, "body").send_keys("f")
+    assert img_a.value_of_css_property("visibility") == shown
+
+    # No errors in the console (script errors, failed loads).
+    errors = [e for e in browser.get_log("browser") if e["level"] in ("SEVERE", "ERROR")]
+    assert errors == []
+
+    shot = report.parent / "report_screenshot.png"
+    browser.save_screenshot(str(shot))
+    assert shot.stat().st_size > 10_000
+
+
+# ---------------------------------------------------------------------------
+# Rewriting scenes, choosing crops
+# ---------------------------------------------------------------------------
+
+def _demo_root():
+    return ET.parse(demo.SCENE_XML).getroot()
+
+
+def test_rewrite_swaps_every_normal_mapped_bsdf():
+    root = _demo_root()
+    n_plugin = sum(1 for b in root.iter("bsdf") if b.get("type") == compare.PLUGIN)
+    assert n_plugin == 2
+    for method in compare.METHODS:
+        out = compare.rewrite(root, method, {"strength": "1.0"})
+        bsdfs = {b.get("type") for b in out.iter("bsdf")}
+        shapes = [s.find("bsdf") for s in out.iter("shape")]
+        if method.kind == "flat":
+            assert compare.PLUGIN not in bsdfs and "normalmap" not in bsdfs
+            assert [b.get("type") for b in shapes] == ["roughconductor", "roughplastic"]
+        elif method.kind == "classic":
+            assert compare.PLUGIN not in bsdfs
+            for b in shapes:
+                props = {c.get("name"): c.get("value") for c in b if c.tag != "bsdf"}
+                assert b.get("type") == "normalmap" and "model" not in props and "strength" not in props
+                flag = "true" if method.fixes else "false"
+                assert props["flip_invalid_normals"] == props["use_shadowing_function"] == flag
+        else:
+            for b in shapes:
+                props = {c.get("name"): c.get("value") for c in b if c.tag != "bsdf"}
+                assert b.get("type") == compare.PLUGIN and props["model"] == method.model
+                assert props.get("tangent_facet", "specular") == method.tangent_facet
+
+
+def test_choose_crops_gives_every_shape_its_best_window():
+    score = np.zeros((2, 40, 60))
+    score[0, 30:38, 50:58] = 1.0      # the big grazing region of shape 0
+    score[0, 2:10, 2:10] = 0.5
+    score[1, 20:24, 20:24] = 1.0      # a small one of shape 1
+    crops = compare.choose_crops(score, 3, 8)
+    assert len(crops) == 3
+    assert crops[0] == (50, 30, 8) and crops[1][0] <= 20 <= crops[1][0] + 4
+    assert crops[2] == (2, 2, 8)
+    assert compare.choose_crops(np.zeros((10, 10)), 3, 4) == []
+
+
+def test_rel_mse_and_near_black_fraction():
+    ref = np.full((4, 4, 3), 0.5)
+    assert compare.rel_mse(ref, ref) == 0.0
+    assert compare.rel_mse(ref * 2, ref) == pytest.approx(0.25 / 0.26)
+    img = ref.copy()
+    img[0, 0] = 0
+    mask = np.ones((4, 4), bool)
+    assert compare.near_black_fraction(img, mask, 0.01) == pytest.approx(1 / 16)
+
+
+# ---------------------------------------------------------------------------
+# Scene (b): the torus knot
+# ---------------------------------------------------------------------------
+
+def test_torus_knot_has_seamless_uvs_and_outward_normals():
+    P, N, UV, F = assets.torus_knot_mesh()
+    assert len(F) == 20_000
+    assert np.allclose(np.linalg.norm(N, axis=1), 1.0, atol=1e-5)
+    n_u, n_v = 400, 25
+    grid = lambda a: a.reshape(n_u + 1, n_v + 1, -1)  # noqa: E731
+    # Seams: duplicated vertices at the same place with the same normal, UVs an integer apart.
+    for a in (P, N):
+        assert np.allclose(grid(a)[0], grid(a)[-1], atol=1e-5)
+        assert np.allclose(grid(a)[:, 0], grid(a)[:, -1], atol=1e-5)
+    du = grid(UV)[-1, :, 0] - grid(UV)[0, :, 0]
+    assert np.allclose(du, np.round(du[0])) and du[0] >= 1
+    assert np.allclose(np.abs(grid(UV)[:, -1, 1] - grid(UV)[:, 0, 1]), 1.0)
+    # Faces wind counter-clockwise seen from outside: face normals agree with vertex normals.
+    fn = np.cross(P[F[:, 1]] - P[F[:, 0]], P[F[:, 2]] - P[F[:, 0]])
+    assert np.all(np.sum(fn * N[F].mean(axis=1), axis=1) > 0)
+    assert P[:, 1].min() >= 0.0 and P[:, 1].min() < 0.05     # resting on the floor
+
+
+def test_knot_tangent_frame_matches_the_normal_map_convention(tmp_path):
+    a = assets.generate_model_assets(tmp_path)
+    mesh = mi.load_dict({"type": "ply", "filename": str(a["mesh"])})
+    assert mesh.has_vertex_texcoords() and mesh.has_vertex_normals() and mesh.face_count() == 20_000
+    # Hit the knot from many directions and compare the shading frame with the UV gradients.
+    rng = np.random.default_rng(3)
+    d = rng.normal(size=(4096, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    o = np.array([0.0, 0.74, 0.0]) + 6.0 * d
+    scene = mi.load_dict({"type": "scene", "knot": mesh})
+    target = np.array([0.0, 0.74, 0.0]) + rng.uniform(-1.2, 1.2, size=(4096, 3)) * [1, 0.3, 1]
+    dirs = target - o
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    si = scene.ray_intersect(mi.Ray3f(mi.Point3f(*o.T), mi.Vector3f(*dirs.T)))
+    hit = np.array(si.is_valid())
+    assert hit.sum() > 1000
+    t_dot_dpdv = np.array(dr.dot(si.sh_frame.t, dr.normalize(si.dp_dv)))[hit]
+    s_dot_dpdu = np.array(dr.dot(si.sh_frame.s, dr.normalize(si.dp_du)))[hit]
+    # Mitsuba's bitmaps put v = 0 on the top row, so image up (the map's +y, OpenGL) is -dp/dv.
+    assert np.all(t_dot_dpdv < -0.95) and np.all(s_dot_dpdu > 0.95)
+    tex = mi.load_dict({"type": "bitmap", "raw": True, "filter_type": "nearest",
+                        "bitmap": mi.Bitmap(np.arange(4, dtype=np.float32).reshape(4, 1, 1).repeat(4, 1))})
+    probe = dr.zeros(mi.SurfaceInteraction3f, 2)
+    probe.uv = mi.Point2f([0.5, 0.5], [0.1, 0.9])
+    assert list(np.array(tex.eval_1(probe))) == [0.0, 3.0]   # row 0 at v = 0
+
+
+def test_domes_normal_map_bulges_out_in_the_opengl_convention():
+    n = assets.make_domes_normalmap(size=256)
+    assert np.allclose(np.linalg.norm(n, axis=-1), 1.0, atol=1e-5)
+    assert n[..., 2].min() > np.cos(np.radians(70.5))
+    # A dome centred at the image origin (the lattice has a centre at x = y = 0, i.e. the corner):
+    # texels to its lower right (image down = -y) lean right (+x) and down (-y).
+    corner = n[3:10, 3:10]
+    assert np.all(corner[..., 0] > 0) and np.all(corner[..., 1] < 0)
