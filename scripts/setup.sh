@@ -1,10 +1,14 @@
 #!/usr/bin/env bash
 # Set up mfnormal on a fresh machine: a libLLVM >= 17 for Dr.Jit, a virtual
 # environment in .venv with the pinned Mitsuba/Dr.Jit, and the package itself.
+# With --test, also what the test suite needs (pytest, scipy, matplotlib,
+# selenium, and Debian's headless Chromium for the report's browser test).
 # Idempotent: re-running it only checks what is already there.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 PYTHON=${PYTHON:-python3}
+TEST=0
+[ "${1:-}" = "--test" ] && TEST=1
 
 have_llvm() {
     # Dr.Jit 1.5 crashes with libLLVM <= 16; the package's own search decides.
@@ -22,7 +26,7 @@ if ! have_llvm && [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then
 fi
 
 # 1b. Headless Chromium for the report test (tests/test_report.py skips without it).
-if { ! command -v chromium >/dev/null 2>&1 || ! command -v chromedriver >/dev/null 2>&1; } && [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then
+if [ "$TEST" = 1 ] && { ! command -v chromium >/dev/null 2>&1 || ! command -v chromedriver >/dev/null 2>&1; } && [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then
     echo "setup: installing chromium and chromium-driver (browser test of the HTML report)"
     export DEBIAN_FRONTEND=noninteractive
     if ! apt-get install -y -qq chromium chromium-driver >/dev/null 2>&1; then
@@ -35,7 +39,9 @@ fi
 if [ ! -x .venv/bin/python ]; then
     "$PYTHON" -m venv .venv
 fi
-.venv/bin/python -m pip install -q --disable-pip-version-check -e '.[test]' 2>&1 | grep -v '^WARNING: Location' || true
+EXTRAS=""
+[ "$TEST" = 1 ] && EXTRAS="[test]"
+.venv/bin/python -m pip install -q --disable-pip-version-check -e ".$EXTRAS" 2>&1 | grep -v '^WARNING: Location' || true
 
 # 3. No system LLVM: fall back to the libLLVM wheel inside the venv.
 if ! have_llvm .venv/bin/python; then
