@@ -25,12 +25,14 @@ def eval_pdf(sp, wo, active, want_value=True, want_pdf=True):
     lp = sp.lambda_p(wi)
     wo_m = sp.flip_t(wo)
     wi_m = sp.flip_t(wi)
-    g_o_p, g_om_p, g_o_t = sp.G1_p(wo), sp.G1_p(wo_m), sp.G1_t(wo)
+    g_o_p, g_o_t = sp.G1_p(wo), sp.G1_t(wo)
 
-    # Probability of each path's facet sequence: i→p→o, i→p→t→o, i→t→p→o
+    # Probability of each path's facet sequence: i→p→o, i→p→t→o, i→t→p→o.
+    # (1 − G1) and λ_t are computed directly: term 2 at (i,o) equals term 3 at
+    # (o,i) only if these small numbers keep their digits.
     c1 = lp * g_o_p
-    c2 = dr.select(g_o_t > 0, lp * (1.0 - g_om_p), 0.0)
-    c3 = dr.select(g_o_p > 0, 1.0 - lp, 0.0)
+    c2 = dr.select(g_o_t > 0, lp * sp.one_minus_G1_p(wo_m), 0.0)
+    c3 = dr.select(g_o_p > 0, sp.lambda_t(wi), 0.0)
     a1, a2, a3 = active & (c1 > 0), active & (c2 > 0), active & (c3 > 0)
     frame = sp.frame_p
 
@@ -81,6 +83,6 @@ def sample(sp, sample1, sample2, active):
     bs.pdf = dr.select(delta, bs.pdf * prob, pdf)
     active &= (bs.pdf > 0) & dr.all(dr.isfinite(weight))
 
-    bs.wo = wo
+    bs.wo = dr.select(active, wo, mi.Vector3f(0.0, 0.0, 1.0))   # never a NaN direction
     bs.pdf = dr.select(active, bs.pdf, 0.0)
     return bs, dr.select(active, dr.maximum(weight, 0.0), 0.0)

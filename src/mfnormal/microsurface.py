@@ -87,6 +87,26 @@ def lambda_p(w, wp, wt, sin_p):
     return dr.select(total > 0, a_p / dr.select(total > 0, total, 1.0), 1.0)
 
 
+def lambda_t(w, wp, wt, sin_p):
+    """1 − λ_p(ω), computed directly (no cancellation when ω_p ≈ ω_g)."""
+    a_p = _pos(dr.dot(w, wp))
+    a_t = sin_p * _pos(dr.dot(w, wt))
+    total = a_p + a_t
+    return dr.select(total > 0, a_t / dr.select(total > 0, total, 1.0), 0.0)
+
+
+def one_minus_G1_p(w, wp):
+    """1 − G1(ω, ω_p) without cancellation: ⟨ω_xy, p_xy⟩₊ / ⟨ω, ω_p⟩ (1 where G1 = 0).
+
+    From G1 = cosθ_p⟨ω,ω_g⟩/⟨ω,ω_p⟩ when ⟨ω,ω_t⟩ ≤ 0 and G1 = 1 otherwise; exact
+    reciprocity of the analytic model rests on this small number (MODEL.md §2.6).
+    """
+    cos_p = dr.dot(w, wp)
+    num = _pos(dr.fma(w.x, wp.x, w.y * wp.y))
+    ok = (cos_p > 0) & (w.z > 0)
+    return dr.select(ok, dr.minimum(num / dr.select(ok, cos_p, 1.0), 1.0), 1.0)
+
+
 def G1(w, wm, wp, wt, sin_p):
     """Masking of facet ω_m (ω_p or ω_t) seen from ω: χ⁺⟨ω,ω_m⟩·min(1, cosθ_p⟨ω,ω_g⟩₊/Ã(ω))."""
     total = projected_area_sum(w, wp, wt, sin_p)

@@ -58,6 +58,12 @@ class ShadingPoint:
     def lambda_p(self, w):
         return ms.lambda_p(w, self.wp, self.wt, self.sin_p)
 
+    def lambda_t(self, w):
+        return ms.lambda_t(w, self.wp, self.wt, self.sin_p)
+
+    def one_minus_G1_p(self, w):
+        return ms.one_minus_G1_p(w, self.wp)
+
     def G1_p(self, w):
         return ms.G1_p(w, self.wp, self.wt, self.sin_p)
 

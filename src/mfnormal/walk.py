@@ -161,7 +161,10 @@ def mis_pdf(sp, wo, separable, specular_t, active):
         return (mi.Float(0.0), mi.Float(1.0)) if separable else (1.0 - sp.G1(wi, on_p), mi.Float(1.0))
 
     def escape(h, on_p, d):
-        return ms.escape_fraction(h[0], h[1], ms.kappa(on_p, d, wt, cot))
+        # A ray leaves facet m only above its plane: below it, κ = ∞ must not count as an
+        # escape (nested pdfs such as llvm roughplastic's are not zero there).
+        above = dr.dot(d, dr.select(on_p, sp.wp, wt)) > 0
+        return dr.select(above, ms.escape_fraction(h[0], h[1], ms.kappa(on_p, d, wt, cot)), 0.0)
 
     def land(h, on_p, d):
         """Interval on the other facet reached by the rays that do not escape."""
@@ -195,7 +198,7 @@ def sample(sp, sample1, sample2, separable, specular_t, max_bounces, active):
                                        sample1=sample1, sample2=sample2)
     valid = escaped & (d.z > 0) & dr.all(dr.isfinite(e)) & dr.all(dr.isfinite(d))
     bs = dr.zeros(mi.BSDFSample3f, dr.width(d))
-    bs.wo = d
+    bs.wo = dr.select(escaped & dr.all(dr.isfinite(d)), d, mi.Vector3f(0.0, 0.0, 1.0))
     bs.eta = 1.0
     bs.sampled_component = 0
     bs.sampled_type = dr.select(nondelta, mi.UInt32(+mi.BSDFFlags.GlossyReflection),
