@@ -91,11 +91,19 @@ class ShadingPoint:
         return dr.select(active, value, 0.0)
 
     def pdf(self, frame, wi, wo, active):
-        value = self.nested.pdf(self.ctx, self.facet_si(frame, wi), frame.to_local(wo), active)
+        """Nested pdf on the facet; zero unless both directions are above it
+        (some nested pdfs, e.g. llvm roughplastic's, are not zero below)."""
+        wo_f = frame.to_local(wo)
+        si_f = self.facet_si(frame, wi)
+        active = active & (wo_f.z > 0) & (si_f.wi.z > 0)
+        value = self.nested.pdf(self.ctx, si_f, wo_f, active)
         return dr.select(active, value, 0.0)
 
     def eval_pdf(self, frame, wi, wo, active):
-        value, pdf = self.nested.eval_pdf(self.ctx, self.facet_si(frame, wi), frame.to_local(wo), active)
+        wo_f = frame.to_local(wo)
+        si_f = self.facet_si(frame, wi)
+        active = active & (wo_f.z > 0) & (si_f.wi.z > 0)
+        value, pdf = self.nested.eval_pdf(self.ctx, si_f, wo_f, active)
         return dr.select(active, value, 0.0), dr.select(active, pdf, 0.0)
 
     def sample(self, frame, wi, sample1, sample2, active):

@@ -144,11 +144,11 @@ def mis_pdf(sp, wo, separable, specular_t, active):
     """Deterministic density for MIS (MODEL.md §2.8).
 
     The exact density of walks that leave after their first nested sample
-    (with a mirror tangent facet: including the mirror legs i→p→t→o and
-    i→t→p→o), using the model's own escape probabilities, plus a cosine lobe
-    of weight 1 − cosθ_p for the longer walks. For white Lambertian facets and
-    a mirror tangent facet the separable walk's density is exactly cosθ_o/π,
-    and so is this pdf when λ_t(ω_i) = 0.
+    (with a mirror tangent facet: including the mirror legs i→p→t→o,
+    i→t→p→o and i→t→p→t→o), using the model's own escape probabilities, plus
+    a cosine lobe of weight 1 − cosθ_p for the longer walks. For white
+    Lambertian facets and a mirror tangent facet the separable walk's density
+    is exactly cosθ_o/π (MODEL.md §2.7), and so is this pdf.
     """
     wi = sp.wi
     active = mi.Bool(active) & (wi.z > 0) & (wo.z > 0)
@@ -178,10 +178,13 @@ def mis_pdf(sp, wo, separable, specular_t, active):
         wo_m, wi_m = sp.flip_t(wo), sp.flip_t(wi)
         e1 = lp * escape(h_p, true_, wo)                                                  # i→p→o
         e2 = lp * (1.0 - escape(h_p, true_, wo_m)) * escape(land(h_p, true_, wo_m), false_, wo)  # i→p→t→o
-        e3 = (1.0 - lp) * escape(land(start(false_), false_, -wi_m), true_, wo)         # i→t→p→o
+        h_tp = land(start(false_), false_, -wi_m)
+        e3 = (1.0 - lp) * escape(h_tp, true_, wo)                                        # i→t→p→o
+        e4 = (1.0 - lp) * (1.0 - escape(h_tp, true_, wo_m)) * escape(land(h_tp, true_, wo_m), false_, wo)  # i→t→p→t→o
         explicit = (sp.pdf(sp.frame_p, wi, wo, active & (e1 > 0)) * e1
                     + sp.pdf(sp.frame_p, wi, wo_m, active & (e2 > 0)) * e2
-                    + sp.pdf(sp.frame_p, wi_m, wo, active & (e3 > 0)) * e3)
+                    + sp.pdf(sp.frame_p, wi_m, wo, active & (e3 > 0)) * e3
+                    + sp.pdf(sp.frame_p, wi_m, wo_m, active & (e4 > 0)) * e4)
     else:
         e1 = lp * escape(h_p, true_, wo)
         e2 = (1.0 - lp) * escape(start(false_), false_, wo)
