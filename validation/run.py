@@ -1,6 +1,6 @@
 """Re-run the validation of the random-walk models and write its figures and tables.
 
-    .venv/bin/python validation/run.py [--out validation/out] [--quick]
+    .venv/bin/python validation/run.py [--out validation/results] [--quick]
 
 Writes PNG figures and ``RESULTS.md`` (tables with the measured numbers) to ``--out``:
 
@@ -267,7 +267,7 @@ STEPS = {"microgeometry": microgeometry, "furnace": furnace, "variance": varianc
 
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--out", default=str(ROOT / "validation" / "out"))
+    parser.add_argument("--out", default=str(ROOT / "validation" / "results"))
     parser.add_argument("--quick", action="store_true", help="fewer samples (about a minute)")
     parser.add_argument("--only", nargs="*", choices=sorted(STEPS), help="run only these steps")
     args = parser.parse_args(argv)
