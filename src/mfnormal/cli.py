@@ -12,32 +12,18 @@ from __future__ import annotations
 
 import argparse
 import os
-import re
 import shlex
 import sys
 import time
 from pathlib import Path
+
+from .messages import one_line
 
 DEFAULT_VARIANT = "llvm_ad_rgb"
 
 
 class CLIError(Exception):
     """An error to report as one line, without a traceback."""
-
-
-def _one_line(exc: BaseException) -> str:
-    """The gist of a (possibly multi-line, nested) Mitsuba error."""
-    text = str(exc).strip()
-    # Mitsuba wraps plugin errors: keep the innermost message.
-    lines = [ln.strip() for ln in text.splitlines() if ln.strip()]
-    for ln in reversed(lines):
-        if re.match(r"^(ValueError|TypeError|RuntimeError|KeyError|Exception):", ln):
-            return ln.split(":", 1)[1].strip()
-    msg = lines[0] if lines else type(exc).__name__
-    msg = re.sub(r"\[[\w./]+:\d+\]\s*", "", msg)
-    # Mitsuba lists the culprits on the following lines ("  - float \"bogus\": 1").
-    items = [ln[1:].strip() for ln in lines[1:] if ln.startswith("- ")]
-    return msg.rstrip(":") + (": " + "; ".join(items) if items else "")
 
 
 def setup_variant(variant: str):
@@ -51,7 +37,7 @@ def setup_variant(variant: str):
     try:
         mi.set_variant(variant)
     except Exception as exc:  # e.g. cuda_* without a GPU
-        raise CLIError(f"cannot use variant '{variant}': {_one_line(exc)}") from None
+        raise CLIError(f"cannot use variant '{variant}': {one_line(exc)}") from None
     mfnormal.register()
     return mi
 
@@ -73,7 +59,7 @@ def load_scene(mi, path, params: dict[str, str]):
     try:
         scene = mi.load_file(str(path), **params)
     except Exception as exc:
-        raise CLIError(f"cannot load {path}: {_one_line(exc)}") from None
+        raise CLIError(f"cannot load {path}: {one_line(exc)}") from None
     from .scene_checks import check_scene
     try:
         check_scene(scene)
@@ -145,7 +131,7 @@ def cmd_render(args) -> int:
     try:
         rgb = render_scene(mi, scene, spp, seed=args.seed)
     except Exception as exc:
-        raise CLIError(f"render failed: {_one_line(exc)}") from None
+        raise CLIError(f"render failed: {one_line(exc)}") from None
     output = args.output or Path("out") / Path(args.scene).stem
     return _finish(mi, rgb, output, started, spp, args.variant)
 
@@ -205,7 +191,7 @@ def cmd_compare(args) -> int:
     except compare.SceneError as exc:
         raise CLIError(str(exc)) from None
     except Exception as exc:  # e.g. a render that fails deep inside Dr.Jit
-        raise CLIError(f"compare failed: {_one_line(exc)}") from None
+        raise CLIError(f"compare failed: {one_line(exc)}") from None
     print(f"wrote {report}")
     return 0
 

@@ -38,6 +38,7 @@ import drjit as dr
 import mitsuba as mi
 
 from .images import atomic_write, sanitize, save_render, tonemap
+from .messages import one_line
 from .report import png_bytes
 from .scene_checks import check_scene, normal_mapped_shapes
 
@@ -262,7 +263,7 @@ def load_method_scene(src: SceneSource, root: ET.Element, values: dict, method: 
         scene = mi.load_string(xml, **params)
     except Exception as exc:
         # Locations in the rewritten string mean nothing to the user (comments are gone).
-        msg = re.sub(r"(While loading|At) string \(line \d+, col \d+\):\s*", "", _gist(exc))
+        msg = re.sub(r"(While loading|At) string \(line \d+, col \d+\):\s*", "", one_line(exc))
         if "unused parameters" in msg:
             msg += " (compare sets the model and tangent_facet of each BSDF itself)"
         raise SceneError(f"cannot load {src.path.name} ({method.key}): {msg}") from None
@@ -271,19 +272,6 @@ def load_method_scene(src: SceneSource, root: ET.Element, values: dict, method: 
     except ValueError as exc:
         raise SceneError(f"{src.path.name}: {exc}") from None
     return scene
-
-
-def _gist(exc: BaseException) -> str:
-    """A Mitsuba error as one line: the innermost message, plus listed items."""
-    lines = [ln.strip() for ln in str(exc).strip().splitlines() if ln.strip()]
-    for i in range(len(lines) - 1, -1, -1):
-        if re.match(r"^(ValueError|TypeError|RuntimeError|KeyError|Exception):", lines[i]):
-            return lines[i].split(":", 1)[1].strip()
-    if not lines:
-        return type(exc).__name__
-    msg = re.sub(r"\[[\w./]+:\d+\]\s*", "", lines[0])
-    items = [ln[1:].strip() for ln in lines[1:] if ln.startswith("- ")]
-    return msg.rstrip(":") + (": " + "; ".join(items) if items else "")
 
 
 # ---------------------------------------------------------------------------
