@@ -24,17 +24,54 @@ def bits(x):
     return dr.reinterpret_array(mi.UInt32, mi.Float32(x))
 
 
+MASK32 = 0xFFFFFFFF
+
+
+def _mul32(a, b):
+    """32-bit wrapping product (Dr.Jit UInt32 wraps; Python ints of scalar variants need the mask)."""
+    return (a * b) & MASK32 if isinstance(a, int) else a * b
+
+
+def mix32(h):
+    """MurmurHash3's 32-bit finaliser: a cheap, well-mixed bijection of UInt32."""
+    h = _mul32(h ^ (h >> 16), 0x85EBCA6B)
+    h = _mul32(h ^ (h >> 13), 0xC2B2AE35)
+    return h ^ (h >> 16)
+
+
 def hash_floats(salt, *values):
-    """A well-mixed 32-bit seed from float inputs (TEA chained over their bits)."""
+    """A well-mixed 32-bit seed from float inputs (their bits, combined and mixed)."""
     h = mi.UInt32(salt)
     for v in values:
-        h, _ = mi.sample_tea_32(h, bits(v), 4)
+        h = mix32(h ^ _mul32(bits(v) ^ 0x9E3779B9, 0x01000193))
     return h
 
 
 def uniform(seed, counter):
     """The counter-th uniform number of the stream ``seed`` (stateless, deterministic)."""
-    return dr.minimum(mi.sample_tea_float32(seed, counter, 6), ONE_MINUS_EPS)
+    h = mix32(seed ^ _mul32(mi.UInt32(counter) + 1, 0x9E3779B9))
+    return dr.minimum(mi.Float(h >> 8) * (1.0 / 16777216.0), ONE_MINUS_EPS)
+
+
+def from_tangent_frame(wp, frame, tangent, sign):
+    """ω_p decoded in a vertex tangent frame, re-expressed in ``frame`` (the base shading frame).
+
+    The tangent frame is MikkTSpace's and glTF's: T = ``tangent`` (world space,
+    e.g. interpolated per vertex) made orthogonal to N = ``frame.n``,
+    B = sign·(N×T), N. Both frames share N, so only x and y turn (or mirror,
+    for sign < 0) and ω_p's tilt is kept. Where T is missing (zero) or
+    parallel to N, ω_p is returned unchanged: the map is decoded in ``frame``.
+    """
+    t = frame.to_local(tangent)
+    len2 = dr.fma(t.x, t.x, t.y * t.y)
+    ok = (len2 > 1e-6 * dr.squared_norm(t)) & (len2 > 0.0)
+    inv = dr.rsqrt(dr.select(ok, len2, 1.0))
+    tx, ty = t.x * inv, t.y * inv
+    s = dr.select(sign < 0.0, -1.0, 1.0)
+    # In local coordinates N = (0, 0, 1), T = (tx, ty, 0) and N×T = (−ty, tx, 0).
+    x = tx * wp.x - s * ty * wp.y
+    y = ty * wp.x + s * tx * wp.y
+    return dr.select(ok, mi.Vector3f(x, y, wp.z), wp)
 
 
 def select_frame(mask, a, b):
@@ -49,9 +86,11 @@ class ShadingPoint:
         self.ctx = ctx
         self.si = si
         self.wi = si.wi
-        self.wp = wp
         self.wt, self.sin_p = ms.tangent_facet(wp)
-        self.frame_p = ms.facet_frame(wp)
+        # Where the tangent facet has no area (sinθ_p < SIN_P_EPS), ω_p = ω_g exactly:
+        # masking (from ω_p) and the height map (from sinθ_p) then agree.
+        self.wp = dr.select(self.sin_p > 0, wp, mi.Vector3f(0.0, 0.0, 1.0))
+        self.frame_p = ms.facet_frame(self.wp)
         self.frame_t = ms.facet_frame(self.wt)
 
     # Masking and intersection probabilities at this point
@@ -86,8 +125,12 @@ class ShadingPoint:
         return si_f
 
     def eval(self, frame, wi, wo, active):
-        """Nested f·⟨wo, ω_m⟩ on the facet with ``frame``; zero where inactive."""
-        value = self.nested.eval(self.ctx, self.facet_si(frame, wi), frame.to_local(wo), active)
+        """Nested f·⟨wo, ω_m⟩ on the facet with ``frame``; zero where inactive or unless both
+        directions are above the facet (a facet only reflects: no transmitted lobe)."""
+        wo_f = frame.to_local(wo)
+        si_f = self.facet_si(frame, wi)
+        active = active & (wo_f.z > 0) & (si_f.wi.z > 0)
+        value = self.nested.eval(self.ctx, si_f, wo_f, active)
         return dr.select(active, value, 0.0)
 
     def pdf(self, frame, wi, wo, active):
