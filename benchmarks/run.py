@@ -1,0 +1,1124 @@
+#!/usr/bin/env python
+r"""Benchmark ``normalmap_microfacet`` against Mitsuba's built-in ``normalmap``.
+
+    python benchmarks/run.py [--quick] [--out benchmarks]
+
+One run measures, side by side, every method on every scene and nested BSDF:
+
+- methods: ``builtin`` (Mitsuba's ``normalmap`` wrapping the same nested BSDF,
+  its default fixes on), ``analytic``, ``separable`` x {specular, same},
+  ``nonseparable`` x {specular, same};
+- scenes: (a) the bundled demo (:mod:`mfnormal.demo`), (b) the bundled torus
+  knot (:mod:`mfnormal.assets`, when present), (c) a plane with a generated
+  normal map seen at grazing angles; every normal-mapped BSDF's nested BSDF is
+  replaced by the one under test;
+- nested BSDFs: diffuse, roughconductor GGX α = 0.05 and 0.3, roughplastic.
+
+Metrics:
+
+1. render time at equal spp, warm, interleaved A/B pairs (builtin, method,
+   builtin, method, ...), the median of the per-pair ratios;
+2. JIT compile time of the first render with a cold kernel cache: a
+   subprocess per configuration with a fresh ``DRJIT_CACHE_DIR``; first render
+   minus warm render (Dr.Jit's kernel history gives the codegen/LLVM split);
+3. noise at equal time: relMSE against a high-spp reference of the same
+   method, each method at the spp it reaches in the built-in's time budget
+   (from metric 1), as the ratio to the built-in's relMSE;
+4. BSDF throughput: sample/eval queries per second on 2^20 random queries
+   (random wi, wo, and normals from a texture), random-walk lengths, nested
+   calls per query, and the share of time spent in nested BSDF calls (the
+   plugin timed with the nested calls replaced by a closed-form stub);
+5. peak memory: max RSS of the metric-2 subprocess.
+
+Writes ``results.json`` and ``RESULTS.md`` into ``--out``. ``--quick`` runs a
+subset at tiny sizes (a smoke test, < 2 minutes); its timings mean nothing.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import copy
+import json
+import math
+import os
+import platform
+import re
+import resource
+import shlex
+import shutil
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+import xml.etree.ElementTree as ET
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+HERE = Path(__file__).resolve().parent
+
+# (key, model, tangent_facet); key "builtin" is Mitsuba's normalmap.
+METHODS = (
+    ("builtin", None, None),
+    ("analytic", "analytic", None),
+    ("separable_specular", "separable", "specular"),
+    ("separable_same", "separable", "same"),
+    ("nonseparable_specular", "nonseparable", "specular"),
+    ("nonseparable_same", "nonseparable", "same"),
+)
+METHOD_KEYS = tuple(m[0] for m in METHODS)
+METHOD_BY_KEY = {m[0]: m for m in METHODS}
+
+NESTED = {
+    "diffuse": {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.5, 0.5, 0.5]}},
+    "ggx_0.05": {"type": "roughconductor", "distribution": "ggx", "alpha": 0.05, "material": "Au"},
+    "ggx_0.3": {"type": "roughconductor", "distribution": "ggx", "alpha": 0.3, "material": "Au"},
+    "roughplastic": {"type": "roughplastic", "distribution": "ggx", "alpha": 0.1,
+                     "diffuse_reflectance": {"type": "rgb", "value": [0.2, 0.22, 0.26]}},
+}
+# Which noise target applies to a nested BSDF (None: no target given).
+NESTED_CLASS = {"diffuse": "diffuse", "ggx_0.05": "conductor", "ggx_0.3": "conductor",
+                "roughplastic": None}
+
+SCENES = ("demo", "model", "plane")
+SCENE_TITLES = {"demo": "(a) demo: sphere + ground", "model": "(b) torus knot, 20k triangles",
+                "plane": "(c) plane at grazing view"}
+
+VARIANT = "llvm_ad_rgb"
+MAX_DEPTH = 8
+REL_MSE_EPS = 1e-2
+
+# Targets: the method's value / the built-in's.
+TIME_TARGET = {"analytic": 1.25, "separable": 1.6, "nonseparable": 1.8}
+NOISE_TARGET = {"analytic": 1.3, "walk_diffuse": 3.0, "walk_conductor": 6.0}
+COMPILE_TARGET = 2.0
+
+
+@dataclass
+class Profile:
+    name: str
+    scenes: tuple
+    nested: tuple
+    methods: tuple
+    width: int
+    height: int
+    spp: int              # metric 1 (equal spp) and the built-in's budget in metric 3
+    reps: int             # A/B pairs per method
+    ref_spp: int          # metric 3 reference, rendered in passes of ref_pass
+    ref_pass: int
+    noise_seeds: int      # metric 3 renders averaged per method
+    queries: int          # metric 4
+    tput_reps: int
+    stub_reps: int
+    compile_warm_reps: int
+
+
+FULL = Profile("full", SCENES, tuple(NESTED), METHOD_KEYS, width=192, height=144, spp=16, reps=5,
+               ref_spp=256, ref_pass=32, noise_seeds=2, queries=1 << 20, tput_reps=5, stub_reps=3,
+               compile_warm_reps=2)
+QUICK = Profile("quick", ("plane",), ("diffuse",), METHOD_KEYS, width=32, height=24, spp=2, reps=2,
+                ref_spp=16, ref_pass=16, noise_seeds=1, queries=1 << 12, tput_reps=2, stub_reps=1,
+                compile_warm_reps=1)
+
+
+def log(msg: str):
+    print(msg, flush=True)
+
+
+def median(xs):
+    return float(statistics.median(xs)) if xs else float("nan")
+
+
+def geomean(xs):
+    xs = [x for x in xs if x is not None and x > 0 and math.isfinite(x)]
+    return float(math.exp(sum(map(math.log, xs)) / len(xs))) if xs else float("nan")
+
+
+# ---------------------------------------------------------------------------
+# Mitsuba (imported lazily: a worker sets DRJIT_CACHE_DIR first)
+# ---------------------------------------------------------------------------
+
+def import_mitsuba():
+    global mfnormal, mi, dr
+    import mfnormal          # noqa: F401  (before mitsuba: selects a working libLLVM)
+    import drjit as dr
+    import mitsuba as mi
+    mi.set_variant(VARIANT)
+    mfnormal.register()
+    return mfnormal, mi, dr
+
+
+# ---------------------------------------------------------------------------
+# Scenes
+# ---------------------------------------------------------------------------
+
+def make_plane_normalmap(size: int = 256, waves: int = 7, max_tilt_deg: float = 65.0,
+                         seed: int = 7) -> np.ndarray:
+    """Unit tangent-space normals (OpenGL convention) of a periodic sum of sine
+    waves, scaled so the steepest normal tilts ``max_tilt_deg``."""
+    rng = np.random.default_rng(seed)
+    c = (np.arange(size) + 0.5) / size * 2.0 * np.pi
+    x, y = np.meshgrid(c, c)                         # y grows downwards (rows)
+    hx, hy = np.zeros_like(x), np.zeros_like(x)
+    for _ in range(waves):
+        kx, ky = rng.integers(-5, 6, 2)
+        if kx == 0 and ky == 0:
+            kx = 3
+        amp, phase = rng.uniform(0.3, 1.0) / math.hypot(kx, ky), rng.uniform(0, 2 * np.pi)
+        arg = kx * x + ky * y + phase
+        hx += amp * kx * np.cos(arg)
+        hy += amp * ky * np.cos(arg)
+    slope = np.hypot(hx, hy).max()
+    s = math.tan(math.radians(max_tilt_deg)) / slope
+    n = np.stack([-s * hx, s * hy, np.ones_like(x)], axis=-1)   # image y down, normal y up
+    n /= np.linalg.norm(n, axis=-1, keepdims=True)
+    return n.astype(np.float32)
+
+
+def prepare_assets(root: Path, scenes) -> dict:
+    """Generate every scene's assets under ``root``; returns what :func:`scene_dict` needs."""
+    from mfnormal import demo
+    out = {}
+    demo_assets = demo.generate_assets(root / "demo")
+    out["demo"] = {"dir": str(root / "demo")}
+    if "plane" in scenes:
+        path = root / "plane" / "waves.png"
+        path.parent.mkdir(parents=True, exist_ok=True)
+        mi.Bitmap(demo.encode_normalmap(make_plane_normalmap())).write(str(path))
+        out["plane"] = {"normalmap": str(path), "envmap": str(demo_assets["envmap"])}
+    if "model" in scenes:
+        try:
+            from mfnormal import assets as model_assets
+            a = model_assets.generate_model_assets(root / "model")
+            out["model"] = {"xml": str(model_assets.MODEL_XML), "dir": str(root / "model"),
+                            "params": model_assets.model_parameters(a)}
+        except Exception as exc:       # scene (b) is optional
+            out["model"] = {"error": f"{type(exc).__name__}: {exc}"}
+    return out
+
+
+def _copy_dicts(d):
+    """Copy the nested dicts of a scene dict, sharing the leaves (transforms, ...)."""
+    return {k: _copy_dicts(v) if isinstance(v, dict) else v for k, v in d.items()}
+
+
+def swap_bsdfs(scene: dict, method: str, nested: dict) -> dict:
+    """Rewrite every ``normalmap_microfacet`` in ``scene`` for ``method`` around ``nested``."""
+    key, model, tangent_facet = METHOD_BY_KEY[method]
+    count = 0
+
+    def visit(d):
+        nonlocal count
+        for k, v in list(d.items()):
+            if not isinstance(v, dict):
+                continue
+            if v.get("type") == "normalmap_microfacet":
+                count += 1
+                for kk in [kk for kk, vv in v.items() if isinstance(vv, dict) and kk != "normalmap"]:
+                    del v[kk]
+                v["bsdf"] = copy.deepcopy(nested)
+                for p in ("model", "tangent_facet", "max_bounces"):
+                    v.pop(p, None)
+                if key == "builtin":
+                    v["type"] = "normalmap"
+                    for p in ("strength", "normalmap_convention"):
+                        v.pop(p, None)
+                else:
+                    v["model"] = model
+                    if tangent_facet is not None:
+                        v["tangent_facet"] = tangent_facet
+            else:
+                visit(v)
+    scene = _copy_dicts(scene)
+    visit(scene)
+    if count == 0:
+        raise RuntimeError("scene has no normalmap_microfacet BSDF to swap")
+    return scene
+
+
+def _resolved_xml(src: str, dst: Path, params: dict) -> Path:
+    """``src`` with every ``$name`` substituted (defaults overridden by ``params``)."""
+    text = Path(src).read_text()
+    values = {d.get("name"): d.get("value") for d in ET.fromstring(text).iter("default")}
+    values.update({k: str(v) for k, v in params.items()})
+    text = re.sub(r"\$(\w+)", lambda m: values[m.group(1)], text)
+    dst.write_text(text)
+    return dst
+
+
+def scene_dict(name: str, assets: dict, method: str, nested: str, width: int, height: int,
+               spp: int) -> dict:
+    from mfnormal import demo
+    if name == "demo":
+        base = demo.demo_scene(model="analytic", spp=spp, resolution=(width, height),
+                               assets_dir=assets["demo"]["dir"], max_depth=MAX_DEPTH)
+    elif name == "model":
+        a = assets["model"]
+        if "error" in a:
+            raise RuntimeError(a["error"])
+        params = dict(a["params"], spp=spp, width=width, height=height, max_depth=MAX_DEPTH)
+        xml = _resolved_xml(a["xml"], Path(a["dir"]) / f"model_{os.getpid()}.xml", params)
+        base = demo.xml_to_dict(xml)
+        xml.unlink()
+    elif name == "plane":
+        a = assets["plane"]
+        T = mi.ScalarTransform4f
+        base = {
+            "type": "scene",
+            "integrator": {"type": "path", "max_depth": MAX_DEPTH},
+            "sensor": {
+                "type": "perspective", "fov": 40.0,
+                "to_world": T().look_at(origin=[0, 0.55, 5.5], target=[0, 0, -2], up=[0, 1, 0]),
+                "sampler": {"type": "independent", "sample_count": spp},
+                "film": {"type": "hdrfilm", "width": width, "height": height, "pixel_format": "rgb",
+                         "rfilter": {"type": "gaussian"}},
+            },
+            "emitter": {"type": "envmap", "filename": a["envmap"]},
+            "plane": {
+                "type": "rectangle",
+                "to_world": T().rotate([1, 0, 0], -90).scale(8),
+                "bsdf": {"type": "normalmap_microfacet",
+                         "normalmap": {"type": "bitmap", "filename": a["normalmap"], "raw": True,
+                                       "to_uv": T().scale([8, -8, 1])},
+                         "bsdf": {"type": "diffuse"}},
+            },
+        }
+    else:
+        raise ValueError(f"unknown scene {name!r}")
+    return swap_bsdfs(base, method, NESTED[nested])
+
+
+def load_scene(name, assets, method, nested, width, height, spp):
+    return mi.load_dict(scene_dict(name, assets, method, nested, width, height, spp))
+
+
+def timed_render(scene, spp: int, seed: int):
+    """(seconds, image): one render, evaluated and synchronised."""
+    t0 = time.perf_counter()
+    img = mi.render(scene, spp=spp, seed=seed)
+    dr.eval(img)
+    dr.sync_thread()
+    return time.perf_counter() - t0, img
+
+
+def to_numpy(img) -> np.ndarray:
+    x = np.array(img, dtype=np.float64)[..., :3]
+    return np.where(np.isfinite(x), np.maximum(x, 0.0), 0.0)
+
+
+def rel_mse(x: np.ndarray, ref: np.ndarray) -> float:
+    return float(np.mean((x - ref) ** 2 / (ref ** 2 + REL_MSE_EPS)))
+
+
+# ---------------------------------------------------------------------------
+# Metric 2 and 5: cold first render and memory, one subprocess per configuration
+# ---------------------------------------------------------------------------
+
+def memory_mb() -> dict:
+    """This process's resident set now and its peak (Linux: /proc/self/status; getrusage's
+    ru_maxrss is no good in a child process, it keeps the parent's peak across exec)."""
+    out = {}
+    with contextlib.suppress(OSError):
+        for line in Path("/proc/self/status").read_text().splitlines():
+            key, _, value = line.partition(":")
+            if key in ("VmRSS", "VmHWM"):
+                out[key] = int(value.split()[0]) / 1024.0
+    if "VmHWM" not in out:
+        scale = 1024.0 if sys.platform != "darwin" else 1024.0 * 1024.0
+        out["VmHWM"] = out["VmRSS"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / scale
+    return out
+
+
+def worker_main(args: dict) -> dict:
+    """Runs in a fresh process whose DRJIT_CACHE_DIR is an empty directory."""
+    rss0 = memory_mb()["VmHWM"]
+    import_mitsuba()
+    with stubbed_nested() if args.get("stub") else contextlib.nullcontext():
+        return _worker(args, rss0)
+
+
+def _worker(args: dict, rss0) -> dict:
+    scene = load_scene(args["scene"], args["assets"], args["method"], args["nested"],
+                       args["width"], args["height"], args["spp"])
+    rss_load = memory_mb()["VmRSS"]
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    dr.kernel_history_clear()
+    first, _ = timed_render(scene, args["spp"], 0)
+    hist = [h for h in dr.kernel_history() if h.get("cache_hit") is not None]
+    compiled = [h for h in hist if not h["cache_hit"]]
+    warm = [timed_render(scene, args["spp"], i + 1)[0] for i in range(args["warm_reps"])]
+    hist_warm = [h for h in dr.kernel_history() if h.get("cache_hit") is not None]
+    mem = memory_mb()
+    return {
+        "first_s": first, "warm_s": median(warm), "compile_s": max(first - median(warm), 0.0),
+        "backend_s": sum(h.get("backend_time") or 0.0 for h in compiled) / 1e3,
+        "codegen_s": sum(h.get("codegen_time") or 0.0 for h in hist) / 1e3,
+        "kernels_compiled": len(compiled),
+        "max_kernel_ops": max((h.get("operation_count") or 0 for h in hist), default=0),
+        "warm_codegen_s": sum(h.get("codegen_time") or 0.0 for h in hist_warm) / 1e3 / max(len(warm), 1),
+        "rss_start_mb": rss0, "rss_after_load_mb": rss_load, "rss_end_mb": mem["VmRSS"],
+        "rss_peak_mb": mem["VmHWM"], "rss_render_mb": mem["VmHWM"] - rss_load,
+    }
+
+
+def run_worker(args: dict, timeout: float = 900.0) -> dict:
+    cache = tempfile.mkdtemp(prefix="mfnormal_bench_drjit_")
+    env = dict(os.environ, DRJIT_CACHE_DIR=cache)
+    try:
+        proc = subprocess.run([sys.executable, str(Path(__file__).resolve()), "--worker",
+                               json.dumps(args)], env=env, capture_output=True, text=True,
+                              timeout=timeout)
+    finally:
+        shutil.rmtree(cache, ignore_errors=True)
+    for line in reversed(proc.stdout.splitlines()):
+        if line.startswith("RESULT "):
+            return json.loads(line[len("RESULT "):])
+    tail = (proc.stderr or proc.stdout).strip().splitlines()[-3:]
+    return {"error": f"worker exited {proc.returncode}: {' | '.join(tail)}"}
+
+
+# ---------------------------------------------------------------------------
+# Metric 4: BSDF throughput, walk lengths, nested calls
+# ---------------------------------------------------------------------------
+
+def packet_width() -> int:
+    """Dr.Jit's LLVM vector width on this CPU (lanes that loop together)."""
+    flags = ""
+    with contextlib.suppress(OSError):
+        flags = Path("/proc/cpuinfo").read_text()
+    return 16 if " avx512f" in flags else 8 if " avx" in flags else 4
+
+
+def random_normalmap_texture(size: int = 256, max_tilt_deg: float = 75.0, seed: int = 3):
+    rng = np.random.default_rng(seed)
+    th = np.radians(rng.uniform(0.0, max_tilt_deg, (size, size)))
+    ph = rng.uniform(0.0, 2 * np.pi, (size, size))
+    n = np.stack([np.sin(th) * np.cos(ph), np.sin(th) * np.sin(ph), np.cos(th)], axis=-1)
+    return mi.load_dict({"type": "bitmap", "bitmap": mi.Bitmap((n * 0.5 + 0.5).astype(np.float32)),
+                         "raw": True, "filter_type": "nearest"})
+
+
+def make_queries(n: int, coherent: int = 1, seed: int = 11):
+    """Random shading points: uv (→ normal), wi, wo, sample1, sample2. With
+    ``coherent`` > 1, groups of that many consecutive lanes share uv and wi
+    (like the samples of one pixel)."""
+    rng = np.random.default_rng(seed)
+    m = n // coherent
+
+    def shared(a):
+        return np.repeat(a, coherent, axis=0)
+
+    def hemi(k):
+        z, phi = rng.uniform(0, 1, k), rng.uniform(0, 2 * np.pi, k)
+        r = np.sqrt(np.maximum(1 - z * z, 0))
+        return np.stack([r * np.cos(phi), r * np.sin(phi), z], -1)
+
+    uv, p, wi = shared(rng.uniform(0, 1, (m, 2))), shared(rng.uniform(0, 1, (m, 3))), shared(hemi(m))
+    wo, s1, s2 = hemi(n), rng.uniform(0, 1, n), rng.uniform(0, 1, (n, 2))
+    F = mi.Float
+    si = dr.zeros(mi.SurfaceInteraction3f, n)
+    si.t = F(np.ones(n, np.float32))
+    si.p = mi.Point3f(*(F(p[:, i].astype(np.float32)) for i in range(3)))
+    si.uv = mi.Point2f(F(uv[:, 0].astype(np.float32)), F(uv[:, 1].astype(np.float32)))
+    zero, one = dr.zeros(F, n), dr.ones(F, n)
+    si.n = mi.Normal3f(zero, zero, one)
+    si.sh_frame = mi.Frame3f(mi.Vector3f(one, zero, zero), mi.Vector3f(zero, one, zero),
+                             mi.Vector3f(zero, zero, one))
+    si.dp_du, si.dp_dv = mi.Vector3f(one, zero, zero), mi.Vector3f(zero, one, zero)
+    si.wi = mi.Vector3f(*(F(wi[:, i].astype(np.float32)) for i in range(3)))
+    wo = mi.Vector3f(*(F(wo[:, i].astype(np.float32)) for i in range(3)))
+    s1 = F(s1.astype(np.float32))
+    s2 = mi.Point2f(F(s2[:, 0].astype(np.float32)), F(s2[:, 1].astype(np.float32)))
+    dr.eval(si, wo, s1, s2)
+    return si, wo, s1, s2
+
+
+def make_bsdf(method: str, nested: str, texture):
+    key, model, tangent_facet = METHOD_BY_KEY[method]
+    d = {"normalmap": texture, "bsdf": copy.deepcopy(NESTED[nested])}
+    if key == "builtin":
+        d["type"] = "normalmap"
+    else:
+        d.update(type="normalmap_microfacet", model=model)
+        if tangent_facet:
+            d["tangent_facet"] = tangent_facet
+    return mi.load_dict(d)
+
+
+def time_queries(fn, reps: int):
+    """(median wall seconds, median kernel execution seconds) of ``fn()`` after a warm-up."""
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    out = fn()
+    dr.eval(out)
+    dr.sync_thread()
+    dr.kernel_history_clear()
+    walls, kernels = [], []
+    for _ in range(reps):
+        t0 = time.perf_counter()
+        out = fn()
+        dr.eval(out)
+        dr.sync_thread()
+        walls.append(time.perf_counter() - t0)
+        kernels.append(sum(h.get("execution_time") or 0.0 for h in dr.kernel_history()) / 1e3)
+    dr.set_flag(dr.JitFlag.KernelHistory, False)
+    return median(walls), median(kernels)
+
+
+NESTED_OPS = ("eval", "pdf", "eval_pdf", "sample")
+
+
+@contextlib.contextmanager
+def instrumented(n: int):
+    """Count, per query lane, the nested BSDF calls (``ShadingPoint`` methods) and
+    the random-walk iterations (``dr.while_loop`` in :mod:`mfnormal.walk`).
+
+    ``walk._walk`` discards its bounce counter, so the loop is wrapped here: an
+    extra loop variable counts the iterations each lane runs."""
+    from mfnormal import shading, walk
+    counts = {op: dr.zeros(mi.UInt32, n) for op in NESTED_OPS}
+    sites = dr.zeros(mi.UInt32, n)     # call sites each lane passes, masked or not
+    loops = []
+    orig = {op: getattr(shading.ShadingPoint, op) for op in NESTED_OPS}
+
+    def counting(op):
+        f = orig[op]
+
+        def g(self, *args):
+            active = mi.Bool(args[-1])
+            idx = dr.arange(mi.UInt32, dr.width(active))
+            dr.scatter_add(counts[op], mi.UInt32(1), idx, active)
+            dr.scatter_add(sites, mi.UInt32(1), idx)
+            return f(self, *args)
+        return g
+
+    real_dr = walk.dr
+
+    class LoopCounter:
+        def __getattr__(self, name):
+            return getattr(real_dr, name)
+
+        def while_loop(self, state, cond, body, **kw):
+            state = tuple(state) + (dr.zeros(mi.UInt32, dr.width(state[0])),)
+            out = real_dr.while_loop(state, lambda *s: cond(*s[:-1]),
+                                     lambda *s: tuple(body(*s[:-1])) + (s[-1] + 1,), **kw)
+            loops.append(out[-1])
+            return out[:-1]
+
+    for op in NESTED_OPS:
+        setattr(shading.ShadingPoint, op, counting(op))
+    walk.dr = LoopCounter()
+    try:
+        yield counts, sites, loops
+    finally:
+        walk.dr = real_dr
+        for op in NESTED_OPS:
+            setattr(shading.ShadingPoint, op, orig[op])
+
+
+@contextlib.contextmanager
+def stubbed_nested():
+    """Replace the nested BSDF on the facets by a closed-form white-ish Lambertian
+    (no ``facet_si``, no nested call): times the model's own logic."""
+    from mfnormal import shading
+
+    def cos_o(frame, wo):
+        return dr.maximum(dr.dot(wo, frame.n), 0.0)
+
+    def ok(frame, wi, active):
+        return mi.Bool(active) & (dr.dot(wi, frame.n) > 0)
+
+    def s_eval(self, frame, wi, wo, active):
+        return dr.select(ok(frame, wi, active), mi.Spectrum(0.5 * dr.inv_pi * cos_o(frame, wo)), 0.0)
+
+    def s_pdf(self, frame, wi, wo, active):
+        return dr.select(ok(frame, wi, active), dr.inv_pi * cos_o(frame, wo), 0.0)
+
+    def s_eval_pdf(self, frame, wi, wo, active):
+        return s_eval(self, frame, wi, wo, active), s_pdf(self, frame, wi, wo, active)
+
+    def s_sample(self, frame, wi, sample1, sample2, active):
+        active = ok(frame, wi, active)
+        local = mi.warp.square_to_cosine_hemisphere(sample2)
+        bs = dr.zeros(mi.BSDFSample3f, dr.width(local))
+        bs.wo = frame.to_world(local)
+        bs.pdf = dr.select(active, local.z * dr.inv_pi, 0.0)
+        bs.eta = 1.0
+        bs.sampled_type = mi.UInt32(+mi.BSDFFlags.DiffuseReflection)
+        bs.sampled_component = 0
+        return bs, dr.select(active, mi.Spectrum(0.5), 0.0)
+
+    stubs = {"eval": s_eval, "pdf": s_pdf, "eval_pdf": s_eval_pdf, "sample": s_sample}
+    orig = {op: getattr(shading.ShadingPoint, op) for op in stubs}
+    for op, f in stubs.items():
+        setattr(shading.ShadingPoint, op, f)
+    try:
+        yield
+    finally:
+        for op, f in orig.items():
+            setattr(shading.ShadingPoint, op, f)
+
+
+def walk_stats(lengths, width: int) -> dict:
+    L = np.array(lengths, dtype=np.float64)
+    packets = L[: len(L) // width * width].reshape(-1, width).max(axis=1)
+    return {"mean": float(L.mean()), "p99": float(np.percentile(L, 99)), "max": float(L.max()),
+            "packet_max_mean": float(packets.mean()),
+            "simd_efficiency": float(L.mean() / max(packets.mean(), 1e-30))}
+
+
+def throughput(nested: str, methods, prof: Profile) -> list:
+    n = prof.queries
+    texture = random_normalmap_texture()
+    ctx = mi.BSDFContext()
+    width = packet_width()
+    rows = []
+    queries = {1: make_queries(n), width: make_queries(n, coherent=width)}
+    si, wo, s1, s2 = queries[1]
+
+    # The nested BSDF alone, in the flat frame: the cost of one nested call.
+    base = mi.load_dict(copy.deepcopy(NESTED[nested]))
+    t_ns, _ = time_queries(lambda: base.sample(ctx, si, s1, s2), prof.tput_reps)
+    t_ne, _ = time_queries(lambda: base.eval(ctx, si, wo), prof.tput_reps)
+    t_np, _ = time_queries(lambda: base.pdf(ctx, si, wo), prof.tput_reps)
+    nested_cost = {"sample": t_ns / n, "eval": t_ne / n, "pdf": t_np / n, "eval_pdf": t_ne / n}
+
+    for method in methods:
+        bsdf = make_bsdf(method, nested, texture)
+        row = {"nested": nested, "method": method, "queries": n}
+        ws, ks = time_queries(lambda: bsdf.sample(ctx, si, s1, s2), prof.tput_reps)
+        we, ke = time_queries(lambda: bsdf.eval(ctx, si, wo), prof.tput_reps)
+        row.update(sample_qps=n / ws, eval_qps=n / we, sample_kernel_s=ks, eval_kernel_s=ke,
+                   sample_s=ws, eval_s=we)
+        row["nested_alone"] = {"sample_qps": n / t_ns, "eval_qps": n / t_ne, "pdf_qps": n / t_np}
+        if method != "builtin":
+            # Nested calls and walk lengths per query (executed lanes, not SIMD work).
+            for mode in ("sample", "eval"):
+                for coh, (q_si, q_wo, q_s1, q_s2) in queries.items():
+                    with instrumented(n) as (counts, sites, loops):
+                        out = (bsdf.sample(ctx, q_si, q_s1, q_s2) if mode == "sample"
+                               else bsdf.eval(ctx, q_si, q_wo))
+                        dr.eval(out, counts, sites, loops)
+                        calls = {op: float(np.mean(np.array(c))) for op, c in counts.items()}
+                        walk = walk_stats(loops[0], width) if loops else None
+                        # A packet runs every call site until its longest lane is done.
+                        st = np.array(sites, dtype=np.float64)
+                        simd_calls = float(st[: n // width * width].reshape(-1, width).max(axis=1).mean())
+                    tag = "" if coh == 1 else "_coherent"
+                    row[f"{mode}_simd_nested_calls{tag}"] = simd_calls
+                    if coh == 1:
+                        row[f"{mode}_nested_calls"] = calls
+                        row[f"{mode}_nested_time_est_s"] = sum(calls[op] * nested_cost[op] * n
+                                                               for op in calls)
+                    row[f"{mode}_walk{tag}"] = walk
+            # The model with the nested calls stubbed out.
+            with stubbed_nested():
+                ss, _ = time_queries(lambda: bsdf.sample(ctx, si, s1, s2), prof.stub_reps)
+                se, _ = time_queries(lambda: bsdf.eval(ctx, si, wo), prof.stub_reps)
+            row.update(stub_sample_s=ss, stub_eval_s=se,
+                       sample_nested_share=max(0.0, 1.0 - ss / ws), eval_nested_share=max(0.0, 1.0 - se / we))
+        rows.append(row)
+        log(f"  throughput {nested:12s} {method:22s} sample {n / ws / 1e6:7.3f} Mq/s  "
+            f"eval {n / we / 1e6:7.3f} Mq/s")
+    for row in rows:
+        b = rows[0] if rows[0]["method"] == "builtin" else None
+        if b is not None:
+            row["sample_slowdown"] = b["sample_qps"] / row["sample_qps"]
+            row["eval_slowdown"] = b["eval_qps"] / row["eval_qps"]
+    return rows
+
+
+# ---------------------------------------------------------------------------
+# Metrics 1 and 3: rendering in the main process
+# ---------------------------------------------------------------------------
+
+def render_metrics(scene: str, nested: str, assets: dict, prof: Profile) -> tuple:
+    methods = prof.methods
+    W, H, spp = prof.width, prof.height, prof.spp
+    scenes = {m: load_scene(scene, assets, m, nested, W, H, spp) for m in methods}
+    for m in methods:                                   # JIT-compile (warm-up)
+        timed_render(scenes[m], spp, 0)
+
+    # Metric 1: interleaved A/B pairs.
+    timing = []
+    for m in methods:
+        if m == "builtin":
+            continue
+        tb, tm = [], []
+        for r in range(prof.reps):
+            tb.append(timed_render(scenes["builtin"], spp, 100 + r)[0])
+            tm.append(timed_render(scenes[m], spp, 100 + r)[0])
+        ratios = [a / b for a, b in zip(tm, tb)]
+        model = METHOD_BY_KEY[m][1]
+        target = TIME_TARGET[model]
+        ratio = median(ratios)
+        timing.append({"scene": scene, "nested": nested, "method": m, "builtin_s": median(tb),
+                       "method_s": median(tm), "ratio": ratio, "ratios": ratios,
+                       "ratio_min": min(ratios), "ratio_max": max(ratios),
+                       "target": target, "pass": ratio <= target})
+        log(f"  time   {scene:6s} {nested:12s} {m:22s} {median(tm):6.3f} s vs {median(tb):6.3f} s"
+            f"  ratio {ratio:5.2f} [{min(ratios):.2f}, {max(ratios):.2f}]")
+    # Profile of the misses: the same render with the nested calls stubbed out.
+    for row in timing:
+        if row["pass"]:
+            continue
+        with stubbed_nested():
+            timed_render(scenes[row["method"]], spp, 0)
+            ts = median([timed_render(scenes[row["method"]], spp, 300 + r)[0] for r in range(3)])
+        row.update(stub_s=ts, stub_ratio=ts / row["builtin_s"],
+                   render_nested_share=max(0.0, 1.0 - ts / row["method_s"]))
+        log(f"         stubbed nested calls: {ts:6.3f} s (ratio {ts / row['builtin_s']:.2f}, nested "
+            f"share {100 * row['render_nested_share']:.0f} %)")
+    ratio_of = {t["method"]: t["ratio"] for t in timing}
+    ratio_of["builtin"] = 1.0
+
+    # Metric 3: equal-time noise against a high-spp reference of the same method.
+    noise = []
+    base = None
+    for m in methods:
+        acc = None
+        passes = max(1, prof.ref_spp // prof.ref_pass)
+        for i in range(passes):
+            img = to_numpy(timed_render(scenes[m], prof.ref_pass, 10_000 + i)[1])
+            acc = img if acc is None else acc + img
+        ref = acc / passes
+        ref_spp = passes * prof.ref_pass
+        m_spp = max(1, int(round(prof.spp / ratio_of[m])))
+        imgs = [to_numpy(timed_render(scenes[m], m_spp, 20_000 + s)[1]) for s in range(prof.noise_seeds)]
+        errs = [rel_mse(x, ref) for x in imgs]
+        # Fireflies: the share of the squared error in the worst 0.1 % of the pixels.
+        e = ((imgs[0] - ref) ** 2 / (ref ** 2 + REL_MSE_EPS)).mean(axis=-1).ravel()
+        top = float(np.sort(e)[::-1][: max(1, e.size // 1000)].sum() / max(e.sum(), 1e-30))
+        # E[(x - ref)^2] = σ²/n + σ²/n_ref: remove the reference's share.
+        err = float(np.mean(errs)) / (1.0 + m_spp / ref_spp)
+        row = {"scene": scene, "nested": nested, "method": m, "spp": m_spp, "ref_spp": ref_spp,
+               "time_ratio": ratio_of[m], "relmse": err, "relmse_raw": float(np.mean(errs)),
+               "ref_mean": float(ref.mean()), "top_pixel_error_share": top}
+        if m == "builtin":
+            base = row
+        noise.append(row)
+    for row in noise:
+        row["relmse_ratio"] = row["relmse"] / base["relmse"] if base and base["relmse"] > 0 else float("nan")
+        # Per-sample variance ratio (relMSE at equal spp): separates estimator noise from speed.
+        row["variance_per_sample_ratio"] = row["relmse_ratio"] * row["spp"] / prof.spp
+        row["ref_mean_ratio"] = row["ref_mean"] / base["ref_mean"] if base and base["ref_mean"] > 0 else float("nan")
+        target = noise_target(row["method"], nested)
+        row["target"] = target
+        row["pass"] = None if target is None else row["relmse_ratio"] <= target
+        log(f"  noise  {scene:6s} {nested:12s} {row['method']:22s} {row['spp']:3d} spp  relMSE "
+            f"{row['relmse']:.4g}  ratio {row['relmse_ratio']:5.2f}")
+    return timing, noise
+
+
+def noise_target(method: str, nested: str):
+    if method == "builtin":
+        return None
+    if method == "analytic":
+        return NOISE_TARGET["analytic"]
+    cls = NESTED_CLASS[nested]
+    return None if cls is None else NOISE_TARGET[f"walk_{cls}"]
+
+
+# ---------------------------------------------------------------------------
+# Machine description, summary and report
+# ---------------------------------------------------------------------------
+
+def machine_info() -> dict:
+    cpu = platform.processor() or platform.machine()
+    with contextlib.suppress(OSError):
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    import drjit.detail
+    return {
+        "cpu": cpu, "cores": os.cpu_count(), "drjit_threads": dr.thread_count(),
+        "simd_lanes": packet_width(), "platform": platform.platform(),
+        "python": platform.python_version(), "mitsuba": mi.__version__, "drjit": dr.__version__,
+        "variant": mi.variant(), "llvm_path": str(mfnormal.LLVM_PATH),
+        "llvm_version": ".".join(map(str, drjit.detail.llvm_version())),
+        "loadavg_start": list(os.getloadavg()),
+    }
+
+
+def git_state() -> dict:
+    """The commit measured, and the model files that differ from it."""
+    def git(*args):
+        with contextlib.suppress(OSError, subprocess.SubprocessError):
+            return subprocess.run(["git", *args], cwd=HERE.parent, capture_output=True, text=True,
+                                  timeout=10).stdout
+        return ""
+    return {"commit": git("rev-parse", "--short", "HEAD").strip(),
+            "modified": [ln[3:] for ln in git("status", "--porcelain", "--", "src").splitlines()]}
+
+
+def summarize(results: dict) -> list:
+    """One row per target: how many cells pass."""
+    rows = []
+
+    def add(name, cells):
+        cells = [c for c in cells if c.get("pass") is not None]
+        failed = [c for c in cells if not c["pass"]]
+        rows.append({"target": name, "cells": len(cells), "passed": len(cells) - len(failed),
+                     "status": "n/a" if not cells else "PASS" if not failed else "FAIL",
+                     "worst": max((c["_value"] for c in cells), default=None),
+                     "failed": [f"{c['scene']}/{c['nested']}/{c['method']}" for c in failed]})
+
+    t = results["render_time"]
+    for model, lim in TIME_TARGET.items():
+        add(f"render time at equal spp: {model} ≤ {lim}×",
+            [dict(c, _value=c["ratio"]) for c in t if METHOD_BY_KEY[c["method"]][1] == model])
+    nz = [c for c in results["noise"] if c["method"] != "builtin"]
+    add(f"equal-time relMSE: analytic ≤ {NOISE_TARGET['analytic']}×",
+        [dict(c, _value=c["relmse_ratio"]) for c in nz if c["method"] == "analytic"])
+    add(f"equal-time relMSE: random walks, diffuse ≤ {NOISE_TARGET['walk_diffuse']}×",
+        [dict(c, _value=c["relmse_ratio"]) for c in nz if c["method"] != "analytic"
+         and NESTED_CLASS[c["nested"]] == "diffuse"])
+    add(f"equal-time relMSE: random walks, rough conductors ≤ {NOISE_TARGET['walk_conductor']}×",
+        [dict(c, _value=c["relmse_ratio"]) for c in nz if c["method"] != "analytic"
+         and NESTED_CLASS[c["nested"]] == "conductor"])
+    add(f"first-render JIT compile ≤ {COMPILE_TARGET}× the built-in's",
+        [dict(c, _value=c["compile_ratio"]) for c in results["compile"]
+         if c["method"] != "builtin" and c.get("compile_ratio") is not None])
+    return rows
+
+
+def fmt(x, spec=".2f", none="–"):
+    if x is None or (isinstance(x, float) and not math.isfinite(x)):
+        return none
+    return format(x, spec)
+
+
+def mark(ok):
+    return "–" if ok is None else "✅" if ok else "❌"
+
+
+def why_lines(results: dict) -> list:
+    """Evidence for each failing target, from the throughput and kernel measurements."""
+    tput = {(r["nested"], r["method"]): r for r in results["throughput"]}
+    comp = {(c["scene"], c["nested"], c["method"]): c for c in results["compile"]}
+    lines = []
+    fails_t = [c for c in results["render_time"] if not c["pass"]]
+    fails_n = [c for c in results["noise"] if c.get("pass") is False]
+    fails_c = [c for c in results["compile"] if c.get("pass") is False]
+    if fails_t:
+        lines.append("**Render time.** For each miss: the render time ratio with the nested calls "
+                     "replaced by a closed-form stub (what the model's own logic costs), the share "
+                     "of the render spent in nested calls, and the BSDF-level costs of metric 4 "
+                     "(nested calls per query executed / SIMD: every call site runs on all lanes of "
+                     "a packet until its longest walk ends):")
+        lines.append("")
+        lines.append("| scene | nested | method | time ratio | stubbed ratio | nested share of render | "
+                     "eval / sample slowdown | nested calls / eval | nested calls / sample | "
+                     "walk mean / p99 / SIMD iters (coherent) |")
+        lines.append("|---|---|---|---|---|---|---|---|---|---|")
+        for c in fails_t:
+            r = tput.get((c["nested"], c["method"]), {})
+            w, wc = r.get("sample_walk") or {}, r.get("sample_walk_coherent") or {}
+            walk = (f"{fmt(w.get('mean'))} / {fmt(w.get('p99'), '.0f')} / {fmt(wc.get('packet_max_mean'))}"
+                    if w else "no walk")
+            calls = {m: (f"{fmt(sum(r[f'{m}_nested_calls'].values()))} / "
+                         f"{fmt(r.get(f'{m}_simd_nested_calls_coherent'))}") if f"{m}_nested_calls" in r else "–"
+                     for m in ("eval", "sample")}
+            share = c.get("render_nested_share")
+            lines.append(
+                f"| {c['scene']} | {c['nested']} | {c['method']} | {fmt(c['ratio'])} | {fmt(c.get('stub_ratio'))} | "
+                f"{fmt(None if share is None else 100 * share, '.0f')} % | "
+                f"{fmt(r.get('eval_slowdown'))}× / {fmt(r.get('sample_slowdown'))}× | {calls['eval']} | "
+                f"{calls['sample']} | {walk} |")
+        lines.append("")
+    if fails_c:
+        lines.append("**JIT compile.** Kernel size (Dr.Jit operations in the largest kernel of the "
+                     "first render) against the built-in's, for the failing cells:")
+        lines.append("")
+        lines.append("| scene | nested | method | compile s (built-in) | LLVM backend s | ops (built-in) | "
+                     "compile s / ops with nested calls stubbed |")
+        lines.append("|---|---|---|---|---|---|---|")
+        for c in fails_c:
+            b = comp.get((c["scene"], c["nested"], "builtin"), {})
+            lines.append(f"| {c['scene']} | {c['nested']} | {c['method']} | {fmt(c['compile_s'])} "
+                         f"({fmt(b.get('compile_s'))}) | {fmt(c.get('backend_s'))} | "
+                         f"{c.get('max_kernel_ops')} ({b.get('max_kernel_ops')}) | "
+                         f"{fmt(c.get('stub_compile_s'))} / {c.get('stub_max_kernel_ops', '–')} |")
+        lines.append("")
+    if fails_n:
+        lines.append("**Equal-time noise.** relMSE ratio = (per-sample variance ratio) × (time "
+                     "ratio): which of the two dominates in the failing cells:")
+        lines.append("")
+        diag = all("ref_mean_ratio" in c for c in fails_n)     # recorded since run.py added it
+        lines.append("| scene | nested | method | relMSE ratio | per-sample variance ratio | time ratio |"
+                     + (" reference mean / built-in's | error share of worst 0.1 % pixels (built-in) |"
+                        if diag else ""))
+        lines.append("|---|---|---|---|---|---|" + ("---|---|" if diag else ""))
+        noise = {(c["scene"], c["nested"], c["method"]): c for c in results["noise"]}
+        for c in fails_n:
+            b = noise.get((c["scene"], c["nested"], "builtin"), {})
+            extra = (f" {fmt(c.get('ref_mean_ratio'))} | {fmt(c.get('top_pixel_error_share'))} "
+                     f"({fmt(b.get('top_pixel_error_share'))}) |") if diag else ""
+            lines.append(f"| {c['scene']} | {c['nested']} | {c['method']} | {fmt(c['relmse_ratio'])} | "
+                         f"{fmt(c['variance_per_sample_ratio'])} | {fmt(c['time_ratio'])} |" + extra)
+        lines.append("")
+        lines.append("A large per-sample variance ratio with a similar reference mean and most of the "
+                     "error in a few pixels points at fireflies or sub-pixel glints; "
+                     "`benchmarks/experiments.py` (control, evalnoise, mispdf) separates the two.")
+        lines.append("")
+    return lines
+
+
+def write_markdown(results: dict, path: Path):
+    m, cfg = results["machine"], results["config"]
+    L = ["# mfnormal benchmark: `normalmap_microfacet` vs Mitsuba's `normalmap`", ""]
+    if cfg["name"] == "quick":
+        L += ["> **Quick smoke run** (tiny image, subset): the numbers below check that the "
+              "benchmark runs; they are not measurements.", ""]
+    L += [f"- command: `{results['command']}`",
+          f"- machine: {m['cpu']}, {m['cores']} cores ({m['drjit_threads']} Dr.Jit threads, "
+          f"{m['simd_lanes']} SIMD lanes), {m['platform']}",
+          f"- variant `{m['variant']}`, Mitsuba {m['mitsuba']}, Dr.Jit {m['drjit']}, "
+          f"LLVM {m['llvm_version']} (`{m['llvm_path']}`)",
+          f"- load average at start {fmt(m['loadavg_start'][0])}, at end "
+          f"{fmt(results['loadavg_end'][0])}; wall time {results['duration_s'] / 60:.1f} min; "
+          f"started {results['started']}",
+          f"- code: commit `{results['git']['commit']}`"
+          + (f", with uncommitted changes in {', '.join(results['git']['modified'])}"
+             if results['git']['modified'] else ""),
+          f"- profile `{cfg['name']}`: {cfg['width']}×{cfg['height']}, {cfg['spp']} spp, "
+          f"{cfg['reps']} A/B pairs, reference {cfg['ref_spp']} spp, {cfg['queries']} BSDF queries",
+          ""]
+    if results.get("notes"):
+        L += ["Notes:", ""] + [f"- {n}" for n in results["notes"]] + [""]
+
+    L += ["## Targets", "", "| target | cells passing | worst | status |", "|---|---|---|---|"]
+    for s in results["summary"]:
+        L.append(f"| {s['target']} | {s['passed']}/{s['cells']} | {fmt(s['worst'])} | {s['status']} |")
+    L.append("")
+
+    # One table: every (scene, nested, method).
+    t = {(c["scene"], c["nested"], c["method"]): c for c in results["render_time"]}
+    n = {(c["scene"], c["nested"], c["method"]): c for c in results["noise"]}
+    c = {(x["scene"], x["nested"], x["method"]): x for x in results["compile"]}
+    L += ["## Per scene, nested BSDF and method", "",
+          "Ratios are method / built-in (same scene and nested BSDF). Time: median of the "
+          "per-pair ratios of interleaved warm renders at equal spp. Noise: relMSE at the spp the "
+          "method reaches in the built-in's time, each against its own high-spp reference. "
+          "Compile: first render with an empty kernel cache minus a warm render. RSS: peak "
+          "resident memory of that subprocess (VmHWM), and in brackets its growth over the "
+          "loaded scene (the render's own memory).", "",
+          "| scene | nested | method | time s | time ratio | | spp @ equal time | relMSE | "
+          "relMSE ratio | | compile s | compile ratio | | peak RSS MB |",
+          "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    keys = sorted(set(t) | set(n) | set(c), key=lambda k: (SCENES.index(k[0]), list(NESTED).index(k[1]),
+                                                             METHOD_KEYS.index(k[2])))
+    for k in keys:
+        tt, nn, cc = t.get(k, {}), n.get(k, {}), c.get(k, {})
+        ts = tt.get("method_s") if k[2] != "builtin" else None
+        if k[2] == "builtin":
+            others = [v["builtin_s"] for kk, v in t.items() if kk[:2] == k[:2]]
+            ts = median(others) if others else None
+        L.append(f"| {k[0]} | {k[1]} | {k[2]} | {fmt(ts, '.3f')} | {fmt(tt.get('ratio'))} | "
+                 f"{mark(tt.get('pass'))} | {nn.get('spp', '–')} | {fmt(nn.get('relmse'), '.3g')} | "
+                 f"{fmt(nn.get('relmse_ratio'))} | {mark(nn.get('pass'))} | {fmt(cc.get('compile_s'))} | "
+                 f"{fmt(cc.get('compile_ratio'))} | {mark(cc.get('pass'))} | {fmt(cc.get('rss_peak_mb'), '.0f')} ({fmt(cc.get('rss_render_mb'), '.0f')}) |")
+    L.append("")
+
+    L += ["## BSDF throughput (metric 4)", "",
+          f"{results['config']['queries']} queries: wi, wo uniform on the hemisphere, normals from a "
+          "256² texture of random normals (θ_p uniform in [0°, 75°], nearest filtering). "
+          "Mq/s = 10⁶ queries per second (wall, median). Nested calls: executed nested BSDF "
+          "calls per query (eval + pdf + eval_pdf + sample), and in brackets the calls the CPU "
+          "runs per query (a packet runs every call site on all its lanes until its longest "
+          "walk ends; random lanes). Walk: iterations of the random "
+          "walk per query in `sample`; SIMD = the mean over "
+          f"{m['simd_lanes']}-lane packets of the longest walk in the packet (what the CPU "
+          "executes), for random lanes / for packets that share wi and the normal. Nested "
+          "share: 1 − time with the nested calls replaced by a closed-form Lambertian stub.", "",
+          "| nested | method | sample Mq/s | eval Mq/s | sample ×builtin | eval ×builtin | "
+          "nested calls sample / eval | walk mean / p99 / max | SIMD iters random / coherent | "
+          "nested share sample / eval |",
+          "|---|---|---|---|---|---|---|---|---|---|"]
+    for r in results["throughput"]:
+        w, wc = r.get("sample_walk"), r.get("sample_walk_coherent")
+        walk = f"{fmt(w['mean'])} / {fmt(w['p99'], '.0f')} / {fmt(w['max'], '.0f')}" if w else "–"
+        simd = f"{fmt(w['packet_max_mean'])} / {fmt(wc['packet_max_mean'])}" if w and wc else "–"
+        calls = (f"{fmt(sum(r['sample_nested_calls'].values()))} ({fmt(r['sample_simd_nested_calls'])}) / "
+                 f"{fmt(sum(r['eval_nested_calls'].values()))} ({fmt(r['eval_simd_nested_calls'])})"
+                 if "sample_nested_calls" in r else "1 / 1")
+        share = (f"{fmt(100 * r['sample_nested_share'], '.0f')} % / {fmt(100 * r['eval_nested_share'], '.0f')} %"
+                 if "sample_nested_share" in r else "–")
+        L.append(f"| {r['nested']} | {r['method']} | {fmt(r['sample_qps'] / 1e6, '.3f')} | "
+                 f"{fmt(r['eval_qps'] / 1e6, '.3f')} | {fmt(r.get('sample_slowdown'))} | "
+                 f"{fmt(r.get('eval_slowdown'))} | {calls} | {walk} | {simd} | {share} |")
+    L.append("")
+    nested_alone = {r["nested"]: r["nested_alone"] for r in results["throughput"]}
+    if nested_alone:
+        L.append("Nested BSDF alone (one call per query, flat frame): " + "; ".join(
+            f"{k} sample {v['sample_qps'] / 1e6:.2f} / eval {v['eval_qps'] / 1e6:.2f} / pdf "
+            f"{v['pdf_qps'] / 1e6:.2f} Mq/s" for k, v in nested_alone.items()) + ".")
+        L.append("")
+
+    why = why_lines(results)
+    if why:
+        L += ["## Why targets fail", ""] + why
+        if (path.parent / "experiments.md").exists():
+            L += ["What-if variants of the model code (RNG, bounce cap, merged nested calls, reuse of "
+                  "the sampled term) and the noise diagnostics: [experiments.md](experiments.md) "
+                  "(`python benchmarks/experiments.py`).", ""]
+    L += ["## Reproduce", "", "```sh", results["command"], "```", ""]
+    path.write_text("\n".join(L))
+
+
+# ---------------------------------------------------------------------------
+# Main
+# ---------------------------------------------------------------------------
+
+def main(argv=None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--quick", action="store_true", help="tiny smoke run (< 2 min), numbers meaningless")
+    ap.add_argument("--out", default=str(HERE), help="output directory (default: benchmarks/)")
+    ap.add_argument("--scenes", help=f"comma-separated subset of {','.join(SCENES)}")
+    ap.add_argument("--nested", help=f"comma-separated subset of {','.join(NESTED)}")
+    ap.add_argument("--skip", default="", help="comma-separated metrics to skip: render,compile,throughput")
+    ap.add_argument("--report-only", action="store_true",
+                    help="rewrite RESULTS.md from the results.json already in --out")
+    ap.add_argument("--worker", help=argparse.SUPPRESS)
+    args = ap.parse_args(argv)
+
+    if args.worker:
+        print("RESULT " + json.dumps(worker_main(json.loads(args.worker))), flush=True)
+        return 0
+    if args.report_only:
+        results = json.loads((Path(args.out) / "results.json").read_text())
+        results["summary"] = summarize(results)
+        write_markdown(results, Path(args.out) / "RESULTS.md")
+        log(f"wrote {Path(args.out) / 'RESULTS.md'}")
+        return 0
+
+    prof = copy.copy(QUICK if args.quick else FULL)
+    if args.scenes:
+        prof.scenes = tuple(s for s in args.scenes.split(",") if s)
+        bad = set(prof.scenes) - set(SCENES)
+        if bad:
+            ap.error(f"unknown scene(s) {sorted(bad)}")
+    if args.nested:
+        prof.nested = tuple(s for s in args.nested.split(",") if s)
+        bad = set(prof.nested) - set(NESTED)
+        if bad:
+            ap.error(f"unknown nested BSDF(s) {sorted(bad)}")
+    skip = set(filter(None, args.skip.split(",")))
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+
+    t_start = time.time()
+    import_mitsuba()
+    script = os.path.relpath(Path(__file__).resolve(), Path.cwd())
+    exe = sys.executable
+    py = os.path.relpath(exe) if exe.startswith(os.getcwd() + os.sep) else exe
+    results = {
+        "command": shlex.join([py, script, *argv]),
+        "started": time.strftime("%Y-%m-%d %H:%M:%S %Z"),
+        "machine": machine_info(),
+        "git": git_state(),
+        "config": asdict(prof),
+        "targets": {"render_time": TIME_TARGET, "noise": NOISE_TARGET, "compile": COMPILE_TARGET},
+        "render_time": [], "noise": [], "compile": [], "throughput": [], "notes": [],
+    }
+    log(f"mfnormal benchmark ({prof.name}): {results['machine']['cpu']}, {results['machine']['cores']} "
+        f"cores, load {results['machine']['loadavg_start'][0]:.1f}")
+
+    assets_root = Path(tempfile.mkdtemp(prefix="mfnormal_bench_assets_"))
+    try:
+        assets = prepare_assets(assets_root, prof.scenes)
+        scenes = []
+        for s in prof.scenes:
+            if s == "model" and "error" in assets.get("model", {}):
+                results["notes"].append(f"scene (b) skipped: {assets['model']['error']}")
+                continue
+            scenes.append(s)
+
+        # Metrics 1 and 3.
+        if "render" not in skip:
+            for s in scenes:
+                for nested in prof.nested:
+                    log(f"[render] {s} / {nested}")
+                    try:
+                        timing, noise = render_metrics(s, nested, assets, prof)
+                    except Exception as exc:          # report it, measure the rest
+                        results["notes"].append(f"render metrics failed for {s}/{nested}: "
+                                                f"{type(exc).__name__}: {exc}")
+                        log(f"  failed: {exc}")
+                        continue
+                    results["render_time"] += timing
+                    results["noise"] += noise
+
+        # Metrics 2 and 5 (subprocesses with an empty kernel cache).
+        if "compile" not in skip:
+            for s in scenes:
+                for nested in prof.nested:
+                    rows = []
+                    for m in prof.methods:
+                        r = run_worker({"scene": s, "nested": nested, "method": m, "assets": assets,
+                                        "width": prof.width, "height": prof.height, "spp": prof.spp,
+                                        "warm_reps": prof.compile_warm_reps})
+                        r.update(scene=s, nested=nested, method=m)
+                        rows.append(r)
+                        log(f"  compile {s:6s} {nested:12s} {m:22s} "
+                            + (r["error"] if "error" in r else
+                               f"first {r['first_s']:.2f} s, warm {r['warm_s']:.2f} s, compile "
+                               f"{r['compile_s']:.2f} s, ops {r['max_kernel_ops']}, RSS {r['rss_peak_mb']:.0f} MB"))
+                    b = next((r for r in rows if r["method"] == "builtin" and "error" not in r), None)
+                    for r in rows:
+                        if "error" in r or b is None:
+                            r.update(compile_ratio=None)
+                            r["pass"] = None
+                            continue
+                        r["compile_ratio"] = r["compile_s"] / max(b["compile_s"], 1e-3)
+                        r["rss_ratio"] = r["rss_peak_mb"] / b["rss_peak_mb"]
+                        r["target"] = None if r["method"] == "builtin" else COMPILE_TARGET
+                        r["pass"] = None if r["method"] == "builtin" else r["compile_ratio"] <= COMPILE_TARGET
+                        if r["pass"] is False:
+                            # Profile: the same configuration with the nested calls stubbed out.
+                            st = run_worker({"scene": s, "nested": nested, "method": r["method"],
+                                             "assets": assets, "width": prof.width, "height": prof.height,
+                                             "spp": prof.spp, "warm_reps": prof.compile_warm_reps, "stub": True})
+                            if "error" not in st:
+                                r.update(stub_compile_s=st["compile_s"], stub_max_kernel_ops=st["max_kernel_ops"],
+                                         stub_backend_s=st["backend_s"])
+                    results["compile"] += rows
+
+        # Metric 4.
+        if "throughput" not in skip:
+            for nested in prof.nested:
+                log(f"[throughput] {nested}")
+                try:
+                    results["throughput"] += throughput(nested, prof.methods, prof)
+                except Exception as exc:
+                    results["notes"].append(f"throughput failed for {nested}: {type(exc).__name__}: {exc}")
+                    log(f"  failed: {exc}")
+    finally:
+        shutil.rmtree(assets_root, ignore_errors=True)
+
+    results["loadavg_end"] = list(os.getloadavg())
+    results["duration_s"] = time.time() - t_start
+    results["summary"] = summarize(results)
+    if max(results["machine"]["loadavg_start"][0], results["loadavg_end"][0]) > 0.5 * (os.cpu_count() or 1):
+        results["notes"].append(
+            f"the machine was busy (load average {results['machine']['loadavg_start'][0]:.1f} → "
+            f"{results['loadavg_end'][0]:.1f} on {os.cpu_count()} cores): timings are noisy; re-run on "
+            "an idle machine before trusting the pass/fail of the time-based targets")
+    results["notes"].append(
+        "walk lengths come from wrapping dr.while_loop inside mfnormal.walk (walk._walk does not "
+        "return its bounce counter); nested calls are counted by wrapping ShadingPoint's methods")
+    (out / "results.json").write_text(json.dumps(results, indent=1, default=float))
+    write_markdown(results, out / "RESULTS.md")
+    log(f"wrote {out / 'results.json'} and {out / 'RESULTS.md'} in {results['duration_s']:.0f} s")
+    for s in results["summary"]:
+        log(f"  {s['status']:4s} {s['target']}  ({s['passed']}/{s['cells']})")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,49 @@
+"""Smoke test of ``benchmarks/run.py``: its ``--quick`` profile runs and reports every method.
+
+Only the quick profile runs here (tiny image, one scene, one nested BSDF, under
+two minutes): it proves the benchmark still works against the current plugin,
+not how fast the plugin is. The full benchmark is run by hand
+(``python benchmarks/run.py``).
+"""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+SCRIPT = ROOT / "benchmarks" / "run.py"
+METHODS = ("builtin", "analytic", "separable_specular", "separable_same",
+           "nonseparable_specular", "nonseparable_same")
+
+
+@pytest.fixture(scope="module")
+def quick_run(tmp_path_factory):
+    out = tmp_path_factory.mktemp("bench")
+    proc = subprocess.run([sys.executable, str(SCRIPT), "--quick", "--out", str(out)], cwd=ROOT,
+                          capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
+    return out
+
+
+def test_quick_benchmark_writes_json_with_every_method_and_metric(quick_run):
+    results = json.loads((quick_run / "results.json").read_text())
+    assert results["config"]["name"] == "quick"
+    assert {"cpu", "cores", "variant", "llvm_path"} <= set(results["machine"])
+    assert "benchmarks/run.py --quick" in results["command"]
+    for metric in ("render_time", "noise", "compile", "throughput"):
+        methods = {row["method"] for row in results[metric]}
+        expected = set(METHODS) - ({"builtin"} if metric == "render_time" else set())
+        assert methods == expected, metric
+    assert all("error" not in row for row in results["compile"])
+    assert all(row["pass"] in (True, False) for row in results["render_time"])
+    assert {s["status"] for s in results["summary"]} <= {"PASS", "FAIL", "n/a"}
+
+
+def test_quick_benchmark_writes_markdown_table_with_every_method(quick_run):
+    text = (quick_run / "RESULTS.md").read_text()
+    assert "## Targets" in text and "benchmarks/run.py --quick" in text
+    for method in METHODS:
+        assert f"| {method} |" in text, method
