@@ -1,6 +1,6 @@
 """The ``mfnormal`` command line: render scenes that use the plugin, and the bundled demo.
 
-    mfnormal render SCENE.xml [-o OUT] [--spp N] [--variant V] [-D key=value ...]
+    mfnormal render SCENE.xml|MODEL.gltf|MODEL.glb [-o OUT] [--spp N] [--variant V] [-D key=value ...]
     mfnormal demo [-o OUT] [--spp N] [--model M]
     mfnormal compare SCENE [SCENE ...] [-o DIR] [--spp N] [--ref-spp N] [--quick]
 
@@ -52,12 +52,49 @@ def parse_defines(defines: list[str]) -> dict[str, str]:
     return params
 
 
+def _flag(text: str) -> bool:
+    if text.strip().lower() in ("1", "true", "yes", "on"):
+        return True
+    if text.strip().lower() in ("0", "false", "no", "off"):
+        return False
+    raise ValueError(f"expected true or false, got '{text}'")
+
+
+# -D options of a glTF file: load_gltf's keyword arguments, parsed from text.
+GLTF_OPTIONS = {"width": int, "height": int, "spp": int, "max_depth": int, "model": str,
+                "tangents": str, "normal_maps": _flag, "lights": _flag}
+
+
+def _gltf_scene(mi, path: Path, params: dict[str, str]):
+    """The scene dict of a glTF file, with -D key=value as load_gltf options."""
+    from .gltf import load_gltf
+
+    options = {}
+    for key, value in params.items():
+        if key not in GLTF_OPTIONS:
+            raise CLIError(f"unknown -D option '{key}' for a glTF scene; use one of "
+                           f"{', '.join(GLTF_OPTIONS)}")
+        try:
+            options[key] = GLTF_OPTIONS[key](value)
+        except ValueError:
+            raise CLIError(f"-D {key}={value}: not a valid {key}") from None
+    return mi.load_dict(load_gltf(path, **options))
+
+
 def load_scene(mi, path, params: dict[str, str]):
+    """A Mitsuba XML scene (``-D`` sets its ``$key`` defaults) or a glTF 2.0 file (``.gltf``, ``.glb``)."""
+    from .gltf import GLTF_SUFFIXES
+
     path = Path(path)
     if not path.is_file():
         raise CLIError(f"scene file not found: {path}")
     try:
-        scene = mi.load_file(str(path), **params)
+        if path.suffix.lower() in GLTF_SUFFIXES:
+            scene = _gltf_scene(mi, path, params)
+        else:
+            scene = mi.load_file(str(path), **params)
+    except CLIError:
+        raise
     except Exception as exc:
         raise CLIError(f"cannot load {path}: {one_line(exc)}") from None
     from .scene_checks import check_scene
@@ -200,8 +237,10 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="mfnormal", description=__doc__.split("\n\n")[0])
     sub = parser.add_subparsers(dest="command", required=True)
 
-    r = sub.add_parser("render", help="render a Mitsuba 3 scene (XML) that may use normalmap_microfacet")
-    r.add_argument("scene", help="scene file (.xml)")
+    r = sub.add_parser("render", help="render a Mitsuba 3 scene (XML) that may use normalmap_microfacet, "
+                                      "or a glTF 2.0 model (.gltf, .glb)")
+    r.add_argument("scene", help="scene file (.xml), or a glTF 2.0 file (.gltf, .glb: -D sets width, "
+                                 "height, spp, max_depth, model, tangents, normal_maps, lights)")
     r.add_argument("-o", "--output", help="output path without extension (writes .exr and .png)")
     r.add_argument("--spp", type=int, help="samples per pixel (default: the scene's)")
     r.add_argument("--variant", default=DEFAULT_VARIANT, help=f"Mitsuba variant (default {DEFAULT_VARIANT})")

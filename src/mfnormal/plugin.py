@@ -41,6 +41,17 @@ Microfacet-based normal mapping (:monosp:`normalmap_microfacet`)
    - Scales the tangent-space x and y before normalising (glTF's
      ``normalTexture.scale``); 0 gives the flat surface. Default: 1.
      (Exposed, |exposed|)
+ * - tangents
+   - |string|
+   - The tangent frame the map is decoded in. ``mitsuba`` (default): the
+     base shading frame ``si.sh_frame``, whose tangent Mitsuba builds per
+     triangle from the UV derivatives. A mesh attribute name such as
+     ``vertex_tangent``: the baker's (MikkTSpace, glTF) per-vertex frame
+     T, B = sign·(N×T), N, with T the interpolated 3-float attribute ``NAME``
+     and sign the 1-float attribute ``NAME_sign`` (glTF's ``TANGENT.w``), so
+     maps baked in MikkTSpace, mirrored UV islands included, come out right.
+     Shapes without the attribute fall back to ``mitsuba``.
+     (:func:`mfnormal.gltf.load_gltf` adds both attributes.)
 
 Robust normal mapping after Schüßler, Heitz, Hanika and Dachsbacher,
 *Microfacet-based Normal Mapping for Robust Monte Carlo Path Tracing*
@@ -112,11 +123,12 @@ import mitsuba as mi
 
 from . import analytic, walk
 from .microsurface import decode_normal
-from .shading import ShadingPoint
+from .shading import ShadingPoint, from_tangent_frame
 
 MODELS = ("analytic", "separable", "nonseparable")
 TANGENT_FACETS = ("specular", "same")
 CONVENTIONS = ("opengl", "directx")
+MITSUBA_TANGENTS = "mitsuba"
 
 
 def _fail(msg: str):
@@ -171,6 +183,11 @@ class NormalMapMicrofacet:
             _fail(f"strength must be a finite number >= 0, got {strength}")
         self.strength = mi.Float(strength)
         dr.make_opaque(self.strength)
+        tangents = props.get("tangents", MITSUBA_TANGENTS)
+        if tangents != MITSUBA_TANGENTS and not tangents.startswith("vertex_"):
+            _fail(f"tangents must be '{MITSUBA_TANGENTS}' or a vertex attribute name such as "
+                  f"'vertex_tangent', got '{tangents}'")
+        self.tangent_attr = None if tangents == MITSUBA_TANGENTS else tangents
 
         # The nested BSDF's components; the microsurface only reflects.
         self.m_components = [self.nested.flags(i) for i in range(self.nested.component_count())]
@@ -188,7 +205,23 @@ class NormalMapMicrofacet:
     def _shading_point(self, ctx, si, active):
         """The microsurface at ``si``: ω_p from the normal map, in the base shading frame."""
         rgb = self.normalmap.eval_3(si, active)
-        return ShadingPoint(self.nested, ctx, si, decode_normal(rgb, self.strength, self.directx))
+        wp = decode_normal(rgb, self.strength, self.directx)
+        if self.tangent_attr is not None:
+            wp = self._from_vertex_tangents(si, wp, active)
+        return ShadingPoint(self.nested, ctx, si, wp)
+
+    def _from_vertex_tangents(self, si, wp, active):
+        """ω_p decoded in the mesh's vertex tangent frame, re-expressed in ``si.sh_frame``."""
+        name, shape = self.tangent_attr, si.shape
+        if not dr.is_jit_v(mi.Float) and (shape is None or not shape.is_mesh()
+                                          or not shape.has_attribute(name)):
+            return wp      # scalar variants: a shape without tangents
+        # JIT variants: a shape without the attribute evaluates to 0, i.e. no tangent.
+        # (T and its sign are two attributes: Mitsuba 3.9.1's eval_attribute_x returns zeros.)
+        tangent = mi.Vector3f(shape.eval_attribute_3(name, si, active))
+        sign = shape.eval_attribute_1(name + "_sign", si, active) if (
+            dr.is_jit_v(mi.Float) or shape.has_attribute(name + "_sign")) else 1.0
+        return from_tangent_frame(wp, si.sh_frame, tangent, sign)
 
     def _walk_args(self):
         return self.model == "separable", self.tangent_facet == "specular", self.max_bounces
@@ -220,7 +253,8 @@ class NormalMapMicrofacet:
 
     def to_string(self):
         return (f"NormalMapMicrofacet[model={self.model}, tangent_facet={self.tangent_facet}, "
-                f"strength={self.strength}, convention={'directx' if self.directx else 'opengl'},\n"
+                f"strength={self.strength}, convention={'directx' if self.directx else 'opengl'}, "
+                f"tangents={self.tangent_attr or MITSUBA_TANGENTS},\n"
                 f"  normalmap={self.normalmap},\n  bsdf={self.nested}]")
 
 

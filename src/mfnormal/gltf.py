@@ -1,0 +1,589 @@
+"""glTF 2.0 scenes (``.gltf``, ``.glb``) as Mitsuba scenes, normal maps decoded in the baker's frame.
+
+:func:`load_gltf` reads a file with ``pygltflib`` and returns a Mitsuba scene
+dict: one triangle mesh per primitive and node (in world space), its material as
+a ``principled`` BSDF (base colour, metallic, roughness, with their textures and
+factors) wrapped in ``normalmap_microfacet`` where the material has a
+``normalTexture`` (its ``scale`` is the plugin's ``strength``), the file's first
+camera or one that frames the model, and its ``KHR_lights_punctual`` lights or
+a generated sky with a sun.
+
+Tangent frames: normal maps are baked in MikkTSpace. Each normal-mapped mesh
+carries the per-vertex tangent T (attribute ``vertex_tangent``) and the
+handedness sign (``vertex_tangent_sign``, glTF's ``TANGENT.w``): the file's
+``TANGENT`` where it has one, else MikkTSpace tangents computed here
+(:mod:`mfnormal.tangents`; vertices are split where they differ), and the
+plugin decodes the map in T, B = sign·(N×T), N (its ``tangents`` parameter).
+
+Texture conventions: base colour is sRGB, normals and metallic-roughness are
+linear (roughness in G, metallic in B). glTF's UV origin is the image's top
+left, which is also where Mitsuba's ``bitmap`` puts v = 0, so UVs pass through
+unchanged; MikkTSpace tangents are computed for (u, 1 − v), whose +v is the
+image's up, the normal map's +Y.
+
+Not supported (ignored, with a warning): texture coordinate sets other than
+``TEXCOORD_0``, ``KHR_texture_transform``, emission, occlusion, alpha
+blending and masking, skins, morph targets, animation, compressed geometry
+(Draco, meshopt: an error) and the ``KHR_materials_*`` extensions.
+"""
+
+from __future__ import annotations
+
+import base64
+import math
+import warnings
+from pathlib import Path
+from urllib.parse import unquote
+
+import numpy as np
+
+from .tangents import mikktspace, split_vertices
+
+__all__ = ["load_gltf", "sky_envmap", "GLTF_SUFFIXES", "TANGENT_MODES"]
+
+GLTF_SUFFIXES = (".gltf", ".glb")
+TANGENT_MODES = ("auto", "mikktspace", "mitsuba")
+TANGENT_ATTR = "vertex_tangent"
+
+_COMPONENT = {5120: np.int8, 5121: np.uint8, 5122: np.int16, 5123: np.uint16, 5125: np.uint32,
+              5126: np.float32}
+_WIDTH = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4, "MAT2": 4, "MAT3": 9, "MAT4": 16}
+_WRAP = {33071: "clamp", 33648: "mirror", 10497: "repeat"}
+_NEAREST = {9728, 9984, 9986}
+_TRIANGLES, _STRIP, _FAN = 4, 5, 6
+
+
+def _warn(msg):
+    warnings.warn(f"glTF: {msg}", RuntimeWarning, stacklevel=3)
+
+
+class _File:
+    """A parsed glTF file: its JSON (pygltflib), buffers and decoded images."""
+
+    def __init__(self, path: Path):
+        import pygltflib
+
+        self.path = path
+        try:
+            self.gltf = pygltflib.GLTF2().load(str(path))
+        except Exception as exc:  # noqa: BLE001  (pygltflib raises anything on a broken file)
+            raise ValueError(f"not a valid glTF 2.0 file ({type(exc).__name__}: {exc})") from None
+        if self.gltf is None:
+            raise ValueError("not a glTF 2.0 file")
+        unsupported = {"KHR_draco_mesh_compression", "EXT_meshopt_compression",
+                       "KHR_mesh_quantization"} & set(self.gltf.extensionsRequired or [])
+        if unsupported:
+            raise ValueError(f"needs {', '.join(sorted(unsupported))}, which is not supported")
+        self.buffers = [self._buffer(b) for b in self.gltf.buffers]
+        self._images = {}
+
+    def _uri(self, uri: str) -> bytes:
+        if uri.startswith("data:"):
+            return base64.b64decode(uri.split(",", 1)[1])
+        return (self.path.parent / unquote(uri)).read_bytes()
+
+    def _buffer(self, buffer) -> bytes:
+        if buffer.uri is None:
+            return self.gltf.binary_blob() or b""
+        return self._uri(buffer.uri)
+
+    def accessor(self, index: int) -> np.ndarray:
+        """Accessor ``index`` as an (count, width) array; normalized integers become floats."""
+        acc = self.gltf.accessors[index]
+        dtype = np.dtype(_COMPONENT[acc.componentType])
+        width = _WIDTH[acc.type]
+        if acc.bufferView is None:
+            data = np.zeros((acc.count, width), dtype)
+        else:
+            data = self._view(acc.bufferView, acc.byteOffset or 0, dtype, width, acc.count)
+        if acc.sparse is not None:
+            s = acc.sparse
+            idx = self._view(s.indices.bufferView, s.indices.byteOffset or 0,
+                             np.dtype(_COMPONENT[s.indices.componentType]), 1, s.count)[:, 0]
+            val = self._view(s.values.bufferView, s.values.byteOffset or 0, dtype, width, s.count)
+            data = data.copy()
+            data[idx.astype(np.int64)] = val
+        if acc.normalized and dtype.kind in "iu":
+            data = np.maximum(data / np.float32(np.iinfo(dtype).max), -1.0).astype(np.float32)
+        return data
+
+    def _view(self, view_index, offset, dtype, width, count) -> np.ndarray:
+        view = self.gltf.bufferViews[view_index]
+        buf = self.buffers[view.buffer]
+        start = (view.byteOffset or 0) + offset
+        elem = dtype.itemsize * width
+        stride = view.byteStride or elem
+        if count == 0:
+            return np.zeros((0, width), dtype)
+        raw = np.frombuffer(buf, np.uint8, stride * (count - 1) + elem, start)
+        rows = np.lib.stride_tricks.as_strided(raw, (count, elem), (stride, 1))
+        return np.ascontiguousarray(rows).view(dtype).reshape(count, width)
+
+    def image(self, index: int) -> np.ndarray | None:
+        """Image ``index`` as raw values in [0, 1], (h, w, channels) float32; None if undecodable."""
+        if index in self._images:
+            return self._images[index]
+        import mitsuba as mi
+
+        img = self.gltf.images[index]
+        try:
+            if img.bufferView is not None:
+                view = self.gltf.bufferViews[img.bufferView]
+                start = view.byteOffset or 0
+                data = self.buffers[view.buffer][start:start + view.byteLength]
+            elif img.uri is not None:
+                data = self._uri(img.uri)
+            else:
+                raise ValueError("no data")
+            stream = mi.MemoryStream(len(data))
+            stream.write(data)
+            stream.seek(0)
+            arr = np.array(mi.Bitmap(stream))
+        except Exception as exc:  # noqa: BLE001  (an unreadable texture is skipped, not fatal)
+            _warn(f"cannot decode image {index} ({img.uri or img.mimeType}): {exc}; texture ignored")
+            arr = None
+        if arr is not None:
+            if arr.ndim == 2:
+                arr = arr[:, :, None]
+            if arr.dtype.kind in "iu":
+                arr = arr.astype(np.float32) / np.float32(np.iinfo(arr.dtype).max)
+            arr = arr.astype(np.float32)
+        self._images[index] = arr
+        return arr
+
+
+# Scene graph
+
+def _node_matrix(node) -> np.ndarray:
+    if node.matrix is not None:
+        return np.array(node.matrix, dtype=np.float64).reshape(4, 4).T    # column-major
+    t = np.array(node.translation or [0, 0, 0], dtype=np.float64)
+    x, y, z, w = node.rotation or [0, 0, 0, 1]
+    r = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                  [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                  [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+    s = np.array(node.scale or [1, 1, 1], dtype=np.float64)
+    m = np.eye(4)
+    m[:3, :3] = r * s[None, :]
+    m[:3, 3] = t
+    return m
+
+
+def _walk_nodes(gltf):
+    """(node, world matrix) for every node of the default scene, parents first."""
+    if gltf.scenes:
+        roots = gltf.scenes[gltf.scene or 0].nodes or []
+    else:
+        children = {c for n in gltf.nodes for c in (n.children or [])}
+        roots = [i for i in range(len(gltf.nodes)) if i not in children]
+    stack = [(i, np.eye(4)) for i in reversed(roots)]
+    while stack:
+        i, parent = stack.pop()
+        node = gltf.nodes[i]
+        world = parent @ _node_matrix(node)
+        yield node, world
+        stack.extend((c, world) for c in reversed(node.children or []))
+
+
+# Materials
+
+def _srgb_to_linear(c):
+    return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4).astype(np.float32)
+
+
+def _channels(arr, n):
+    """The first ``n`` colour channels (grey repeated), alpha dropped."""
+    colour = arr[:, :, :1].repeat(3, axis=2) if arr.shape[2] in (1, 2) else arr[:, :, :3]
+    return np.ascontiguousarray(colour[:, :, :n])
+
+
+class _Materials:
+    """glTF materials → Mitsuba BSDF dicts, textures decoded once."""
+
+    def __init__(self, f: _File, model: str, tangents: str, normal_maps: bool):
+        self.f, self.model, self.tangents, self.normal_maps = f, model, tangents, normal_maps
+        self._warned = set()
+
+    def _warn_once(self, key, msg):
+        if key not in self._warned:
+            self._warned.add(key)
+            _warn(msg)
+
+    def _texture(self, info, what):
+        """(raw image array, sampler settings) of a textureInfo, or (None, None)."""
+        if info is None:
+            return None, None
+        if (info.texCoord or 0) != 0:
+            self._warn_once(("texcoord", what), f"{what} uses TEXCOORD_{info.texCoord}; "
+                                                "only TEXCOORD_0 is supported, using it")
+        if info.extensions and "KHR_texture_transform" in info.extensions:
+            self._warn_once(("transform", what), f"KHR_texture_transform on {what} is ignored")
+        tex = self.f.gltf.textures[info.index]
+        if tex.source is None:
+            self._warn_once(("source", info.index), f"texture {info.index} has no PNG/JPEG source "
+                                                    "(a texture extension?); ignored")
+            return None, None
+        arr = self.f.image(tex.source)
+        if arr is None:
+            return None, None
+        sampler = self.f.gltf.samplers[tex.sampler] if tex.sampler is not None else None
+        settings = {"wrap_mode": _WRAP.get(getattr(sampler, "wrapS", None), "repeat"),
+                    "filter_type": "nearest" if getattr(sampler, "magFilter", None) in _NEAREST
+                    else "bilinear"}
+        return arr, settings
+
+    @staticmethod
+    def _bitmap(data, settings):
+        import mitsuba as mi
+
+        return {"type": "bitmap", "bitmap": mi.Bitmap(np.ascontiguousarray(data, dtype=np.float32)),
+                "raw": True, **settings}
+
+    def normal_texture(self, mat):
+        """(bitmap dict, strength) of the material's normal map, or (None, None)."""
+        if mat is None or mat.normalTexture is None or not self.normal_maps:
+            return None, None
+        arr, settings = self._texture(mat.normalTexture, "normalTexture")
+        if arr is None:
+            return None, None
+        if arr.shape[2] < 3:
+            self._warn_once(("nchan", id(mat)), "a normalTexture with fewer than 3 channels is ignored")
+            return None, None
+        scale = mat.normalTexture.scale
+        return self._bitmap(arr[:, :, :3], settings), 1.0 if scale is None else float(scale)
+
+    def principled(self, mat) -> dict:
+        pbr = mat.pbrMetallicRoughness if mat is not None else None
+        base = list((pbr.baseColorFactor if pbr and pbr.baseColorFactor else [1, 1, 1, 1])[:3])
+        metallic = 1.0 if pbr is None or pbr.metallicFactor is None else float(pbr.metallicFactor)
+        roughness = 1.0 if pbr is None or pbr.roughnessFactor is None else float(pbr.roughnessFactor)
+        bsdf = {"type": "principled", "base_color": {"type": "rgb", "value": base},
+                "metallic": metallic, "roughness": roughness}
+        if pbr is not None:
+            arr, settings = self._texture(pbr.baseColorTexture, "baseColorTexture")
+            if arr is not None:
+                colour = _srgb_to_linear(_channels(arr, 3)) * np.float32(base)
+                bsdf["base_color"] = self._bitmap(colour, settings)
+            arr, settings = self._texture(pbr.metallicRoughnessTexture, "metallicRoughnessTexture")
+            if arr is not None:
+                if arr.shape[2] < 3:
+                    arr = _channels(arr, 3)
+                bsdf["roughness"] = self._bitmap(arr[:, :, 1:2] * np.float32(roughness), settings)
+                bsdf["metallic"] = self._bitmap(arr[:, :, 2:3] * np.float32(metallic), settings)
+        if mat is not None:
+            if mat.emissiveTexture is not None or any(mat.emissiveFactor or []):
+                self._warn_once("emissive", "emission is ignored")
+            if mat.alphaMode not in (None, "OPAQUE"):
+                self._warn_once("alpha", f"alphaMode {mat.alphaMode} is rendered opaque")
+            if mat.extensions:
+                for ext in mat.extensions:
+                    self._warn_once(ext, f"material extension {ext} is ignored")
+        return bsdf
+
+    def bsdf(self, index, has_uv: bool, has_tangents: bool):
+        """The Mitsuba BSDF dict of material ``index`` (None: the default material)."""
+        mat = self.f.gltf.materials[index] if index is not None else None
+        bsdf = self.principled(mat)
+        normalmap, strength = self.normal_texture(mat) if has_uv else (None, None)
+        if normalmap is not None:
+            bsdf = {"type": "normalmap_microfacet", "normalmap": normalmap, "bsdf": bsdf,
+                    "strength": strength, "model": self.model,
+                    "tangents": TANGENT_ATTR if has_tangents else "mitsuba"}
+        if mat is not None and mat.doubleSided:
+            bsdf = {"type": "twosided", "bsdf": bsdf}
+        return bsdf
+
+    def wants_tangents(self, index) -> bool:
+        mat = self.f.gltf.materials[index] if index is not None else None
+        return (self.tangents != "mitsuba" and self.normal_maps and mat is not None
+                and mat.normalTexture is not None)
+
+
+# Meshes
+
+def _triangles(indices, mode):
+    if mode == _TRIANGLES:
+        return indices[: len(indices) // 3 * 3].reshape(-1, 3)
+    k = np.arange(max(len(indices) - 2, 0))
+    if mode == _STRIP:
+        even = (k % 2) == 0
+        tri = np.stack([indices[k], np.where(even, indices[k + 1], indices[k + 2]),
+                        np.where(even, indices[k + 2], indices[k + 1])], axis=-1)
+        return tri
+    return np.stack([np.full_like(k, indices[0]), indices[k + 1], indices[k + 2]], axis=-1)
+
+
+def _primitive_arrays(f: _File, prim, want_tangents: bool, tangents_mode: str):
+    """Object-space (positions, normals, uvs | None, tangents4 | None, faces) of a primitive."""
+    attrs = prim.attributes
+    positions = f.accessor(attrs.POSITION).astype(np.float32)
+    count = len(positions)
+    indices = (f.accessor(prim.indices)[:, 0].astype(np.int64) if prim.indices is not None
+               else np.arange(count))
+    faces = _triangles(indices, prim.mode if prim.mode is not None else _TRIANGLES)
+    if len(faces) and (faces.max() >= count or faces.min() < 0):
+        raise ValueError("a primitive's indices are out of range")
+    uvs = f.accessor(attrs.TEXCOORD_0)[:, :2].astype(np.float32) if attrs.TEXCOORD_0 is not None else None
+    tangents = (f.accessor(attrs.TANGENT).astype(np.float32)
+                if attrs.TANGENT is not None and tangents_mode == "auto" else None)
+    if attrs.NORMAL is not None:
+        normals = f.accessor(attrs.NORMAL).astype(np.float32)
+        length = np.linalg.norm(normals, axis=1, keepdims=True)
+        normals = np.where(length > 0, normals / np.where(length > 0, length, 1), normals)
+    else:
+        # glTF: without normals, flat shading: one normal per triangle, vertices split.
+        p = positions[faces]
+        n = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+        n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-30)
+        positions = p.reshape(-1, 3)
+        normals = np.repeat(n, 3, axis=0).astype(np.float32)
+        uvs = uvs[faces].reshape(-1, 2) if uvs is not None else None
+        tangents = tangents[faces].reshape(-1, 4) if tangents is not None else None
+        faces = np.arange(len(positions)).reshape(-1, 3)
+    if want_tangents and uvs is not None and tangents is None:
+        # MikkTSpace per corner; split the vertices where corners differ.
+        corner_t = mikktspace(positions, normals, uvs, faces, flip_v=True)
+        faces, v = split_vertices(p=positions[faces], n=normals[faces], uv=uvs[faces], t=corner_t)
+        positions, normals, uvs, tangents = v["p"], v["n"], v["uv"], v["t"]
+    if not want_tangents:
+        tangents = None
+    return positions, normals, uvs, tangents, faces.astype(np.uint32)
+
+
+def _mitsuba_mesh(name, bsdf, positions, normals, uvs, tangents, faces):
+    import mitsuba as mi
+
+    props = mi.Properties()
+    props["bsdf"] = bsdf
+    mesh = mi.Mesh(name, len(positions), len(faces), props, has_vertex_normals=True,
+                   has_vertex_texcoords=uvs is not None)
+    params = mi.traverse(mesh)
+    # The buffers' own types: mi.Float in JIT variants, Dr.Jit's scalar arrays otherwise.
+    floats, ints = type(params["vertex_positions"]), type(params["faces"])
+    params["vertex_positions"] = floats(positions.astype(np.float32).ravel())
+    params["vertex_normals"] = floats(normals.astype(np.float32).ravel())
+    if uvs is not None:
+        params["vertex_texcoords"] = floats(uvs.astype(np.float32).ravel())
+    params["faces"] = ints(faces.astype(np.uint32).ravel())
+    params.update()
+    if tangents is not None:
+        mesh.add_attribute(TANGENT_ATTR, 3, np.ascontiguousarray(tangents[:, :3], np.float32).ravel())
+        mesh.add_attribute(TANGENT_ATTR + "_sign", 1,
+                           np.where(tangents[:, 3] < 0, -1.0, 1.0).astype(np.float32))
+    return mesh
+
+
+def _to_world(m, positions, normals, tangents, faces):
+    """World-space arrays under the node matrix ``m`` (winding flipped for mirroring matrices)."""
+    lin = m[:3, :3]
+    det = np.linalg.det(lin)
+    positions = positions @ lin.T + m[:3, 3]
+    normals = normals @ np.linalg.inv(lin)        # the inverse transpose, applied to rows
+    normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-30)
+    if tangents is not None:
+        t = tangents[:, :3] @ lin.T
+        t /= np.maximum(np.linalg.norm(t, axis=1, keepdims=True), 1e-30)
+        tangents = np.concatenate([t, tangents[:, 3:4] * np.sign(det)], axis=1)
+    if det < 0:
+        faces = faces[:, [0, 2, 1]]
+    return positions, normals, tangents, faces
+
+
+# Camera and lights
+
+def _look_at(origin, target, up):
+    import mitsuba as mi
+
+    return mi.ScalarTransform4f().look_at(origin=[float(x) for x in origin],
+                                          target=[float(x) for x in target], up=[float(x) for x in up])
+
+
+def _gltf_camera(cam, world):
+    """A Mitsuba sensor (without sampler and film) from a glTF camera at ``world``."""
+    import mitsuba as mi
+
+    # glTF cameras look down −Z with +X right; Mitsuba's look down +Z with +X left.
+    flip = np.diag([-1.0, 1.0, -1.0, 1.0])
+    rot = world.copy()
+    rot[:3, :3] /= np.linalg.norm(rot[:3, :3], axis=0, keepdims=True)   # drop scale
+    to_world = mi.ScalarTransform4f((rot @ flip).tolist())
+    if cam.type == "orthographic" and cam.orthographic is not None:
+        o = cam.orthographic
+        return {"type": "orthographic",
+                "to_world": to_world @ mi.ScalarTransform4f().scale([o.xmag, o.ymag, 1.0])}
+    p = cam.perspective
+    return {"type": "perspective", "fov_axis": "y", "fov": math.degrees(p.yfov),
+            "near_clip": float(p.znear or 1e-2), "to_world": to_world}
+
+
+def _framing_camera(lo, hi, aspect, fov=35.0, elevation=20.0, azimuth=20.0, margin=1.1):
+    """A perspective sensor that frames the box [lo, hi] from the front (+Z), a little above:
+    the box's corners fill the smaller image side (with ``margin``)."""
+    center = 0.5 * (lo + hi)
+    radius = max(0.5 * float(np.linalg.norm(hi - lo)), 1e-6)
+    el, az = math.radians(elevation), math.radians(azimuth)
+    back = np.array([math.sin(az) * math.cos(el), math.sin(el), math.cos(az) * math.cos(el)])
+    right = np.cross([0.0, 1.0, 0.0], back)
+    right /= np.linalg.norm(right)
+    up = np.cross(back, right)
+    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1])
+                        for z in (lo[2], hi[2])]) - center
+    tan_half_y = math.tan(math.radians(0.5 * fov)) / min(1.0, aspect)   # fov spans the smaller side
+    tan_y = tan_half_y / margin
+    tan_x = tan_y * aspect
+    # Distance along ``back`` at which every corner projects inside the image.
+    depth = corners @ back
+    distance = float(np.max(np.maximum(np.abs(corners @ right) / tan_x,
+                                       np.abs(corners @ up) / tan_y) + depth))
+    distance = max(distance, 1e-3 * radius)
+    return {"type": "perspective", "fov_axis": "y", "fov": 2 * math.degrees(math.atan(tan_half_y)),
+            "near_clip": max(distance - 2 * radius, distance * 1e-3),
+            "far_clip": distance + 4 * radius,
+            "to_world": _look_at(center + distance * back, center, [0, 1, 0])}
+
+
+def sky_envmap(width: int = 256, sun_elevation: float = 40.0, sun_azimuth: float = -35.0,
+               sun_irradiance: float = 3.0, sun_radius: float = 3.0):
+    """A generated lat-long sky (Mitsuba ``envmap``, +Y up) with a sun disk, as an RGB array.
+
+    Sky: a blue gradient from a bright horizon to the zenith; ground: dark grey.
+    The sun is a disk of ``sun_radius`` degrees at (elevation, azimuth from +Z
+    toward +X) whose irradiance at normal incidence is ``sun_irradiance``.
+    """
+    height = width // 2
+    theta = (np.arange(height) + 0.5) / height * np.pi
+    phi = (np.arange(width) + 0.5) / width * 2 * np.pi
+    th, ph = np.meshgrid(theta, phi, indexing="ij")
+    # Mitsuba's envmap: d = (sinφ sinθ, cosθ, −cosφ sinθ).
+    d = np.stack([np.sin(ph) * np.sin(th), np.cos(th), -np.cos(ph) * np.sin(th)], axis=-1)
+    up = np.clip(d[..., 1], 0.0, 1.0)[..., None]
+    sky = (1 - up) * np.array([0.75, 0.78, 0.85]) + up * np.array([0.25, 0.38, 0.70])
+    ground = np.array([0.12, 0.11, 0.10])
+    img = np.where(d[..., 1:2] > 0, sky, ground) * 0.6
+    el, az = math.radians(sun_elevation), math.radians(sun_azimuth)
+    sun = np.array([math.sin(az) * math.cos(el), math.sin(el), math.cos(az) * math.cos(el)])
+    disk = (d @ sun) > math.cos(math.radians(sun_radius))
+    pixel_sr = (2 * np.pi / width) * (np.pi / height) * np.sin(th)
+    irradiance = np.sum(pixel_sr[disk] * (d[disk] @ sun))
+    img[disk] = np.array([1.0, 0.95, 0.88]) * (sun_irradiance / irradiance)
+    return img.astype(np.float32)
+
+
+def _punctual_lights(gltf, nodes):
+    """Mitsuba emitters for the KHR_lights_punctual lights of the scene's nodes."""
+    ext = (gltf.extensions or {}).get("KHR_lights_punctual", {})
+    lights = ext.get("lights", [])
+    emitters = {}
+    for node, world in nodes:
+        ref = (node.extensions or {}).get("KHR_lights_punctual")
+        if ref is None or ref.get("light") is None or ref["light"] >= len(lights):
+            continue
+        light = lights[ref["light"]]
+        colour = np.array(light.get("color", [1, 1, 1]), dtype=np.float64) * light.get("intensity", 1.0)
+        rgb = {"type": "rgb", "value": colour.tolist()}
+        position = world[:3, 3]
+        direction = world[:3, :3] @ np.array([0.0, 0.0, -1.0])
+        direction /= max(np.linalg.norm(direction), 1e-30)
+        kind = light.get("type")
+        name = f"light_{len(emitters)}"
+        if kind == "directional":
+            emitters[name] = {"type": "directional", "direction": direction.tolist(), "irradiance": rgb}
+        elif kind == "point":
+            emitters[name] = {"type": "point", "position": position.tolist(), "intensity": rgb}
+        elif kind == "spot":
+            spot = light.get("spot", {})
+            emitters[name] = {"type": "spot", "intensity": rgb,
+                              "cutoff_angle": math.degrees(spot.get("outerConeAngle", math.pi / 4)),
+                              "beam_width": math.degrees(spot.get("innerConeAngle", 0.0)),
+                              "to_world": _look_at(position, position + direction,
+                                                   world[:3, :3] @ np.array([0.0, 1.0, 0.0]))}
+    return emitters
+
+
+# The scene
+
+def load_gltf(path, *, width: int = 640, height: int = 480, spp: int = 64, max_depth: int = 8,
+              model: str = "analytic", tangents: str = "auto", normal_maps: bool = True,
+              lights: bool = True) -> dict:
+    """A Mitsuba scene dict of the glTF 2.0 file ``path`` (``.gltf`` or ``.glb``).
+
+    Needs an active Mitsuba variant (the meshes are built in it). Options:
+    ``width``, ``height``, ``spp``, ``max_depth`` (path tracer); ``model``: the
+    ``normalmap_microfacet`` model; ``tangents``: ``auto`` (the file's
+    ``TANGENT``, else MikkTSpace), ``mikktspace`` (always computed) or
+    ``mitsuba`` (Mitsuba's per-triangle frame, for comparison);
+    ``normal_maps=False`` drops the normal maps; ``lights=False`` ignores the
+    file's lights for the generated sky.
+    """
+    import mitsuba as mi
+
+    import mfnormal
+
+    if tangents not in TANGENT_MODES:
+        raise ValueError(f"tangents must be one of {', '.join(TANGENT_MODES)}, got '{tangents}'")
+    mfnormal.register()
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"glTF file not found: {path}")
+    f = _File(path)
+    gltf = f.gltf
+    materials = _Materials(f, model, tangents, normal_maps)
+    nodes = list(_walk_nodes(gltf))
+    scene = {"type": "scene", "integrator": {"type": "path", "max_depth": int(max_depth)}}
+
+    # Meshes, in world space; one BSDF per (material, uv, tangents) shared by its meshes.
+    bsdfs = {}
+    lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
+    for node, world in nodes:
+        if node.skin is not None:
+            materials._warn_once("skin", "skins are ignored (meshes are rendered in bind pose)")
+        if node.mesh is None:
+            continue
+        mesh = gltf.meshes[node.mesh]
+        for k, prim in enumerate(mesh.primitives):
+            if prim.mode not in (None, _TRIANGLES, _STRIP, _FAN):
+                materials._warn_once(("mode", prim.mode), f"primitive mode {prim.mode} (points/lines) "
+                                                          "is skipped")
+                continue
+            if prim.attributes.POSITION is None:
+                continue
+            if prim.targets:
+                materials._warn_once("morph", "morph targets are ignored")
+            want = materials.wants_tangents(prim.material)
+            positions, normals, uvs, tan, faces = _primitive_arrays(f, prim, want, tangents)
+            if len(faces) == 0:
+                continue
+            positions, normals, tan, faces = _to_world(world, positions, normals, tan, faces)
+            key = (prim.material, uvs is not None, tan is not None)
+            if key not in bsdfs:
+                bsdfs[key] = mi.load_dict(materials.bsdf(prim.material, uvs is not None, tan is not None))
+            name = f"{mesh.name or f'mesh{node.mesh}'}/{k}"
+            shape_id = f"mesh_{len([s for s in scene if s.startswith('mesh_')])}"
+            scene[shape_id] = _mitsuba_mesh(name, bsdfs[key], positions, normals, uvs, tan, faces)
+            lo = np.minimum(lo, positions.min(axis=0))
+            hi = np.maximum(hi, positions.max(axis=0))
+    if not np.all(np.isfinite(lo)):
+        raise ValueError("the default scene has no triangle meshes")
+
+    # Camera: the file's first, else one that frames the model.
+    sensor = None
+    for node, world in nodes:
+        if node.camera is not None:
+            sensor = _gltf_camera(gltf.cameras[node.camera], world)
+            aspect = getattr(gltf.cameras[node.camera].perspective, "aspectRatio", None)
+            if aspect:
+                width = max(1, int(round(height * aspect)))
+            break
+    if sensor is None:
+        sensor = _framing_camera(lo, hi, width / height)
+    sensor["sampler"] = {"type": "independent", "sample_count": int(spp)}
+    sensor["film"] = {"type": "hdrfilm", "width": int(width), "height": int(height),
+                      "pixel_format": "rgb", "rfilter": {"type": "gaussian"}}
+    scene["sensor"] = sensor
+
+    # Lights: the file's punctual lights, else a generated sky with a sun.
+    emitters = _punctual_lights(gltf, nodes) if lights else {}
+    if not emitters:
+        emitters = {"sky": {"type": "envmap", "bitmap": mi.Bitmap(sky_envmap())}}
+    scene.update(emitters)
+    return scene
