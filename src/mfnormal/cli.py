@@ -20,6 +20,8 @@ from pathlib import Path
 from .messages import one_line
 
 DEFAULT_VARIANT = "llvm_ad_rgb"
+# The validation figures committed with the source tree (absent in an installed wheel).
+VALIDATION_RESULTS = Path(__file__).resolve().parents[2] / "validation" / "results"
 
 
 class CLIError(Exception):
@@ -215,6 +217,8 @@ def cmd_compare(args) -> int:
             raise CLIError(f"unknown method(s) {', '.join(unknown)}; choose from "
                            f"{', '.join(compare.METHOD_BY_KEY)}")
         methods = tuple(compare.METHOD_BY_KEY[k] for k in keys)
+    if args.validation is None and not args.quick and VALIDATION_RESULTS.is_dir():
+        args.validation = str(VALIDATION_RESULTS)   # figures of validation/run.py in a checkout
     if args.validation and not Path(args.validation).is_dir():
         raise CLIError(f"validation directory not found: {args.validation}")
     for scene in args.scenes:
@@ -269,7 +273,9 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--width", type=_width,
                    help="scale the film down to this width, keeping its aspect (default 320; --quick: 64)")
     c.add_argument("--methods", help="comma-separated subset of the methods (default: all)")
-    c.add_argument("--validation", metavar="DIR", help="add the PNG figures in DIR to the report")
+    c.add_argument("--validation", metavar="DIR",
+                   help="add the PNG figures in DIR to the report (default: validation/results "
+                        "of this checkout, written by validation/run.py, when it exists)")
     c.add_argument("--quick", action="store_true", help="tiny images and sample counts (for tests)")
     c.add_argument("--variant", default=DEFAULT_VARIANT, help=f"Mitsuba variant (default {DEFAULT_VARIANT})")
     c.add_argument("--seed", type=int, default=0)
