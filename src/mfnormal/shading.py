@@ -124,28 +124,27 @@ class ShadingPoint:
         si_f.wi = frame.to_local(wi)
         return si_f
 
-    def eval(self, frame, wi, wo, active):
-        """Nested f·⟨wo, ω_m⟩ on the facet with ``frame``; zero where inactive or unless both
-        directions are above the facet (a facet only reflects: no transmitted lobe)."""
+    def _facet_query(self, frame, wi, wo, active):
+        """(si, wo, active) on the facet; active only where both directions are above it.
+
+        A facet only reflects: no transmitted lobe, and some nested pdfs (e.g.
+        llvm roughplastic's) are not zero below the facet.
+        """
         wo_f = frame.to_local(wo)
         si_f = self.facet_si(frame, wi)
-        active = active & (wo_f.z > 0) & (si_f.wi.z > 0)
-        value = self.nested.eval(self.ctx, si_f, wo_f, active)
-        return dr.select(active, value, 0.0)
+        return si_f, wo_f, active & (wo_f.z > 0) & (si_f.wi.z > 0)
+
+    def eval(self, frame, wi, wo, active):
+        """Nested f·⟨wo, ω_m⟩ on the facet with ``frame``; zero where inactive."""
+        si_f, wo_f, active = self._facet_query(frame, wi, wo, active)
+        return dr.select(active, self.nested.eval(self.ctx, si_f, wo_f, active), 0.0)
 
     def pdf(self, frame, wi, wo, active):
-        """Nested pdf on the facet; zero unless both directions are above it
-        (some nested pdfs, e.g. llvm roughplastic's, are not zero below)."""
-        wo_f = frame.to_local(wo)
-        si_f = self.facet_si(frame, wi)
-        active = active & (wo_f.z > 0) & (si_f.wi.z > 0)
-        value = self.nested.pdf(self.ctx, si_f, wo_f, active)
-        return dr.select(active, value, 0.0)
+        si_f, wo_f, active = self._facet_query(frame, wi, wo, active)
+        return dr.select(active, self.nested.pdf(self.ctx, si_f, wo_f, active), 0.0)
 
     def eval_pdf(self, frame, wi, wo, active):
-        wo_f = frame.to_local(wo)
-        si_f = self.facet_si(frame, wi)
-        active = active & (wo_f.z > 0) & (si_f.wi.z > 0)
+        si_f, wo_f, active = self._facet_query(frame, wi, wo, active)
         value, pdf = self.nested.eval_pdf(self.ctx, si_f, wo_f, active)
         return dr.select(active, value, 0.0), dr.select(active, pdf, 0.0)
 
