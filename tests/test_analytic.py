@@ -36,13 +36,6 @@ NESTED_WITH_DELTA = dict(NESTED, conductor={"type": "conductor"})
 WHITE = {"type": "diffuse", "reflectance": {"type": "rgb", "value": [1.0, 1.0, 1.0]}}
 
 
-@pytest.fixture(autouse=True)
-def _llvm_variant():
-    if mi.variant() != VARIANT:
-        mi.set_variant(VARIANT)
-    mfnormal.register()
-
-
 # -- Helpers -----------------------------------------------------------------------------
 
 

@@ -30,12 +30,6 @@ from mfnormal.gltf import load_gltf  # noqa: E402
 from mfnormal.tangents import mikktspace, split_vertices  # noqa: E402
 
 
-@pytest.fixture(autouse=True)
-def _llvm_variant():
-    mi.set_variant("llvm_ad_rgb")
-    mfnormal.register()
-
-
 def relmse(a, b, mask=None):
     """Relative MSE: Σ(a − b)² / Σb² over ``mask``."""
     if mask is not None:

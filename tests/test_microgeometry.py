@@ -46,11 +46,6 @@ GLOSSY_CASES = [("ggx0.3", "specular", tp, ti, phi) for tp in (30, 60) for ti in
 ALL_CASES = LAMBERT_CASES + OBLIQUE_CASES + GLOSSY_CASES
 
 
-@pytest.fixture(autouse=True)
-def _llvm_variant():
-    mg.set_variant()
-
-
 def case_id(case):
     nested, tf, tp, ti, phi = case
     return f"{nested}-{tf}-p{tp}-i{ti}-az{phi}"

@@ -27,13 +27,6 @@ EDGE_ON = 1e-4
 H_TOL = 1e-5
 
 
-@pytest.fixture(autouse=True)
-def _llvm_variant():
-    # Other test modules may switch variants; the model runs on llvm_ad_rgb arrays.
-    mi.set_variant("llvm_ad_rgb")
-    mfnormal.register()
-
-
 # ---------------------------------------------------------------- helpers
 def sph(theta_deg, phi_deg):
     t, p = np.radians(theta_deg), np.radians(phi_deg)

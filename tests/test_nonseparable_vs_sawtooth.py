@@ -71,14 +71,6 @@ ALPHA = 1e-4            # per-test significance level (see the module docstring)
 CASE_IDS = [c.id for c in C.CASES]
 
 
-@pytest.fixture(autouse=True)
-def _llvm_variant():
-    # Other test modules switch variants; the plugin here runs on llvm_ad_rgb arrays.
-    if mi.variant() != VARIANT:
-        mi.set_variant(VARIANT)
-    mfnormal.register()
-
-
 # -- Cached histograms (each case's tracer run serves every test) -----------------------
 
 

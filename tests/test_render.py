@@ -17,13 +17,6 @@ mfnormal.register()
 from mfnormal import demo  # noqa: E402
 
 
-@pytest.fixture(autouse=True)
-def _llvm_variant():
-    # Other test modules may switch variants; the plugin is registered per variant.
-    mi.set_variant("llvm_ad_rgb")
-    mfnormal.register()
-
-
 def bumps_normalmap(size=64, cells=4, radius=0.4):
     """Periodic grid of hemispherical bumps, OpenGL convention, as raw rgb in [0, 1]."""
     c = (np.arange(size) + 0.5) / size * cells

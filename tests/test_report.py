@@ -36,12 +36,6 @@ from mfnormal.report import png_bytes  # noqa: E402
 ROOT = Path(__file__).resolve().parents[1]
 
 
-@pytest.fixture(autouse=True)
-def _llvm_variant():
-    mi.set_variant("llvm_ad_rgb")
-    mfnormal.register()
-
-
 @pytest.fixture(scope="module")
 def report(tmp_path_factory):
     """``mfnormal compare model --quick`` with one validation figure: the report's path."""

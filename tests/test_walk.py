@@ -45,13 +45,6 @@ NESTED = {
 CHUNK = 1 << 21  # queries per kernel launch (bounds the walk's loop-state memory)
 
 
-@pytest.fixture(autouse=True)
-def _llvm_variant():
-    if mi.variant() != VARIANT:
-        mi.set_variant(VARIANT)
-    mfnormal.register()
-
-
 # -- Helpers -----------------------------------------------------------------------------
 
 

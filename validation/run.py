@@ -202,7 +202,6 @@ def mis_pdf(out, quick, results):
 
     n = 200_000 if quick else 1_000_000
     n_cos, n_phi = 16, 32
-    ce, pe = np.linspace(0, 1, n_cos + 1), np.linspace(0, 2 * np.pi, n_phi + 1)
     # cell-centre quadrature of the pdf (8x8 points per cell)
     k = 8
     cu = (np.arange(n_cos * k) + 0.5) / (n_cos * k)
