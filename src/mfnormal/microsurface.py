@@ -164,10 +164,15 @@ def kappa(on_p, d, wt, cot):
 
 
 def escape_fraction(a, b, k):
-    """|κH ∩ [1, ∞)| / |κH| for H = [a, b]: the chance that a ray from a uniform height leaves."""
+    """|κH ∩ [1, ∞)| / |κH| for H = [a, b]: the chance that a ray from a uniform height leaves.
+
+    For a point H = [a, a] (e.g. the crest, a = 1 − G1 = 1 in float32 at grazing
+    incidence) it is 1 if κa > 1, else 0.
+    """
     width = dr.maximum(k * (b - a), 1e-30)
     frac = dr.maximum(k * b - dr.maximum(1.0, k * a), 0.0) / width
-    return dr.select(k < INF, dr.minimum(frac, 1.0), 1.0)
+    point = dr.select(k * a > 1.0, 1.0, 0.0)
+    return dr.select(k < INF, dr.select(b > a, dr.minimum(frac, 1.0), point), 1.0)
 
 
 def overlap(a, b, lo, hi):

@@ -190,8 +190,16 @@ class NormalMapMicrofacet:
         self.tangent_attr = None if tangents == MITSUBA_TANGENTS else tangents
 
         # The nested BSDF's components; the microsurface only reflects.
-        self.m_components = [self.nested.flags(i) for i in range(self.nested.component_count())]
-        self.m_flags = self.nested.flags() | mi.BSDFFlags.FrontSide
+        # The microsurface only reflects: report the nested BSDF's reflection components.
+        reflect = ~mi.BSDFFlags.Transmission
+        self.m_components = [self.nested.flags(i) & reflect for i in range(self.nested.component_count())]
+        self.m_flags = (self.nested.flags() & reflect) | mi.BSDFFlags.FrontSide
+        if mi.has_flag(self.nested.flags(), mi.BSDFFlags.Transmission):
+            mi.Log(mi.LogLevel.Warn,
+                   f"normalmap_microfacet: the nested BSDF {str(self.nested).split('[')[0]} transmits light, "
+                   "but the microsurface only reflects: its transmission is dropped (that light is "
+                   "absorbed) and only its reflection is normal-mapped. For a refracting surface use "
+                   "Mitsuba's 'normalmap' BSDF.")
 
     def traverse(self, callback):
         callback.put("nested_bsdf", self.nested, mi.ParamFlags.Differentiable)

@@ -23,7 +23,6 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from . import analytic
 from . import microsurface as ms
 from .microsurface import negate
 from .shading import ONE_MINUS_EPS, hash_floats, select_frame, uniform
@@ -123,8 +122,11 @@ def _walk(sp, separable, specular_t, max_bounces, active, wo=None, sample1=None,
         if sampled_height:
             leaves = ok & (k * a > 1.0)
         stays = ok & negate(leaves)
-        a = dr.select(stays, 0.0 if separable else k * a, a)
-        b = dr.select(stays, 1.0 if separable else dr.minimum(k * b, 1.0), b)
+        # Land on the other facet: H ← [κa, min(κb, 1)], kept with a ≤ b (a rounding
+        # error can let a ray stay with κa ≥ 1; it then sits at the crest).
+        b_new = dr.minimum(k * b, 1.0)
+        a = dr.select(stays, 0.0 if separable else dr.minimum(k * a, b_new), a)
+        b = dr.select(stays, 1.0 if separable else b_new, b)
         depth += 1
         escaped |= leaves
         return (d_new, e, on_p ^ stays, a, b, L, depth, stays & (depth < max_bounces), escaped, nondelta)
@@ -170,8 +172,12 @@ def mis_pdf(sp, wo, separable, specular_t, active):
         """Interval on the other facet reached by the rays that do not escape."""
         if separable:
             return mi.Float(0.0), mi.Float(1.0)
+        # κ = ∞ (every ray leaves): the interval only meets a zero weight, but ∞·0 must
+        # not make it NaN; the landed interval is [κa, min(κb, 1)], kept with a ≤ b.
         k = ms.kappa(on_p, d, wt, cot)
-        return k * h[0], dr.minimum(k * h[1], 1.0)
+        k = dr.select(k < ms.INF, k, 1.0)
+        hi = dr.minimum(k * h[1], 1.0)
+        return dr.minimum(k * h[0], hi), hi
 
     h_p = start(true_)
     if specular_t:
@@ -190,7 +196,9 @@ def mis_pdf(sp, wo, separable, specular_t, active):
         e2 = (1.0 - lp) * escape(start(false_), false_, wo)
         explicit = (sp.pdf(sp.frame_p, wi, wo, active & (e1 > 0)) * e1
                     + sp.pdf(sp.frame_t, wi, wo, active & (e2 > 0)) * e2)
-    rest = (1.0 - sp.wp.z) * dr.maximum(wo.z, 0.0) * dr.inv_pi
+    # 1 − cosθ_p as sin²θ_p/(1 + cosθ_p): never negative (a float32 unit ω_p can have z > 1)
+    # and non-zero for tilts below float32's 1 − cos resolution (θ_p ≲ 3e-4).
+    rest = sp.sin_p * sp.sin_p / (1.0 + sp.wp.z) * dr.maximum(wo.z, 0.0) * dr.inv_pi
     pdf = explicit + rest
     return dr.select(active & dr.isfinite(pdf), pdf, 0.0)
 
