@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 
 from mfnormal.report import png_bytes
+from cli_checks import assert_one_line_error  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -97,17 +98,6 @@ def run_cli(*args, cwd):
     env = dict(os.environ, PYTHONPATH=str(ROOT / "src"))
     return subprocess.run([sys.executable, "-m", "mfnormal", *args], cwd=cwd, env=env,
                           capture_output=True, text=True, timeout=300)
-
-
-def assert_one_line_error(proc, *needles):
-    err = proc.stderr.strip()
-    assert proc.returncode != 0, proc.stdout + proc.stderr
-    assert "Traceback" not in err, err
-    lines = err.splitlines()
-    assert len(lines) == 1, err
-    assert lines[0].startswith("mfnormal: error: "), err
-    for needle in needles:
-        assert needle in lines[0], f"{needle!r} not in {lines[0]!r}"
 
 
 def test_good_scene_renders(scenes, tmp_path):

@@ -45,6 +45,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 import pytest
+from cli_checks import assert_one_line_error  # noqa: E402
 
 VARIANT = "llvm_ad_rgb"
 mi.set_variant(VARIANT)
@@ -276,17 +277,6 @@ def assert_renders_finite(proc, exr):
     assert np.all(np.isfinite(img)) and img.min() >= 0.0
     assert img.mean() > 0.01, "the render is black"
     return img
-
-
-def assert_one_line_error(proc, *needles):
-    err = proc.stderr.strip()
-    assert proc.returncode != 0, proc.stdout + proc.stderr
-    assert "Traceback" not in err, err
-    lines = err.splitlines()
-    assert len(lines) == 1, err
-    assert lines[0].startswith("mfnormal: error: "), err
-    for needle in needles:
-        assert needle in lines[0], f"{needle!r} not in {lines[0]!r}"
 
 
 def case_params():
