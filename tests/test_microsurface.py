@@ -157,6 +157,69 @@ def test_tangent_facet_is_the_sawtooth_wall():
         np.testing.assert_allclose(s / wp[2], 1.0 / st.W, rtol=1e-5)
 
 
+# ------------------------------------- 2b. the height map, in depths below the crest
+@pytest.mark.parametrize("theta_p", [20, 60, 85])
+def test_crest_map_matches_ray_traced_sawtooth(theta_p):
+    """microsurface.crest_map (τ, κ) against rays traced through the sawtooth: a ray
+    leaving facet m at depth D = 1 − h in direction d leaves iff D < τ, else it lands on
+    the other facet at depth κ(D − τ). Depths include 1e-9 … 1e-3 under the crest and
+    directions grazing to 1e-6, where heights h = 1 − D would be rounded in float32
+    (the walk's reason to store depths). The tracer gets the same float32-rounded
+    inputs in float64. Tolerance: float32 error propagation with ~16 ulps of slack.
+    The across-groove component x = −⟨d, ω_t⟩ is a float32 dot product of unit
+    vectors, off by up to ~1e-7 absolute, so τ carries a relative error
+    δ = 1e-6/|x| + 1e-6; the escape decision is compared where |D − τ| > δ·|τ|, and a
+    landed depth κ(D − τ) to κ·(δ·|τ| + 1e-6·D) + 1e-6·D'."""
+    rng = np.random.default_rng(theta_p)
+    wp32 = np.float32(sph(theta_p, rng.uniform(0, 360)))
+    st = sw.Sawtooth(wp32.astype(np.float64))
+    n = 20_000
+    m = rng.integers(0, 2, n)
+    depth = np.where(rng.random(n) < 0.5, rng.random(n), 10.0 ** rng.uniform(-9, -3, n))
+    # Travel directions above the starting facet's plane, a share of them grazing.
+    d = rng.normal(size=(n, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    d[:, 2] = np.where(rng.random(n) < 0.3, np.sign(d[:, 2]) * 10.0 ** rng.uniform(-6, -2, n), d[:, 2])
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    normal = np.where((m == sw.P)[:, None], st.n3[sw.P], st.n3[sw.T])
+    d = np.where((np.sum(d * normal, 1) < 0)[:, None], d - 2 * np.sum(d * normal, 1)[:, None] * normal, d)
+    d, depth = d.astype(np.float32).astype(np.float64), depth.astype(np.float32).astype(np.float64)
+
+    wt, sin_p = ms.tangent_facet(vec3(wp32))
+    tau, k = ms.crest_map(mi.Bool(m == sw.P), vec3(d), wt, ms.cot_p(vec3(wp32), sin_p))
+    tau, k = np.array(tau, np.float64), np.array(k, np.float64)
+    assert np.all(~np.isnan(tau)) and np.all(~np.isnan(k))
+
+    X, _, Z = st.to_cross(d)
+    ox, oz = np.where(m == sw.P, (1.0 - depth) * st.W, 0.0), 1.0 - depth   # Sawtooth.point, per ray
+    hit, facet, _, _, h = st.intersect(ox, oz, X, Z, own=m)
+    assert np.all(facet[hit] != m[hit]), "a ray hit its own facet"
+    dtau = (1e-6 / np.maximum(np.abs(X), 1e-30) + 1e-6) * np.abs(np.where(np.isfinite(tau), tau, 0.0))
+    clear = np.abs(depth - tau) > dtau
+    assert np.array_equal((depth < tau)[clear], ~hit[clear]), np.flatnonzero(((depth < tau) == hit) & clear)[:5]
+    stays = hit & clear
+    landed = k[stays] * (depth[stays] - tau[stays])
+    want = 1.0 - h[stays]
+    tol = k[stays] * (dtau[stays] + 1e-6 * depth[stays]) + 1e-6 * want
+    bad = np.abs(landed - want) > tol
+    assert not np.any(bad), (landed[bad][:5], want[bad][:5], k[stays][bad][:5])
+    # Both outcomes, and the near-crest band, were exercised.
+    assert stays.sum() > n // 10 and (~hit).sum() > n // 10
+    assert np.sum(stays & (depth < 1e-6)) > 50 and np.sum(~hit & (depth < 1e-6)) > 50
+
+
+def test_crest_map_is_finite_for_a_flat_normal_and_a_ray_along_the_grooves():
+    """A flat normal (cotθ_p = 1e30) and d across the grooves of 1.8e-24: r = cot·d_z/|d_x|
+    overflowed to ∞ and τ = ∞/∞ = NaN, which zeroed the MIS pdf (found by the fuzzer)."""
+    wp = vec3([0.0, 0.0, 1.0])
+    wt, sin_p = ms.tangent_facet(wp)
+    for on_p in (True, False):
+        for x in (1.8e-24, -1.8e-24, 0.0):
+            tau, k = ms.crest_map(mi.Bool(on_p), vec3([x, -0.37, 0.93]), wt, ms.cot_p(wp, sin_p))
+            assert not np.isnan(np.array(tau)).any() and not np.isnan(np.array(k)).any(), (on_p, x, tau, k)
+            assert ms.escape_fraction(mi.Float(0.0), mi.Float(1.0), tau)[0] == 1.0
+
+
 # ---------------------------------------------- 3. flip_t and facet_frame
 def test_flip_t_keeps_height_and_is_an_involution():
     rng = np.random.default_rng(12)

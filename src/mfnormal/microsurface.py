@@ -140,9 +140,15 @@ def facet_frame(wm):
 
 # -- The sawtooth height map (MODEL.md §3.1-3.2) --------------------------------
 #
-# Crest height 1; heights h ∈ [0, 1] measured from the foot of the t wall.
-# A ray leaving facet m at height h with travel direction d hits the other facet
-# at height κ_m(d)·h; κ = ∞ (or h' > 1) means it leaves the microsurface.
+# Crest height 1; heights h ∈ [0, 1] measured from the foot of the t wall. A ray
+# leaving facet m at height h with travel direction d hits the other facet at
+# height κ_m(d)·h; κ = ∞ (or h' > 1) means it leaves the microsurface.
+#
+# The walk stores *depths below the crest*, D = 1 − h, not heights: every walk seen
+# from grazing ω_i starts in the thin band [0, G1(ω_i)] under the crest, and G1 can
+# be far below float32's spacing of 6e-8 under 1, where heights would round to the
+# crest and bias the NEE weights (+18 % energy at θ_p = 89°, ω_i.z = 1e-6). In
+# depth, h' = κh reads D' = κ·(D − τ) with τ = 1 − 1/κ: the ray leaves iff D < τ.
 
 INF = float("inf")
 
@@ -152,27 +158,49 @@ def cot_p(wp, sin_p):
     return wp.z / dr.maximum(sin_p, 1e-30)
 
 
-def kappa(on_p, d, wt, cot):
-    """Height ratio κ_m(d) for a ray leaving p (on_p) or t in travel direction d."""
-    x = -dr.dot(d, wt)   # across-groove component, > 0 toward the wall ahead of p
-    z = d.z
-    ax = dr.maximum(dr.abs(x), 1e-30)
-    k_p = dr.select(x > 0, 1.0 + cot * z / ax, INF)
-    den = 1.0 - cot * z / ax
-    k_t = dr.select((x < 0) & (den > 0), dr.rcp(dr.maximum(den, 1e-30)), INF)
-    return dr.select(on_p, k_p, k_t)
+def crest_map(on_p, d, wt, cot):
+    """(τ, κ) for a ray leaving p (on_p) or t in travel direction d.
 
-
-def escape_fraction(a, b, k):
-    """|κH ∩ [1, ∞)| / |κH| for H = [a, b]: the chance that a ray from a uniform height leaves.
-
-    For a point H = [a, a] (e.g. the crest, a = 1 − G1 = 1 in float32 at grazing
-    incidence) it is 1 if κa > 1, else 0.
+    A ray from depth D leaves the microsurface iff D < τ, and otherwise lands on
+    the other facet at depth κ·(D − τ). With r = cotθ_p·d_z/|d_x| (d_x across the
+    groove): toward the wall ahead of p, κ = 1 + r and τ = r/(1 + r); from t away
+    from it, κ = 1/(1 − r) and τ = r; any other way the ray leaves (κ = τ = ∞).
+    τ is computed from r directly, so it keeps full precision when tiny.
     """
-    width = dr.maximum(k * (b - a), 1e-30)
-    frac = dr.maximum(k * b - dr.maximum(1.0, k * a), 0.0) / width
-    point = dr.select(k * a > 1.0, 1.0, 0.0)
-    return dr.select(k < INF, dr.select(b > a, dr.minimum(frac, 1.0), point), 1.0)
+    x = -dr.dot(d, wt)   # across-groove component, > 0 toward the wall ahead of p
+    # Clamped finite: a flat normal (cot = 1e30) and a ray along the groove would give ±∞,
+    # and then τ = ∞/∞ = NaN.
+    r = dr.clip(cot * d.z / dr.maximum(dr.abs(x), 1e-30), -1e30, 1e30)
+    to_wall = on_p & (x > 0)
+    from_wall = negate(on_p) & (x < 0) & (r < 1.0)
+    k_p = dr.maximum(1.0 + r, 1e-30)   # r > −1 above p's plane; the clamp catches rounding
+    tau = dr.select(to_wall, r / k_p, dr.select(from_wall, r, INF))
+    k = dr.select(to_wall, k_p, dr.select(from_wall, dr.rcp(dr.maximum(1.0 - r, 1e-30)), INF))
+    return tau, k
+
+
+def escape_fraction(lo, hi, tau):
+    """|[lo, hi] ∩ [0, τ)| / |[lo, hi]| for depths: the chance that a ray from a uniform depth leaves.
+
+    For a point interval (lo = hi, e.g. the crest seen from a grazing ω_i) it is
+    1 if lo < τ, else 0.
+    """
+    frac = _pos(dr.minimum(hi, tau) - lo) / dr.maximum(hi - lo, 1e-30)
+    return dr.select(hi > lo, dr.minimum(frac, 1.0), dr.select(lo < tau, 1.0, 0.0))
+
+
+def land(lo, hi, tau, k):
+    """Depth interval on the other facet reached by the rays from [lo, hi] that stay.
+
+    [κ(lo − τ), κ(hi − τ)] clipped to [0, 1] and kept with lo ≤ hi (a rounding
+    error can let a ray stay with D < τ; it then sits at the crest). For κ = ∞
+    every ray leaves: the result is [0, 0] rather than NaN.
+    """
+    finite = k < INF
+    k, tau = dr.select(finite, k, 1.0), dr.select(finite, tau, 0.0)
+    hi_new = dr.clip(k * (hi - tau), 0.0, 1.0)
+    lo_new = dr.minimum(_pos(k * (lo - tau)), hi_new)
+    return dr.select(finite, lo_new, 0.0), dr.select(finite, hi_new, 0.0)
 
 
 def overlap(a, b, lo, hi):

@@ -3,7 +3,8 @@
 One walk serves both (MODEL.md §2.4-2.5, §3.3-3.5). It starts on the facet that
 a ray from ω_i hits first and bounces between the two facets until it leaves
 the microsurface. The non-separable model tracks the interval H of heights the
-walk can be at on the current facet (supplemental Algorithms 1-3: rays from a
+walk can be at on the current facet, stored as depths below the crest (see
+microsurface.py) (supplemental Algorithms 1-3: rays from a
 uniform height in H stay uniform after each bounce, because the facets are
 planar); the separable model is the same walk with H reset to [0, 1] at every
 vertex, which forgets height correlation.
@@ -58,25 +59,27 @@ def _walk(sp, separable, specular_t, max_bounces, active, wo=None, sample1=None,
     on_p = u0 < lp
     s1_first = dr.clip(dr.select(on_p, u0 / dr.maximum(lp, 1e-30), (u0 - lp) / dr.maximum(1.0 - lp, 1e-30)),
                        0.0, ONE_MINUS_EPS)
-    # Initial height interval: the part of the facet visible from wi (Algorithm 2).
-    a = mi.Float(0.0) if separable else 1.0 - sp.G1(wi, on_p)
-    b = mi.Float(1.0)
+    # Initial depth interval [a, b]: the part of the facet visible from wi, the
+    # top G1 of its height (Algorithm 2); the separable walk forgets it.
+    a = mi.Float(0.0)
+    b = mi.Float(1.0) if separable else sp.G1(wi, on_p)
     if sampled_height and not separable:
-        a = b = 1.0 - uniform(seed, 0xFFFFFFFE) * sp.G1(wi, on_p)
+        a = b = uniform(seed, 0xFFFFFFFE) * sp.G1(wi, on_p)
 
     if eval_mode:
         g_o_p, g_o_t = sp.G1_p(wo), sp.G1_t(wo)
         if specular_t:
-            # Heights on p whose ray along ω'_o = flip_t(ω_o) reflects off t toward ω_o (H_r, §3.5)
+            # Depths on p whose ray along ω'_o = flip_t(ω_o) reflects off t toward ω_o
+            # (H_r, §3.5: heights [(1 − G1(ω_o, t))·h_r, h_r] with h_r = 1 − G1(ω'_o, p)).
             wo_m = sp.flip_t(wo)
-            r_hi = 1.0 - sp.G1_p(wo_m)
-            r_lo = dr.select(g_o_t > 0, (1.0 - g_o_t) * r_hi, r_hi)
+            r_lo = sp.G1_p(wo_m)
+            r_hi = dr.select(g_o_t > 0, r_lo + g_o_t * (1.0 - r_lo), r_lo)
 
     state = (
         dr.zeros(mi.Vector3f, n) - wi,          # d: travel direction
         dr.full(mi.Spectrum, 1.0, n),           # e: throughput
         mi.Bool(on_p),                          # current facet
-        dr.zeros(mi.Float, n) + a, dr.zeros(mi.Float, n) + b,  # H = [a, b]
+        dr.zeros(mi.Float, n) + a, dr.zeros(mi.Float, n) + b,  # H as depths [a, b]
         dr.zeros(mi.Spectrum, n),               # L: NEE estimate
         dr.zeros(mi.UInt32, n),                 # bounce count
         mi.Bool(active),                        # still walking
@@ -94,7 +97,7 @@ def _walk(sp, separable, specular_t, max_bounces, active, wo=None, sample1=None,
         # Next-event estimation toward wo from this vertex (Algorithms 2 and 3).
         if eval_mode:
             g_o = dr.select(on_p, g_o_p, g_o_t)
-            w2 = ms.fraction_inside(a, b, 1.0 - g_o, 1.0)
+            w2 = ms.fraction_inside(a, b, 0.0, g_o)
             L += e * sp.eval(frame, -d, wo, walking & negate(mirror) & (w2 > 0)) * w2
             if specular_t:
                 wr = dr.select(g_o_t > 0, ms.fraction_inside(a, b, r_lo, r_hi), 0.0)
@@ -117,15 +120,14 @@ def _walk(sp, separable, specular_t, max_bounces, active, wo=None, sample1=None,
         e = e * w
 
         # Where does the ray hit the other facet, or does it leave (κ, §3.2)?
-        k = ms.kappa(on_p, d_new, wt, cot)
-        leaves = ok & (uniform(seed, c) < ms.escape_fraction(a, b, k))
+        tau, k = ms.crest_map(on_p, d_new, wt, cot)
+        leaves = ok & (uniform(seed, c) < ms.escape_fraction(a, b, tau))
         if sampled_height:
-            leaves = ok & (k * a > 1.0)
+            leaves = ok & (a < tau)
         stays = ok & negate(leaves)
-        # Land on the other facet: H ← [κa, min(κb, 1)], kept with a ≤ b (a rounding
-        # error can let a ray stay with κa ≥ 1; it then sits at the crest).
-        b_new = dr.minimum(k * b, 1.0)
-        a = dr.select(stays, 0.0 if separable else dr.minimum(k * a, b_new), a)
+        # Land on the other facet (heights [κa, min(κb, 1)] in §3.2's terms).
+        a_new, b_new = ms.land(a, b, tau, k)
+        a = dr.select(stays, 0.0 if separable else a_new, a)
         b = dr.select(stays, 1.0 if separable else b_new, b)
         depth += 1
         escaped |= leaves
@@ -159,25 +161,20 @@ def mis_pdf(sp, wo, separable, specular_t, active):
     true_, false_ = mi.Bool(True), mi.Bool(False)
 
     def start(on_p):
-        """Initial height interval on facet m, seen from wi."""
-        return (mi.Float(0.0), mi.Float(1.0)) if separable else (1.0 - sp.G1(wi, on_p), mi.Float(1.0))
+        """Initial depth interval on facet m, seen from wi."""
+        return (mi.Float(0.0), mi.Float(1.0)) if separable else (mi.Float(0.0), sp.G1(wi, on_p))
 
     def escape(h, on_p, d):
         # A ray leaves facet m only above its plane: below it, κ = ∞ must not count as an
         # escape (nested pdfs such as llvm roughplastic's are not zero there).
         above = dr.dot(d, dr.select(on_p, sp.wp, wt)) > 0
-        return dr.select(above, ms.escape_fraction(h[0], h[1], ms.kappa(on_p, d, wt, cot)), 0.0)
+        return dr.select(above, ms.escape_fraction(h[0], h[1], ms.crest_map(on_p, d, wt, cot)[0]), 0.0)
 
     def land(h, on_p, d):
         """Interval on the other facet reached by the rays that do not escape."""
         if separable:
             return mi.Float(0.0), mi.Float(1.0)
-        # κ = ∞ (every ray leaves): the interval only meets a zero weight, but ∞·0 must
-        # not make it NaN; the landed interval is [κa, min(κb, 1)], kept with a ≤ b.
-        k = ms.kappa(on_p, d, wt, cot)
-        k = dr.select(k < ms.INF, k, 1.0)
-        hi = dr.minimum(k * h[1], 1.0)
-        return dr.minimum(k * h[0], hi), hi
+        return ms.land(h[0], h[1], *ms.crest_map(on_p, d, wt, cot))
 
     h_p = start(true_)
     if specular_t:
