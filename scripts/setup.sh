@@ -2,8 +2,9 @@
 # Set up mfnormal on a fresh machine: a libLLVM >= 17 for Dr.Jit, a virtual
 # environment in .venv with the pinned Mitsuba/Dr.Jit, and the package itself.
 # With --test, also what the test suite needs (pytest, scipy, matplotlib,
-# selenium, Debian's headless Chromium for the report's browser test, and
-# pymikktspace, the reference MikkTSpace of the glTF tests).
+# selenium, Debian's headless Chromium for the report's browser test,
+# pymikktspace, the reference MikkTSpace of the glTF tests, and their
+# third-party glTF asset, from Debian's archive).
 # Idempotent: re-running it only checks what is already there.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -49,6 +50,12 @@ EXTRAS=""
 if [ "$TEST" = 1 ]; then
     bash scripts/install_pymikktspace.sh .venv/bin/python \
         || echo "setup: could not build pymikktspace; tests/test_gltf.py skips its MikkTSpace reference test"
+fi
+
+# 2c. A third-party glTF asset (Khronos' ClearCoatTest, from Debian's assimp-testmodels)
+#     into tests/data/thirdparty/; without it tests/test_gltf.py skips its tests of it.
+if [ "$TEST" = 1 ]; then
+    bash scripts/fetch_gltf_asset.sh || true
 fi
 
 # 3. No system LLVM: fall back to the libLLVM wheel inside the venv.
