@@ -117,7 +117,7 @@ class Profile:
 
 
 FULL = Profile("full", SCENES, tuple(NESTED), METHOD_KEYS, width=192, height=144, spp=16, reps=5,
-               ref_spp=256, ref_pass=32, noise_seeds=2, queries=1 << 20, tput_reps=5, stub_reps=3,
+               ref_spp=256, ref_pass=32, noise_seeds=6, queries=1 << 20, tput_reps=5, stub_reps=3,
                compile_warm_reps=2)
 QUICK = Profile("quick", ("plane",), ("diffuse",), METHOD_KEYS, width=32, height=24, spp=2, reps=2,
                 ref_spp=16, ref_pass=16, noise_seeds=1, queries=1 << 12, tput_reps=2, stub_reps=1,
