@@ -364,6 +364,26 @@ def make_bsdf(model, tangent_facet, kind, case, texels):
     return mi.load_dict({"type": "twosided", "bsdf": plugin} if kind == "twosided_around_plugin" else plugin)
 
 
+def inherited_zero_pdf(case, kind, si, wo, value, pdf):
+    """Queries where the plugin is exactly its nested BSDF (a flat texel: same eval, bit for
+    bit) and the nested BSDF itself returns eval > 0 with pdf = 0. Mitsuba's roughplastic
+    does (Beckmann α = 1, diffuse reflectance 1e-7, ω_i = ω_o = 1e-7 above the horizon:
+    eval 5.9e-16, pdf 0, its specular pdf underflows); no normal mapping can repair that.
+    Only these queries are exempt from the eval > 0 ⇒ pdf > 0 check."""
+    suspect = (pdf == 0) & np.any(value > EVAL_UNDERFLOW, 1)
+    if not suspect.any():
+        return suspect
+    q = np.flatnonzero(suspect)
+    nested = mi.load_dict(case["nested"])
+    sub = dr.gather(type(si), si, mi.UInt32(q.astype(np.uint32)))
+    ctx = mi.BSDFContext()
+    own_value, own_pdf = nested.eval_pdf(ctx, sub, vec3(wo[q]))
+    own_value, own_pdf = np3(own_value, len(q)), np1(own_pdf, len(q))
+    out = np.zeros_like(suspect)
+    out[q] = (own_pdf == 0) & np.all(own_value == value[q], 1)
+    return out
+
+
 def make_si(t, wi):
     n = len(t)
     si = dr.zeros(mi.SurfaceInteraction3f, n)
@@ -465,7 +485,8 @@ def test_fuzzed_queries_are_finite_valid_and_bounded(model, tangent_facet, kind,
         check(np.all(np.isfinite(x2) & (x2 >= 0), 1), f"{name} not finite and ≥ 0", failures, describe)
     check(np.all(value == 0, 1) | same_side, "eval ≠ 0 below the surface", failures, describe)
     check((pdf == 0) | same_side, "pdf ≠ 0 below the surface", failures, describe)
-    check((pdf > 0) | np.all(value <= EVAL_UNDERFLOW, 1), "eval > 0 where pdf = 0", failures, describe)
+    check((pdf > 0) | np.all(value <= EVAL_UNDERFLOW, 1) | inherited_zero_pdf(case, kind, si, wo, value, pdf),
+          "eval > 0 where pdf = 0", failures, describe)
     if model == "analytic":
         check(np.abs(pdf_only - pdf) <= 1e-4 * pdf, "pdf() ≠ eval_pdf's pdf", failures, describe)
         check(np.all(np.abs(value_only - value) <= 1e-4 * value, 1), "eval() ≠ eval_pdf's value", failures, describe)
@@ -660,3 +681,26 @@ def test_nonseparable_eval_is_unbiased_within_1e_6_of_the_horizon(case):
     y = np.pi * np3(bsdf.eval(ctx, si, vec3(wo)), m)[:, 0] / wo[:, 2]
     assert weight[:, 0].mean() >= 0.98, weight[:, 0].mean()
     assert abs(y.mean() - weight[:, 0].mean()) <= 5 * y.std() / np.sqrt(m), (y.mean(), weight[:, 0].mean())
+
+
+def test_zero_pdf_exemption_covers_only_the_nested_bsdfs_own_zero_pdf():
+    """The fuzz check eval > 0 ⇒ pdf > 0 exempts queries where the plugin is its nested BSDF
+    and that BSDF itself has pdf 0 (found by the fuzzer: Mitsuba's roughplastic at 1e-7
+    grazing, ``inherited_zero_pdf``). The exemption must stay that narrow: a tilted texel
+    (the plugin differs from the nested BSDF) is never exempt."""
+    nested = {"type": "roughplastic", "distribution": "beckmann", "alpha": 1.0, "int_ior": 1.939,
+              "diffuse_reflectance": {"type": "rgb", "value": [0.0, 0.0, 1e-7]}, "nonlinear": False}
+    case = {"nested": nested, "strength": 1.0, "convention": "opengl", "max_bounces": 1}
+    wi = np.float32([[1.0, 0.0, 1e-7]] * 3)
+    wo = np.float32([[1.0, 0.0, 1e-7], [0.0, 1.0, 1e-7], [0.6, -0.8, 1e-7]])
+    for texel, exempt in (([0.5, 0.5, 1.0], True), ([0.8, 0.5, 0.9], False)):
+        texels = np.tile(np.float32(texel), (N_TEXELS, 1))
+        bsdf = make_bsdf("separable", "specular", "roughplastic", case, texels)
+        si = make_si(np.zeros(3, np.int64), wi)
+        value, pdf = bsdf.eval_pdf(mi.BSDFContext(), si, vec3(wo))
+        value, pdf = np3(value, 3), np1(pdf, 3)
+        flagged = inherited_zero_pdf(case, "roughplastic", si, wo, value, pdf)
+        if exempt:   # the nested BSDF's own violation, inherited exactly
+            assert np.all(pdf == 0) and np.all(value[:, 2] > 0) and flagged.all(), (value, pdf)
+        else:
+            assert not flagged.any(), (value, pdf)

@@ -90,36 +90,8 @@ def _walk(sp, separable, specular_t, max_bounces, active, wo=None, sample1=None,
     def cond(d, e, on_p, a, b, L, depth, walking, escaped, nondelta):
         return walking
 
-    def body(d, e, on_p, a, b, L, depth, walking, escaped, nondelta):
-        frame = select_frame(on_p, sp.frame_p, sp.frame_t)
-        mirror = negate(on_p) if specular_t else mi.Bool(False)
-
-        # Next-event estimation toward wo from this vertex (Algorithms 2 and 3).
-        if eval_mode:
-            g_o = dr.select(on_p, g_o_p, g_o_t)
-            w2 = ms.fraction_inside(a, b, 0.0, g_o)
-            L += e * sp.eval(frame, -d, wo, walking & negate(mirror) & (w2 > 0)) * w2
-            if specular_t:
-                wr = dr.select(g_o_t > 0, ms.fraction_inside(a, b, r_lo, r_hi), 0.0)
-                L += e * sp.eval(sp.frame_p, -d, wo_m, walking & on_p & (wr > 0)) * wr
-
-        # Continue: sample the facet's BSDF, or mirror off a specular tangent facet.
-        first = depth == 0
-        c = depth * 4
-        s1 = uniform(seed, c + 1)
-        if not eval_mode:
-            s1 = dr.select(first, s1_first, s1)
-        s2 = mi.Point2f(uniform(seed, c + 2), uniform(seed, c + 3))
-        if not eval_mode:
-            s2 = dr.select(first, mi.Point2f(sample2), s2)
-        bs, w = sp.sample(frame, -d, s1, s2, walking & negate(mirror))
-        d_new = dr.select(mirror, ms.flip_t(d, wt), bs.wo)
-        w = dr.select(mirror, 1.0, w)
-        ok = (dr.dot(d_new, frame.n) > 0) & (mirror | (bs.pdf > 0)) & dr.any(w > 0) & dr.all(dr.isfinite(w))
-        nondelta |= walking & negate(mirror) & negate(mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta))
-        e = e * w
-
-        # Where does the ray hit the other facet, or does it leave (κ, §3.2)?
+    def move(on_p, d_new, a, b, ok, c):
+        """Leave the microsurface, or land on the other facet (κ, §3.2): (leaves, stays, a, b)."""
         tau, k = ms.crest_map(on_p, d_new, wt, cot)
         leaves = ok & (uniform(seed, c) < ms.escape_fraction(a, b, tau))
         if sampled_height:
@@ -129,9 +101,54 @@ def _walk(sp, separable, specular_t, max_bounces, active, wo=None, sample1=None,
         a_new, b_new = ms.land(a, b, tau, k)
         a = dr.select(stays, 0.0 if separable else a_new, a)
         b = dr.select(stays, 1.0 if separable else b_new, b)
-        depth += 1
+        return leaves, stays, a, b
+
+    def body(d, e, on_p, a, b, L, depth, walking, escaped, nondelta):
+        if specular_t:
+            # A mirror tangent facet needs no nested call and gives no NEE: its bounce is
+            # folded into the iteration of the next p vertex, so a packet runs the nested
+            # calls once per p vertex instead of once per vertex. (Same random numbers,
+            # same results as one vertex per iteration.)
+            mirror = walking & negate(on_p)
+            d_m = ms.flip_t(d, wt)
+            leaves, stays, a_m, b_m = move(mi.Bool(False), d_m, a, b, mirror & (dr.dot(d_m, wt) > 0), depth * 4)
+            d = dr.select(mirror, d_m, d)
+            a, b = dr.select(mirror, a_m, a), dr.select(mirror, b_m, b)
+            depth = dr.select(mirror, depth + 1, depth)
+            escaped |= leaves
+            on_p |= stays
+            walking &= negate(mirror) | (stays & (depth < max_bounces))
+        frame = sp.frame_p if specular_t else select_frame(on_p, sp.frame_p, sp.frame_t)
+
+        # Next-event estimation toward wo from this vertex (Algorithms 2 and 3).
+        if eval_mode:
+            g_o = g_o_p if specular_t else dr.select(on_p, g_o_p, g_o_t)
+            w2 = ms.fraction_inside(a, b, 0.0, g_o)
+            L += e * sp.eval(frame, -d, wo, walking & (w2 > 0)) * w2
+            if specular_t:
+                wr = dr.select(g_o_t > 0, ms.fraction_inside(a, b, r_lo, r_hi), 0.0)
+                L += e * sp.eval(sp.frame_p, -d, wo_m, walking & (wr > 0)) * wr
+
+        # Continue: sample the facet's BSDF.
+        first = depth == 0
+        c = depth * 4
+        s1 = uniform(seed, c + 1)
+        if not eval_mode:
+            s1 = dr.select(first, s1_first, s1)
+        s2 = mi.Point2f(uniform(seed, c + 2), uniform(seed, c + 3))
+        if not eval_mode:
+            s2 = dr.select(first, mi.Point2f(sample2), s2)
+        bs, w = sp.sample(frame, -d, s1, s2, walking)
+        d_new = bs.wo
+        ok = walking & (dr.dot(d_new, frame.n) > 0) & (bs.pdf > 0) & dr.any(w > 0) & dr.all(dr.isfinite(w))
+        nondelta |= walking & negate(mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta))
+        e = dr.select(walking, e * w, e)
+
+        leaves, stays, a, b = move(on_p, d_new, a, b, ok, c)
+        d = dr.select(walking, d_new, d)
+        depth = dr.select(walking, depth + 1, depth)
         escaped |= leaves
-        return (d_new, e, on_p ^ stays, a, b, L, depth, stays & (depth < max_bounces), escaped, nondelta)
+        return (d, e, on_p ^ stays, a, b, L, depth, stays & (depth < max_bounces), escaped, nondelta)
 
     d, e, _, _, _, L, _, _, escaped, nondelta = dr.while_loop(state, cond, body, label="mfnormal_walk")
     return d, e, escaped, nondelta, L
