@@ -225,6 +225,7 @@ def fuzz_case(kind, model):
         "strength": strength,
         "convention": st.sampled_from(["opengl", "directx"]),
         "max_bounces": st.sampled_from([1024, 1, 2, 64]) if walk else st.just(1024),
+        "mis_boost_max": st.sampled_from([64.0, 1.0, 1e6]) if walk else st.just(64.0),
         "extra_texels": st.lists(st.lists(any_float32, min_size=3, max_size=3), max_size=12),
         "extra_directions": extra_directions(),
         "seed": st.integers(0, 2 ** 32 - 1),
@@ -358,7 +359,7 @@ def build_batch(case, n):
 def make_bsdf(model, tangent_facet, kind, case, texels):
     plugin = {"type": "normalmap_microfacet", "model": model, "tangent_facet": tangent_facet,
               "strength": case["strength"], "normalmap_convention": case["convention"],
-              "max_bounces": case["max_bounces"], "bsdf": case["nested"],
+              "max_bounces": case["max_bounces"], "mis_boost_max": case["mis_boost_max"], "bsdf": case["nested"],
               "normalmap": {"type": "bitmap", "bitmap": mi.Bitmap(texels.reshape(1, -1, 3).copy()), "raw": True,
                             "filter_type": "nearest"}}
     return mi.load_dict({"type": "twosided", "bsdf": plugin} if kind == "twosided_around_plugin" else plugin)
@@ -690,7 +691,7 @@ def test_zero_pdf_exemption_covers_only_the_nested_bsdfs_own_zero_pdf():
     (the plugin differs from the nested BSDF) is never exempt."""
     nested = {"type": "roughplastic", "distribution": "beckmann", "alpha": 1.0, "int_ior": 1.939,
               "diffuse_reflectance": {"type": "rgb", "value": [0.0, 0.0, 1e-7]}, "nonlinear": False}
-    case = {"nested": nested, "strength": 1.0, "convention": "opengl", "max_bounces": 1}
+    case = {"nested": nested, "strength": 1.0, "convention": "opengl", "max_bounces": 1, "mis_boost_max": 64.0}
     wi = np.float32([[1.0, 0.0, 1e-7]] * 3)
     wo = np.float32([[1.0, 0.0, 1e-7], [0.0, 1.0, 1e-7], [0.6, -0.8, 1e-7]])
     for texel, exempt in (([0.5, 0.5, 1.0], True), ([0.8, 0.5, 0.9], False)):

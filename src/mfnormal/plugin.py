@@ -32,6 +32,15 @@ Microfacet-based normal mapping (:monosp:`normalmap_microfacet`)
    - Random-walk models only: bounce cap of the walk (default 1024). Paths
      still on the microsurface after it are dropped; the energy this loses is
      measured by the test suite (below 1e-4 of the albedo for θ_p ≤ 80°).
+ * - mis_boost_max
+   - |float|
+   - Random-walk models only: cap of the variance-aware MIS boost (default 64).
+     The walks' ``pdf`` multiplies its share for walks longer than one nested
+     bounce, whose ``eval`` is noisy on glossy facets, by the nested lobe's
+     sharpness (1 for Lambertian, 1/(4α²) for GGX) up to this cap, so that
+     light samples of those paths lose MIS weight to BSDF samples. 1 turns it
+     off: ``pdf`` is then the plain density approximation. MIS stays unbiased
+     either way.
  * - normalmap_convention
    - |string|
    - ``opengl`` (default, +Y up, what Mitsuba's ``normalmap`` assumes) or
@@ -94,7 +103,8 @@ both facets.
 Costs per query: ``analytic`` 3 nested ``eval_pdf`` per ``eval``/``pdf``, and
 1 nested ``sample`` + 3 nested ``eval_pdf`` per ``sample``. Random walks: per
 bounce 1 nested ``sample`` and (``eval`` only) 1 nested ``eval``, 2 with a mirror
-tangent facet; plus the MIS pdf (2-3 nested ``pdf``).
+tangent facet, plus 1 (2 with a mirror) for the first vertex's other start facet;
+plus the MIS pdf (3-5 nested ``pdf``).
 
 .. tabs::
     .. code-tab:: xml
@@ -174,6 +184,9 @@ class NormalMapMicrofacet:
         self.max_bounces = int(props.get("max_bounces", 1024))
         if self.max_bounces < 1:
             _fail(f"max_bounces must be >= 1, got {self.max_bounces}")
+        self.mis_boost_max = float(props.get("mis_boost_max", walk.MIS_BOOST_MAX))
+        if not (1.0 <= self.mis_boost_max < float("inf")):
+            _fail(f"mis_boost_max must be a finite number >= 1 (1 turns the boost off), got {self.mis_boost_max}")
         convention = props.get("normalmap_convention", "opengl")
         if convention not in CONVENTIONS:
             _fail(f"unknown normalmap_convention '{convention}'; use 'opengl' or 'directx'")
@@ -238,7 +251,7 @@ class NormalMapMicrofacet:
         sp = self._shading_point(ctx, si, active)
         if self.model == "analytic":
             return analytic.sample(sp, sample1, sample2, mi.Bool(active))
-        return walk.sample(sp, sample1, sample2, *self._walk_args(), mi.Bool(active))
+        return walk.sample(sp, sample1, sample2, *self._walk_args(), mi.Bool(active), self.mis_boost_max)
 
     def eval(self, ctx, si, wo, active=True):
         sp = self._shading_point(ctx, si, active)
@@ -250,18 +263,18 @@ class NormalMapMicrofacet:
         sp = self._shading_point(ctx, si, active)
         if self.model == "analytic":
             return analytic.eval_pdf(sp, wo, mi.Bool(active), want_value=False)[1]
-        return walk.mis_pdf(sp, wo, *self._walk_args()[:2], mi.Bool(active))
+        return walk.mis_pdf(sp, wo, *self._walk_args()[:2], mi.Bool(active), self.mis_boost_max)
 
     def eval_pdf(self, ctx, si, wo, active=True):
         sp = self._shading_point(ctx, si, active)
         if self.model == "analytic":
             return analytic.eval_pdf(sp, wo, mi.Bool(active))
         return (walk.eval(sp, wo, *self._walk_args(), mi.Bool(active)),
-                walk.mis_pdf(sp, wo, *self._walk_args()[:2], mi.Bool(active)))
+                walk.mis_pdf(sp, wo, *self._walk_args()[:2], mi.Bool(active), self.mis_boost_max))
 
     def to_string(self):
         return (f"NormalMapMicrofacet[model={self.model}, tangent_facet={self.tangent_facet}, "
-                f"strength={self.strength}, convention={'directx' if self.directx else 'opengl'}, "
+                f"mis_boost_max={self.mis_boost_max}, strength={self.strength}, convention={'directx' if self.directx else 'opengl'}, "
                 f"tangents={self.tangent_attr or MITSUBA_TANGENTS},\n"
                 f"  normalmap={self.normalmap},\n  bsdf={self.nested}]")
 

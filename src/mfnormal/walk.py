@@ -14,9 +14,13 @@ vertex, which forgets height correlation.
   variable as tracing a ray from a uniformly drawn height);
 - ``eval``: next-event estimation toward ω_o at every vertex (Algorithm 2; with
   a mirror tangent facet, Algorithm 3 and its H_r term), an unbiased estimate of
-  f·⟨ω_o, ω_g⟩;
-- ``mis_pdf``: a deterministic density for MIS (MODEL.md §2.8): the explicit
-  low-order terms plus a cosine lobe for the rest.
+  f·⟨ω_o, ω_g⟩. The first nested vertex's NEE is Rao-Blackwellised: taken in
+  expectation over the start facet (and the mirror's escape), so the low-order
+  part of ``eval`` is deterministic and only the longer walks add noise;
+- ``mis_pdf``: a deterministic function for MIS (MODEL.md §2.8): the exact
+  density of the low-order terms plus a cosine lobe for the rest, that lobe
+  boosted by the nested lobe's sharpness (variance-aware MIS: the rest's
+  ``eval`` is the noisy part).
 """
 
 from __future__ import annotations
@@ -75,6 +79,18 @@ def _walk(sp, separable, specular_t, max_bounces, active, wo=None, sample1=None,
             r_lo = sp.G1_p(wo_m)
             r_hi = dr.select(g_o_t > 0, r_lo + g_o_t * (1.0 - r_lo), r_lo)
 
+    # Rao-Blackwellised first vertex (eval only): the NEE at the first nested vertex
+    # is taken in expectation over the random start facet and, with a mirror
+    # tangent facet, over the mirror's escape, instead of along the one walk below.
+    # It is the low-order part that dominates glossy facets, and it becomes
+    # deterministic: the loop's first iteration evaluates the p start's NEE for every
+    # walk (weighted λ_p, whichever facet the walk started on), t_start_nee adds the
+    # t start's, and later iterations add the vertices after the first nested sample.
+    rb = eval_mode and not sampled_height
+    if rb:
+        b_p = mi.Float(1.0) if separable else sp.G1_p(wi)
+        L0 = t_start_nee(sp, wo, lp, separable, specular_t, max_bounces, active)
+
     state = (
         dr.zeros(mi.Vector3f, n) - wi,          # d: travel direction
         dr.full(mi.Spectrum, 1.0, n),           # e: throughput
@@ -104,6 +120,7 @@ def _walk(sp, separable, specular_t, max_bounces, active, wo=None, sample1=None,
         return leaves, stays, a, b
 
     def body(d, e, on_p, a, b, L, depth, walking, escaped, nondelta):
+        at_start = depth == 0       # the first vertex (before a folded mirror bounce counts)
         if specular_t:
             # A mirror tangent facet needs no nested call and gives no NEE: its bounce is
             # folded into the iteration of the next p vertex, so a packet runs the nested
@@ -122,12 +139,22 @@ def _walk(sp, separable, specular_t, max_bounces, active, wo=None, sample1=None,
 
         # Next-event estimation toward wo from this vertex (Algorithms 2 and 3).
         if eval_mode:
-            g_o = g_o_p if specular_t else dr.select(on_p, g_o_p, g_o_t)
-            w2 = ms.fraction_inside(a, b, 0.0, g_o)
-            L += e * sp.eval(frame, -d, wo, walking & (w2 > 0)) * w2
+            nee, w_in, f_n, h_a, h_b, scale = walking, -d, frame, a, b, e
+            if rb:
+                # First iteration: the p start's share of the Rao-Blackwellised first vertex.
+                nee = dr.select(at_start, active, walking)
+                w_in = dr.select(at_start, wi, w_in)
+                if not specular_t:
+                    f_n = select_frame(on_p | at_start, sp.frame_p, sp.frame_t)
+                h_a, h_b = dr.select(at_start, 0.0, a), dr.select(at_start, b_p, b)
+                scale = dr.select(at_start, mi.Spectrum(lp), e)
+            on_p_n = (on_p | at_start) if rb else on_p
+            g_o = g_o_p if specular_t else dr.select(on_p_n, g_o_p, g_o_t)
+            w2 = ms.fraction_inside(h_a, h_b, 0.0, g_o)
+            L += scale * sp.eval(f_n, w_in, wo, nee & (w2 > 0)) * w2
             if specular_t:
-                wr = dr.select(g_o_t > 0, ms.fraction_inside(a, b, r_lo, r_hi), 0.0)
-                L += e * sp.eval(sp.frame_p, -d, wo_m, walking & (wr > 0)) * wr
+                wr = dr.select(g_o_t > 0, ms.fraction_inside(h_a, h_b, r_lo, r_hi), 0.0)
+                L += scale * sp.eval(sp.frame_p, w_in, wo_m, nee & (wr > 0)) * wr
 
         # Continue: sample the facet's BSDF.
         first = depth == 0
@@ -151,7 +178,37 @@ def _walk(sp, separable, specular_t, max_bounces, active, wo=None, sample1=None,
         return (d, e, on_p ^ stays, a, b, L, depth, stays & (depth < max_bounces), escaped, nondelta)
 
     d, e, _, _, _, L, _, _, escaped, nondelta = dr.while_loop(state, cond, body, label="mfnormal_walk")
-    return d, e, escaped, nondelta, L
+    return d, e, escaped, nondelta, (L + L0) if rb else L
+
+
+def t_start_nee(sp, wo, lp, separable, specular_t, max_bounces, active):
+    """λ_t(ω_i)·E[NEE toward wo at the first nested vertex of a walk that starts on t].
+
+    With a mirror tangent facet the walk reflects to p first: λ_t·(1 − escape)·NEE
+    at p lit from flip_t(ω_i) on the landed depth interval, NEE at p including the
+    p→t→ω_o leg (H_r, §3.5); otherwise the NEE at t itself. (The p start's share,
+    λ_p·NEE at p lit from ω_i, is the walk loop's first iteration.) The same terms,
+    with pdf for eval, are in mis_pdf's explicit part.
+    """
+    wi = sp.wi
+    wt, cot = sp.wt, ms.cot_p(sp.wp, sp.sin_p)
+    g_o_t = sp.G1_t(wo)
+    b_t = mi.Float(1.0) if separable else sp.G1_t(wi)
+    if not specular_t:
+        w_t = (1.0 - lp) * ms.fraction_inside(0.0, b_t, 0.0, g_o_t)
+        return sp.eval(sp.frame_t, wi, wo, active & (w_t > 0)) * w_t
+    # The mirror sends the ray along d_m = flip_t(−ω_i), toward p or out.
+    d_m = ms.flip_t(-wi, wt)
+    tau, k = ms.crest_map(mi.Bool(False), d_m, wt, cot)
+    stay = (1.0 - lp) * (1.0 - ms.escape_fraction(0.0, b_t, tau)) * (1.0 if max_bounces > 1 else 0.0)
+    a, b = (mi.Float(0.0), mi.Float(1.0)) if separable else ms.land(0.0, b_t, tau, k)
+    wo_m = sp.flip_t(wo)
+    r_lo = sp.G1_p(wo_m)
+    r_hi = dr.select(g_o_t > 0, r_lo + g_o_t * (1.0 - r_lo), r_lo)
+    w2 = stay * ms.fraction_inside(a, b, 0.0, sp.G1_p(wo))
+    wr = stay * dr.select(g_o_t > 0, ms.fraction_inside(a, b, r_lo, r_hi), 0.0)
+    return (sp.eval(sp.frame_p, -d_m, wo, active & (w2 > 0)) * w2
+            + sp.eval(sp.frame_p, -d_m, wo_m, active & (wr > 0)) * wr)
 
 
 def eval(sp, wo, separable, specular_t, max_bounces, active, sampled_height=False):
@@ -161,7 +218,7 @@ def eval(sp, wo, separable, specular_t, max_bounces, active, sampled_height=Fals
     return dr.select(active & dr.all(dr.isfinite(L)), dr.maximum(L, 0.0), 0.0)
 
 
-def mis_pdf(sp, wo, separable, specular_t, active):
+def mis_pdf(sp, wo, separable, specular_t, active, boost_max=None):
     """Deterministic density for MIS (MODEL.md §2.8).
 
     The exact density of walks that leave after their first nested sample
@@ -223,11 +280,39 @@ def mis_pdf(sp, wo, separable, specular_t, active):
     # 1 − cosθ_p as sin²θ_p/(1 + cosθ_p): never negative (a float32 unit ω_p can have z > 1)
     # and non-zero for tilts below float32's 1 − cos resolution (θ_p ≲ 3e-4).
     rest = sp.sin_p * sp.sin_p / (1.0 + sp.wp.z) * dr.maximum(wo.z, 0.0) * dr.inv_pi
-    pdf = explicit + rest
+    pdf = explicit + rest * stochastic_share_boost(sp, boost_max, active)
     return dr.select(active & dr.isfinite(pdf), pdf, 0.0)
 
 
-def sample(sp, sample1, sample2, separable, specular_t, max_bounces, active):
+# Default cap of the boost of the longer walks' share in the MIS pdf (GGX α ≤ 1/16 reaches it).
+MIS_BOOST_MAX = 64.0
+
+
+def stochastic_share_boost(sp, boost_max, active):
+    """Variance-aware MIS factor for the longer walks' share of the MIS pdf.
+
+    ``eval`` is exact-in-expectation but noisy for the walks past their first
+    nested sample: one random direction per vertex, evaluated against a nested lobe
+    that is as sharp as the material. Light samples weighted by that noisy value
+    give fireflies on glossy facets; BSDF samples of the same paths have weights
+    near the albedo. Variance-aware MIS (Grittmann et al. 2019) divides a
+    technique's weight by the relative variance of its estimate; here it is
+    applied as a boost of the BSDF technique's weight on the longer walks,
+    proportional to the nested lobe's sharpness: π × the nested pdf of the
+    mirror direction at normal incidence (1 for Lambertian, 1/(4α²) for GGX),
+    clamped to [1, boost_max] (default MIS_BOOST_MAX; 1 turns the boost off and
+    leaves the density approximation). Deterministic per shading point, so MIS
+    stays unbiased; the low-order terms, whose ``eval`` is deterministic, keep
+    their exact density.
+    """
+    boost_max = MIS_BOOST_MAX if boost_max is None else boost_max
+    if not boost_max > 1.0:
+        return 1.0
+    sharp = dr.pi * sp.pdf(sp.frame_p, sp.wp, sp.wp, active)
+    return dr.clip(sharp, 1.0, boost_max)
+
+
+def sample(sp, sample1, sample2, separable, specular_t, max_bounces, active, boost_max=None):
     """Walk from wi until the ray leaves: (BSDFSample3f, throughput)."""
     d, e, escaped, nondelta, _ = _walk(sp, separable, specular_t, max_bounces, active,
                                        sample1=sample1, sample2=sample2)
@@ -238,7 +323,7 @@ def sample(sp, sample1, sample2, separable, specular_t, max_bounces, active):
     bs.sampled_component = 0
     bs.sampled_type = dr.select(nondelta, mi.UInt32(+mi.BSDFFlags.GlossyReflection),
                                 mi.UInt32(+mi.BSDFFlags.DeltaReflection))
-    pdf = mis_pdf(sp, d, separable, specular_t, valid & nondelta)
+    pdf = mis_pdf(sp, d, separable, specular_t, valid & nondelta, boost_max)
     bs.pdf = dr.select(nondelta, pdf, 1.0)
     valid &= bs.pdf > 0
     bs.pdf = dr.select(valid, bs.pdf, 0.0)
