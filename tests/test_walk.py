@@ -581,7 +581,8 @@ def test_mis_pdf_is_deterministic_positive_and_close_to_the_walk():
     - the variance-aware boost (default mis_boost_max): pdf = density + (c − 1)·
       (1 − cosθ_p)·cosθ_o/π, with c computed here from Mitsuba's nested pdf
       (``mis_boost``: 1 for the diffuse, 2.78 for the α = 0.3 BSDFs) and the density
-      that of mis_boost_max = 1.
+      that of mis_boost_max = 1; with a same-material tangent facet the boost also
+      scales the two-bounce terms, so there pdf lies between that and c·density.
     Quality, of the density (mis_boost_max = 1): total-variation distance between the normalised pdf (cell masses by
     quadrature, TV_SUB² points per 8×16 cell) and the histogram of unweighted exits
     (TV_N walks). Its noise floor is ≈ 0.4·√(128/N) ≈ 0.013. Asserted: every TV < 0.5,
@@ -635,8 +636,14 @@ def test_mis_pdf_is_deterministic_positive_and_close_to_the_walk():
                 # (1 − cosθ_p)·cosθ_o/π to the density approximation, c from the nested BSDF.
                 pdf_d = run_eval(density, wi, wo_l, texel, len(texels), 0, what="pdf")
                 rest = (1.0 - math.cos(math.radians(tp))) * wo_l[:, 2] / np.pi
-                assert np.allclose(pdf1, pdf_d + (boost - 1.0) * rest, rtol=2e-5, atol=1e-7), \
-                    f"boosted pdf is not density + {boost - 1:.3f}·rest"
+                if tangent_facet == "specular":
+                    assert np.allclose(pdf1, pdf_d + (boost - 1.0) * rest, rtol=2e-5, atol=1e-7), \
+                        f"boosted pdf is not density + {boost - 1:.3f}·rest"
+                else:
+                    # ... and for a glossy t facet the two-bounce terms i→p→t→o, i→t→p→o too.
+                    lo = pdf_d + (boost - 1.0) * rest
+                    assert np.all(pdf1 >= lo * (1 - 2e-5) - 1e-7) and np.all(pdf1 <= boost * pdf_d * (1 + 2e-5) + 1e-7), \
+                        f"boosted pdf outside [density + {boost - 1:.3f}·rest, {boost:.3f}·density]"
 
                 if (model, tangent_facet, nested) == ("separable", "specular", "diffuse") and phi == 0.0:
                     # λ_t(ω_i) = 0: the walk's exits are exactly cosθ_o/π, and so is the pdf (§2.7).
@@ -980,8 +987,8 @@ def test_mis_boost_lowers_variance_and_stays_unbiased(model, tangent_facet):
       light samples weighted by it are fireflies, which the boost hands to BSDF
       samples. Where ω_i sees mostly the mirror (second case) the deterministic first
       vertex dominates and the boost changes little. Measured ratios per case
-      (printed with -s): sep/specular 8.9, 0.9, 7.8; sep/same 10.0, 2.7, 8.4;
-      nonsep/specular 7.6, 1.2, 19.4; nonsep/same 11.0, 4.9, 18.5.
+      (printed with -s): sep/specular 8.9, 0.9, 7.8; sep/same 9.9, 2.7, 8.4;
+      nonsep/specular 7.6, 1.2, 19.4; nonsep/same 11.0, 4.7, 18.5.
     """
     texels = encode(sph(np.array([c[0] for c in BOOST_CASES])))
     boosted = make_bsdf(model, tangent_facet, BOOST_NESTED, texels)

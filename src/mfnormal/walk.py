@@ -252,6 +252,7 @@ def mis_pdf(sp, wo, separable, specular_t, active, boost_max=None):
         return ms.land(h[0], h[1], *ms.crest_map(on_p, d, wt, cot))
 
     h_p = start(true_)
+    stochastic = 0.0
     if specular_t:
         wo_m, wi_m = sp.flip_t(wo), sp.flip_t(wi)
         e1 = lp * escape(h_p, true_, wo)                                                  # i→p→o
@@ -274,13 +275,15 @@ def mis_pdf(sp, wo, separable, specular_t, active, boost_max=None):
         e3 = lp * (1.0 - escape(h_p, true_, wo_m)) * escape(land(h_p, true_, wo_m), false_, wo)  # i→p→t→o
         e4 = (1.0 - lp) * escape(land(start(false_), false_, -wi_m), true_, wo)          # i→t→p→o
         explicit = (sp.pdf(sp.frame_p, wi, wo, active & (e1 > 0)) * e1
-                    + sp.pdf(sp.frame_t, wi, wo, active & (e2 > 0)) * e2
-                    + sp.pdf(sp.frame_p, wi, wo_m, active & (e3 > 0)) * e3
-                    + sp.pdf(sp.frame_p, wi_m, wo, active & (e4 > 0)) * e4)
+                    + sp.pdf(sp.frame_t, wi, wo, active & (e2 > 0)) * e2)
+        # eval estimates these two-bounce paths stochastically (one glossy t sample), so
+        # they take the variance-aware boost like the longer walks.
+        stochastic = (sp.pdf(sp.frame_p, wi, wo_m, active & (e3 > 0)) * e3
+                      + sp.pdf(sp.frame_p, wi_m, wo, active & (e4 > 0)) * e4)
     # 1 − cosθ_p as sin²θ_p/(1 + cosθ_p): never negative (a float32 unit ω_p can have z > 1)
     # and non-zero for tilts below float32's 1 − cos resolution (θ_p ≲ 3e-4).
     rest = sp.sin_p * sp.sin_p / (1.0 + sp.wp.z) * dr.maximum(wo.z, 0.0) * dr.inv_pi
-    pdf = explicit + rest * stochastic_share_boost(sp, boost_max, active)
+    pdf = explicit + (stochastic + rest) * stochastic_share_boost(sp, boost_max, active)
     return dr.select(active & dr.isfinite(pdf), pdf, 0.0)
 
 
