@@ -502,6 +502,10 @@ def markdown(res) -> str:
     L = ["# Optimisation experiments (what-if variants, monkeypatched)", "",
          f"Machine: {res['machine']['cpu']}, {res['machine']['cores']} cores, load "
          f"{res['machine']['loadavg_start'][0]:.1f}; {res['queries']} queries; `{res['command']}`", ""]
+    if res.get("remeasured"):
+        L += ["Re-measured later (the other sections are from the run above):", ""]
+        L += [f"- {name}: {stamp}" for name, stamp in res["remeasured"].items()]
+        L += [""]
     if res.get("ops"):
         L += ["## ops: Dr.Jit operations in the BSDF kernels (compile cost scales with these)", "",
               "`stub`: nested calls replaced by a closed-form Lambertian; `mix`: TEA random numbers "
@@ -563,17 +567,27 @@ def main(argv=None):
     ap.add_argument("--reps", type=int, default=5)
     ap.add_argument("--only", default="ops,rng,cap,loop3,reuse,evalnoise,mispdf,control")
     ap.add_argument("--out", default=str(HERE))
+    ap.add_argument("--merge", action="store_true",
+                    help="re-measure only the --only sections and keep the others from --out's experiments.json")
     args = ap.parse_args(argv)
     b = Bench(1 << args.queries, args.reps)
-    res = {"command": " ".join(["python", "benchmarks/experiments.py", *(argv or sys.argv[1:])]),
-           "machine": bench.machine_info(), "queries": b.n}
+    command = " ".join(["python", "benchmarks/experiments.py", *(argv or sys.argv[1:])])
+    res = {"command": command, "machine": bench.machine_info(), "queries": b.n}
     only = args.only.split(",")
+    old = Path(args.out) / "experiments.json"
+    if args.merge and old.is_file():
+        res = json.loads(old.read_text())
+        stamp = f"commit {bench.git_state().get('commit', '?')}, {time.strftime('%Y-%m-%d', time.gmtime())}, `{command}`"
+        res.setdefault("remeasured", {}).update({name: stamp for name in only})
     root = Path(tempfile.mkdtemp(prefix="mfnormal_exp_assets_"))
     assets = bench.prepare_assets(root, ("demo", "plane"))
     for name, fn in (("ops", exp_ops), ("rng", exp_rng), ("cap", exp_cap), ("loop3", lambda b: exp_loop3(b, assets)),
                      ("reuse", exp_reuse), ("evalnoise", exp_eval_noise), ("mispdf", exp_mis_pdf),
                      ("control", lambda b: exp_control(b, assets, root))):
-        res[name] = fn(b) if name in only else []
+        if name in only:
+            res[name] = fn(b)
+        elif not args.merge:
+            res[name] = []
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "experiments.json").write_text(json.dumps(res, indent=1, default=float))

@@ -4,7 +4,8 @@
 (``tangent_facet='specular'``) or a same-material tangent facet. Their ``eval`` is
 an unbiased stochastic NEE estimate whose random numbers are a hash of (wi, wo,
 si.p), so averages over a fixed (wi, wo) vary ``si.p``; ``sample`` returns the
-walk's exit and throughput; ``pdf`` is the deterministic MIS density of §2.8.
+walk's exit and throughput; ``pdf`` is the deterministic MIS pdf of §2.8 (a density
+approximation with a variance-aware boost).
 
 Every query runs vectorised in ``llvm_ad_rgb`` (the scalar test switches variant
 and restores it). Per-query normals come from an N×1 float32 bitmap with nearest

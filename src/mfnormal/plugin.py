@@ -85,10 +85,13 @@ Contracts (each one is tested):
 
 For the random-walk models ``eval`` is an unbiased stochastic estimate
 (next-event estimation along a walk whose random numbers are a hash of the
-query, so it is deterministic per query), ``sample`` returns the walk's exit
-direction and throughput, and ``pdf`` is a deterministic approximation of the
-walk's density used for multiple importance sampling (the explicit low-order
-terms plus a cosine lobe): MIS stays unbiased with any such density.
+query, so it is deterministic per query; its first vertex is taken in
+expectation over the start facet, so the low-order part is exact), ``sample``
+returns the walk's exit direction and throughput, and ``pdf`` is a
+deterministic function for multiple importance sampling: the walk's exact
+low-order density plus a cosine lobe for the longer walks, whose share is
+boosted where ``eval`` is noisy (see ``mis_boost_max``). MIS stays unbiased
+with any such function.
 
 Which model? ``analytic`` is the default: no extra variance, about 3 nested
 evaluations per query, exactly reciprocal, but it drops paths with three or

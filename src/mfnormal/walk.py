@@ -219,7 +219,7 @@ def eval(sp, wo, separable, specular_t, max_bounces, active, sampled_height=Fals
 
 
 def mis_pdf(sp, wo, separable, specular_t, active, boost_max=None):
-    """Deterministic density for MIS (MODEL.md §2.8).
+    """Deterministic MIS pdf (MODEL.md §2.8): a density approximation, variance-aware boosted.
 
     The exact density of walks that leave after their first nested sample
     (with a mirror tangent facet: including the mirror legs i→p→t→o,
@@ -228,6 +228,11 @@ def mis_pdf(sp, wo, separable, specular_t, active, boost_max=None):
     probabilities, plus a cosine lobe of weight 1 − cosθ_p for the longer walks. For white
     Lambertian facets and a mirror tangent facet the separable walk's density
     is exactly cosθ_o/π (MODEL.md §2.7), and so is this pdf.
+
+    The terms that ``eval`` estimates stochastically (the longer walks' lobe; with a
+    same-material tangent facet also the two-bounce terms) are multiplied by
+    ``stochastic_share_boost`` (variance-aware MIS; ``boost_max`` = 1 leaves the
+    plain density approximation).
     """
     wi = sp.wi
     active = mi.Bool(active) & (wi.z > 0) & (wo.z > 0)
