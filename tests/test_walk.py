@@ -579,11 +579,12 @@ def test_mis_pdf_is_deterministic_positive_and_close_to_the_walk():
       and with another si.p (eval's hash input must not leak into pdf);
     - positive wherever sample() returns a non-zero weight (MIS needs p̃ > 0 there);
     - sample's bs.pdf equals pdf(bs.wo) (relative 1e-5: same function, other kernel);
-    - the variance-aware boost (default mis_boost_max): pdf = density + (c − 1)·
-      (1 − cosθ_p)·cosθ_o/π, with c computed here from Mitsuba's nested pdf
-      (``mis_boost``: 1 for the diffuse, 2.78 for the α = 0.3 BSDFs) and the density
-      that of mis_boost_max = 1; with a same-material tangent facet the boost also
-      scales the two-bounce terms, so there pdf lies between that and c·density.
+    - the variance-aware boost (default mis_boost_max), against the density of
+      mis_boost_max = 1 and c computed here from Mitsuba's nested pdf (``mis_boost``:
+      1 for the diffuse, 2.78 for the α = 0.3 BSDFs): with a mirror tangent facet
+      pdf = density + (c − 1)·q2·cosθ_o/π with one q2 ∈ [0, 1] for every ω_o of a case
+      (and pdf = density for c = 1); with a same-material one, whose two-bounce terms
+      take the factor c too, density ≤ pdf ≤ c·density + (c − 1)·cosθ_o/π.
     Quality, of the density (mis_boost_max = 1): total-variation distance between the normalised pdf (cell masses by
     quadrature, TV_SUB² points per 8×16 cell) and the histogram of unweighted exits
     (TV_N walks). Its noise floor is ≈ 0.4·√(128/N) ≈ 0.013. Asserted: every TV < 0.5,
@@ -637,14 +638,19 @@ def test_mis_pdf_is_deterministic_positive_and_close_to_the_walk():
                 # (1 − cosθ_p)·cosθ_o/π to the density approximation, c from the nested BSDF.
                 pdf_d = run_eval(density, wi, wo_l, texel, len(texels), 0, what="pdf")
                 rest = (1.0 - math.cos(math.radians(tp))) * wo_l[:, 2] / np.pi
+                cos_lobe = (boost - 1.0) * wo_l[:, 2] / np.pi
                 if tangent_facet == "specular":
-                    assert np.allclose(pdf1, pdf_d + (boost - 1.0) * rest, rtol=2e-5, atol=1e-7), \
-                        f"boosted pdf is not density + {boost - 1:.3f}·rest"
+                    # pdf − density = (c − 1)·q2·cosθ_o/π with one q2 ∈ [0, 1] for all ω_o.
+                    q2 = (pdf1 - pdf_d) / np.where(cos_lobe > 0, cos_lobe, np.inf)
+                    if boost > 1.0:
+                        assert -1e-4 <= q2.min() and q2.max() <= 1.0 + 1e-4, (q2.min(), q2.max())
+                        assert np.allclose(q2, np.median(q2), rtol=1e-3, atol=2e-4), "q2 depends on ω_o"
+                    else:
+                        assert np.allclose(pdf1, pdf_d, rtol=1e-6, atol=0)
                 else:
-                    # ... and for a glossy t facet the two-bounce terms i→p→t→o, i→t→p→o too.
-                    lo = pdf_d + (boost - 1.0) * rest
-                    assert np.all(pdf1 >= lo * (1 - 2e-5) - 1e-7) and np.all(pdf1 <= boost * pdf_d * (1 + 2e-5) + 1e-7), \
-                        f"boosted pdf outside [density + {boost - 1:.3f}·rest, {boost:.3f}·density]"
+                    # ... and for a glossy t facet the two-bounce terms take the factor c.
+                    assert np.all(pdf1 >= pdf_d * (1 - 2e-5)), "boosted pdf below the density"
+                    assert np.all(pdf1 <= boost * pdf_d + cos_lobe + 1e-6), "boost above c·density + (c − 1)·cos/π"
 
                 if (model, tangent_facet, nested) == ("separable", "specular", "diffuse") and phi == 0.0:
                     # λ_t(ω_i) = 0: the walk's exits are exactly cosθ_o/π, and so is the pdf (§2.7).
@@ -925,7 +931,7 @@ def test_flat_map_reproduces_the_nested_bsdf(model, tangent_facet):
 # -- 8. Variance-aware MIS: the boost lowers the variance of light + BSDF sampling ----------------
 
 BOOST_NESTED = {"type": "roughconductor", "distribution": "ggx", "alpha": 0.05}
-BOOST_CASES = [(50.0, 30.0, np.pi), (50.0, 70.0, np.pi), (70.0, 60.0, 0.0)]   # (θ_p, θ_i, φ_i)
+BOOST_CASES = [(50.0, 30.0, np.pi), (50.0, 70.0, np.pi), (70.0, 60.0, 0.0), (40.0, 75.0, 0.0)]   # (θ_p, θ_i, φ_i)
 BOOST_N = 400_000           # one light and one BSDF sample per query
 GLOW_AXIS = sph(35.0, 0.5)  # a bright smooth glow over a dim uniform sky
 GLOW_N = 16                 # cosine power of the glow
@@ -982,14 +988,17 @@ def test_mis_boost_lowers_variance_and_stays_unbiased(model, tangent_facet):
     mis_boost_max = 1:
     - unbiased: both means agree within 5σ of their difference (σ from the per-query
       spread of the paired differences), i.e. the boosted pdf keeps MIS unbiased;
-    - lower variance: the geometric mean over the cases of the variance ratio (boost
-      off / on) is at least 3, and no case gets more than 25 % worse. The walks' eval
-      past the first nested bounce is one random direction against a narrow lobe:
-      light samples weighted by it are fireflies, which the boost hands to BSDF
-      samples. Where ω_i sees mostly the mirror (second case) the deterministic first
-      vertex dominates and the boost changes little. Measured ratios per case
-      (printed with -s): sep/specular 8.9, 0.9, 7.8; sep/same 9.9, 2.7, 8.4;
-      nonsep/specular 7.6, 1.2, 19.4; nonsep/same 11.0, 4.7, 18.5.
+    - lower variance where it matters: ≥ 5× lower in cases 1 and 3, where the first
+      nested sample's lobe centre crosses to the tangent facet (longer walks are
+      common, and their eval is one random direction against a narrow lobe: light
+      samples weighted by it are fireflies that the boost hands to BSDF samples);
+    - no harm elsewhere: no case more than 25 % worse. In cases 2 and 4 the lobe centre
+      leaves the microsurface: with a mirror tangent facet q2 = 0 and the estimates are
+      bit-identical; a constant boost of the longer walks' lobe (the first version)
+      made case 4 1.9× worse, which this bound catches.
+    Measured ratios per case (printed with -s): sep/specular 8.6, 1.0, 7.7, 1.0;
+    sep/same 9.7, 2.7, 8.3, 1.0; nonsep/specular 7.3, 1.0, 20.2, 1.0; nonsep/same
+    10.6, 4.7, 19.2, 1.0.
     """
     texels = encode(sph(np.array([c[0] for c in BOOST_CASES])))
     boosted = make_bsdf(model, tangent_facet, BOOST_NESTED, texels)
@@ -1001,7 +1010,8 @@ def test_mis_boost_lowers_variance_and_stays_unbiased(model, tangent_facet):
         y_on = mis_estimates(boosted, wi, k, len(texels), np.random.default_rng(seed), BOOST_N)
         y_off = mis_estimates(plain, wi, k, len(texels), np.random.default_rng(seed), BOOST_N)
         diff = y_on - y_off
-        z = diff.mean() / (diff.std() / math.sqrt(BOOST_N))
+        # (Identical estimates where the boost is 1 for every query: q2 = 0 there.)
+        z = 0.0 if diff.std() == 0 else diff.mean() / (diff.std() / math.sqrt(BOOST_N))
         ratio = y_off.var() / y_on.var()
         ratios.append(ratio)
         print(f"\n{model}/{tangent_facet} θ_p={tp:.0f} θ_i={ti:.0f} φ_i={np.degrees(phi):.0f}: "
@@ -1009,7 +1019,7 @@ def test_mis_boost_lowers_variance_and_stays_unbiased(model, tangent_facet):
               f"variance {y_on.var():.4g} vs {y_off.var():.4g} (ratio {ratio:.1f})")
         assert abs(z) < 5.0, f"boosted MIS changes the mean: z = {z:.2f}"
     ratios = np.array(ratios)
-    assert np.exp(np.log(ratios).mean()) >= 3.0 and ratios.min() >= 0.8, f"variance ratios {np.round(ratios, 2)}"
+    assert ratios[[0, 2]].min() >= 5.0 and ratios.min() >= 0.8, f"variance ratios {np.round(ratios, 2)}"
 
 
 @pytest.mark.parametrize("value", [0.5, float("nan"), float("inf"), -3.0])

@@ -229,10 +229,13 @@ def mis_pdf(sp, wo, separable, specular_t, active, boost_max=None):
     Lambertian facets and a mirror tangent facet the separable walk's density
     is exactly cosθ_o/π (MODEL.md §2.7), and so is this pdf.
 
-    The terms that ``eval`` estimates stochastically (the longer walks' lobe; with a
-    same-material tangent facet also the two-bounce terms) are multiplied by
-    ``stochastic_share_boost`` (variance-aware MIS; ``boost_max`` = 1 leaves the
-    plain density approximation).
+    The terms that ``eval`` estimates stochastically are multiplied by the boost c of
+    ``stochastic_share_boost`` (variance-aware MIS; ``boost_max`` = 1 leaves the plain
+    density approximation): with a same-material tangent facet the two-bounce
+    terms, and for the longer walks a cosine lobe of weight (c − 1)·q2 is added, q2
+    the chance of a second nested vertex for a walk whose first nested sample
+    takes its lobe's centre (zero where that centre leaves the microsurface, so
+    that light samples keep their weight where longer walks are rare).
     """
     wi = sp.wi
     active = mi.Bool(active) & (wi.z > 0) & (wo.z > 0)
@@ -255,6 +258,15 @@ def mis_pdf(sp, wo, separable, specular_t, active, boost_max=None):
         if separable:
             return mi.Float(0.0), mi.Float(1.0)
         return ms.land(h[0], h[1], *ms.crest_map(on_p, d, wt, cot))
+
+    def second_visit(h, w_in):
+        """P(a walk on p lit from w_in, its nested sample at the lobe centre (the mirror
+        direction about ω_p), crosses to t and, reflected there as by a mirror, lands on p
+        again): how likely a second nested vertex is. Exact for a mirror-like nested
+        BSDF, which is where the boost is large."""
+        d1 = 2.0 * dr.dot(w_in, sp.wp) * sp.wp - w_in
+        q = (1.0 - escape(h, true_, d1)) * (1.0 - escape(land(h, true_, d1), false_, sp.flip_t(d1)))
+        return dr.select(dr.dot(d1, sp.wp) > 0, q, 0.0)
 
     h_p = start(true_)
     stochastic = 0.0
@@ -288,7 +300,16 @@ def mis_pdf(sp, wo, separable, specular_t, active, boost_max=None):
     # 1 − cosθ_p as sin²θ_p/(1 + cosθ_p): never negative (a float32 unit ω_p can have z > 1)
     # and non-zero for tilts below float32's 1 − cos resolution (θ_p ≲ 3e-4).
     rest = sp.sin_p * sp.sin_p / (1.0 + sp.wp.z) * dr.maximum(wo.z, 0.0) * dr.inv_pi
-    pdf = explicit + (stochastic + rest) * stochastic_share_boost(sp, boost_max, active)
+    # Variance-aware MIS: the terms that eval estimates stochastically get the boost c;
+    # the longer walks' share by the chance q2 that a walk has them (a cosine lobe of
+    # weight c·q2 instead of the plain density's 1 − cosθ_p, where c > 1).
+    c = stochastic_share_boost(sp, boost_max, active)
+    if boost_max is None or boost_max > 1.0:
+        h_t_first = h_tp if specular_t else land(start(false_), false_, -wi_m)
+        q2 = lp * second_visit(h_p, wi) + (1.0 - lp) * second_visit(h_t_first, wi_m)
+        pdf = explicit + stochastic * c + rest + (c - 1.0) * q2 * dr.maximum(wo.z, 0.0) * dr.inv_pi
+    else:
+        pdf = explicit + stochastic + rest
     return dr.select(active & dr.isfinite(pdf), pdf, 0.0)
 
 
