@@ -11,8 +11,8 @@ Writes PNG figures and ``RESULTS.md`` (tables with the measured numbers) to ``--
 - ``furnace.png``: white-furnace albedo of every model against θ_i;
 - ``variance.png``: variance of the non-separable ``eval``: naive sampled height
   against the supplemental's interval tracking;
-- ``mis_pdf.png``: total-variation distance between the MIS pdf and the walk's
-  actual sampling density.
+- ``mis_pdf.png``: total-variation distance between the MIS pdf (its density part,
+  ``mis_boost_max=1``) and the walk's actual sampling density.
 
 The references live in ``tests/`` (independent of the model code); this script
 imports them from there.
@@ -45,7 +45,7 @@ def sph(theta_deg, phi_deg=0.0):
     return np.array([np.sin(t) * np.cos(p), np.sin(t) * np.sin(p), np.cos(t)])
 
 
-def make_bsdf(model, tangent_facet, theta_p_deg, nested=WHITE):
+def make_bsdf(model, tangent_facet, theta_p_deg, nested=WHITE, **params):
     tex = np.zeros((1, 1, 3), np.float32)
     tex[...] = sph(theta_p_deg) * 0.5 + 0.5
     d = {"type": "normalmap_microfacet", "model": model,
@@ -53,7 +53,7 @@ def make_bsdf(model, tangent_facet, theta_p_deg, nested=WHITE):
          "bsdf": nested}
     if model != "analytic":
         d["tangent_facet"] = tangent_facet
-    return mi.load_dict(d)
+    return mi.load_dict({**d, **params})
 
 
 def interaction(wi, n, p_offset=0):
@@ -213,7 +213,8 @@ def mis_pdf(out, quick, results):
     for nested_name, nested in (("diffuse", WHITE), ("roughconductor 0.3", GGX)):
         for model, tf in WALKS:
             for tp, ti, side in ((30, 30, 0), (60, 30, 0), (60, 70, 180), (80, 60, 0)):
-                b = make_bsdf(model, tf, tp, nested)
+                # The density part of the MIS pdf (mis_boost_max = 1: no variance-aware boost).
+                b = make_bsdf(model, tf, tp, nested, mis_boost_max=1.0)
                 wo, w = sample(b, sph(ti, side), n, seed=tp + ti)
                 ok = w > 0
                 ci = np.clip((wo[ok, 2] * n_cos).astype(int), 0, n_cos - 1)

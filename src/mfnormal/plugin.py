@@ -35,12 +35,12 @@ Microfacet-based normal mapping (:monosp:`normalmap_microfacet`)
  * - mis_boost_max
    - |float|
    - Random-walk models only: cap of the variance-aware MIS boost (default 64).
-     The walks' ``pdf`` multiplies its share for walks longer than one nested
-     bounce, whose ``eval`` is noisy on glossy facets, by the nested lobe's
-     sharpness (1 for Lambertian, 1/(4α²) for GGX) up to this cap, so that
-     light samples of those paths lose MIS weight to BSDF samples. 1 turns it
-     off: ``pdf`` is then the plain density approximation. MIS stays unbiased
-     either way.
+     Walks longer than one nested bounce have a noisy ``eval`` on glossy
+     facets; the walks' ``pdf`` boosts their share by the nested lobe's
+     sharpness (1 for Lambertian, 1/(4α²) for GGX) up to this cap, weighted by
+     how likely such walks are from ω_i, so that light samples of those paths
+     lose MIS weight to BSDF samples. 1 turns it off: ``pdf`` is then the plain
+     density approximation. MIS stays unbiased either way.
  * - normalmap_convention
    - |string|
    - ``opengl`` (default, +Y up, what Mitsuba's ``normalmap`` assumes) or
