@@ -554,7 +554,10 @@ def markdown(res) -> str:
         L += ["", "## mispdf: MIS pdf / actual density of `sample`'s directions", "",
               "Histogram of 2^21 samples per configuration; quantiles weighted by sample mass over the "
               "bins holding 90 % of it. < 1: the MIS pdf underestimates the sampler's density there "
-              "(BSDF samples get too little MIS weight, light samples too much).", "",
+              "(BSDF samples get too little MIS weight, light samples too much). The plugin's pdf "
+              "includes the variance-aware boost (mis_boost_max, default 64): ratios above 1 where the "
+              "longer walks are likely and eval is noisy are intended; the density part alone is "
+              "checked in tests/test_walk.py (mis_boost_max = 1).", "",
               "| nested | method | p10 | median | p90 |", "|---|---|---|---|---|"]
         L += [f"| {r['nested']} | {r['method']} | {r['ratio_p10']:.2f} | {r['ratio_median']:.2f} | "
               f"{r['ratio_p90']:.2f} |" for r in res["mispdf"]]
