@@ -213,8 +213,9 @@ def mis_pdf(out, quick, results):
     for nested_name, nested in (("diffuse", WHITE), ("roughconductor 0.3", GGX)):
         for model, tf in WALKS:
             for tp, ti, side in ((30, 30, 0), (60, 30, 0), (60, 70, 180), (80, 60, 0)):
-                # The density part of the MIS pdf (mis_boost_max = 1: no variance-aware boost).
-                b = make_bsdf(model, tf, tp, nested, mis_boost_max=1.0)
+                # The density part of the MIS pdf (mis_boost_max = 1: no variance-aware boost),
+                # against the unweighted exits of walks without Russian roulette.
+                b = make_bsdf(model, tf, tp, nested, mis_boost_max=1.0, rr_depth=0)
                 wo, w = sample(b, sph(ti, side), n, seed=tp + ti)
                 ok = w > 0
                 ci = np.clip((wo[ok, 2] * n_cos).astype(int), 0, n_cos - 1)

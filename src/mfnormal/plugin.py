@@ -32,6 +32,13 @@ Microfacet-based normal mapping (:monosp:`normalmap_microfacet`)
    - Random-walk models only: bounce cap of the walk (default 1024). Paths
      still on the microsurface after it are dropped; the energy this loses is
      measured by the test suite (below 1e-4 of the albedo for θ_p ≤ 80°).
+ * - rr_depth
+   - |int|
+   - Random-walk models only: Russian roulette from this many facet bounces on
+     (default 3; 0 turns it off). A walk then continues with probability
+     min(1, its largest throughput channel) and divides its throughput by it:
+     unbiased, and dark materials (roughplastic, coloured metals) no longer run
+     long walks that carry little energy. White facets are never rouletted.
  * - mis_boost_max
    - |float|
    - Random-walk models only: cap of the variance-aware MIS boost (default 64).
@@ -187,6 +194,9 @@ class NormalMapMicrofacet:
         self.max_bounces = int(props.get("max_bounces", 1024))
         if self.max_bounces < 1:
             _fail(f"max_bounces must be >= 1, got {self.max_bounces}")
+        self.rr_depth = int(props.get("rr_depth", walk.RR_DEPTH))
+        if self.rr_depth < 0:
+            _fail(f"rr_depth must be >= 0 (0 turns Russian roulette off), got {self.rr_depth}")
         self.mis_boost_max = float(props.get("mis_boost_max", walk.MIS_BOOST_MAX))
         if not (1.0 <= self.mis_boost_max < float("inf")):
             _fail(f"mis_boost_max must be a finite number >= 1 (1 turns the boost off), got {self.mis_boost_max}")
@@ -254,13 +264,14 @@ class NormalMapMicrofacet:
         sp = self._shading_point(ctx, si, active)
         if self.model == "analytic":
             return analytic.sample(sp, sample1, sample2, mi.Bool(active))
-        return walk.sample(sp, sample1, sample2, *self._walk_args(), mi.Bool(active), self.mis_boost_max)
+        return walk.sample(sp, sample1, sample2, *self._walk_args(), mi.Bool(active), self.mis_boost_max,
+                           rr_depth=self.rr_depth)
 
     def eval(self, ctx, si, wo, active=True):
         sp = self._shading_point(ctx, si, active)
         if self.model == "analytic":
             return analytic.eval_pdf(sp, wo, mi.Bool(active), want_pdf=False)[0]
-        return walk.eval(sp, wo, *self._walk_args(), mi.Bool(active))
+        return walk.eval(sp, wo, *self._walk_args(), mi.Bool(active), rr_depth=self.rr_depth)
 
     def pdf(self, ctx, si, wo, active=True):
         sp = self._shading_point(ctx, si, active)
@@ -272,12 +283,13 @@ class NormalMapMicrofacet:
         sp = self._shading_point(ctx, si, active)
         if self.model == "analytic":
             return analytic.eval_pdf(sp, wo, mi.Bool(active))
-        return (walk.eval(sp, wo, *self._walk_args(), mi.Bool(active)),
+        return (walk.eval(sp, wo, *self._walk_args(), mi.Bool(active), rr_depth=self.rr_depth),
                 walk.mis_pdf(sp, wo, *self._walk_args()[:2], mi.Bool(active), self.mis_boost_max))
 
     def to_string(self):
         return (f"NormalMapMicrofacet[model={self.model}, tangent_facet={self.tangent_facet}, "
-                f"mis_boost_max={self.mis_boost_max}, strength={self.strength}, convention={'directx' if self.directx else 'opengl'}, "
+                f"rr_depth={self.rr_depth}, mis_boost_max={self.mis_boost_max}, strength={self.strength}, "
+                f"convention={'directx' if self.directx else 'opengl'}, "
                 f"tangents={self.tangent_attr or MITSUBA_TANGENTS},\n"
                 f"  normalmap={self.normalmap},\n  bsdf={self.nested}]")
 

@@ -32,12 +32,15 @@ from . import microsurface as ms
 from .microsurface import negate
 from .shading import ONE_MINUS_EPS, hash_floats, select_frame, uniform
 
+# Default depth (facet bounces) from which walks play Russian roulette on their throughput.
+RR_DEPTH = 3
+
 SAMPLE_SALT = 0x6d666e32
 EVAL_SALT = 0x6d666e33
 
 
 def _walk(sp, separable, specular_t, max_bounces, active, wo=None, sample1=None, sample2=None,
-          sampled_height=False):
+          sampled_height=False, rr_depth=0):
     """Run the walk; in eval mode (``wo`` given) accumulate NEE toward wo.
 
     ``sampled_height`` (non-separable only) replaces the height interval by one
@@ -172,6 +175,14 @@ def _walk(sp, separable, specular_t, max_bounces, active, wo=None, sample1=None,
         e = dr.select(walking, e * w, e)
 
         leaves, stays, a, b = move(on_p, d_new, a, b, ok, c)
+        if rr_depth > 0:
+            # Russian roulette on the throughput from rr_depth bounces on: unbiased, and it
+            # ends the long walks of dark materials that cost a packet most of its time.
+            q = dr.minimum(dr.max(e), 1.0)
+            roulette = stays & (depth + 1 >= rr_depth) & (q < 1.0)
+            survive = uniform(seed, 0x7F000000 + depth) < q
+            e = dr.select(roulette & survive, e / dr.maximum(q, 1e-30), e)
+            stays &= negate(roulette) | survive
         d = dr.select(walking, d_new, d)
         depth = dr.select(walking, depth + 1, depth)
         escaped |= leaves
@@ -211,10 +222,11 @@ def t_start_nee(sp, wo, lp, separable, specular_t, max_bounces, active):
             + sp.eval(sp.frame_p, -d_m, wo_m, active & (wr > 0)) * wr)
 
 
-def eval(sp, wo, separable, specular_t, max_bounces, active, sampled_height=False):
+def eval(sp, wo, separable, specular_t, max_bounces, active, sampled_height=False, rr_depth=0):
     """Unbiased NEE estimate of f·⟨wo, z⟩, deterministic per query."""
     active = mi.Bool(active) & (sp.wi.z > 0) & (wo.z > 0)
-    L = _walk(sp, separable, specular_t, max_bounces, active, wo=wo, sampled_height=sampled_height)[4]
+    L = _walk(sp, separable, specular_t, max_bounces, active, wo=wo, sampled_height=sampled_height,
+              rr_depth=rr_depth)[4]
     return dr.select(active & dr.all(dr.isfinite(L)), dr.maximum(L, 0.0), 0.0)
 
 
@@ -341,10 +353,10 @@ def stochastic_share_boost(sp, boost_max, active):
     return dr.clip(sharp, 1.0, boost_max)
 
 
-def sample(sp, sample1, sample2, separable, specular_t, max_bounces, active, boost_max=None):
+def sample(sp, sample1, sample2, separable, specular_t, max_bounces, active, boost_max=None, rr_depth=0):
     """Walk from wi until the ray leaves: (BSDFSample3f, throughput)."""
     d, e, escaped, nondelta, _ = _walk(sp, separable, specular_t, max_bounces, active,
-                                       sample1=sample1, sample2=sample2)
+                                       sample1=sample1, sample2=sample2, rr_depth=rr_depth)
     valid = escaped & (d.z > 0) & dr.all(dr.isfinite(e)) & dr.all(dr.isfinite(d))
     bs = dr.zeros(mi.BSDFSample3f, dr.width(d))
     bs.wo = dr.select(escaped & dr.all(dr.isfinite(d)), d, mi.Vector3f(0.0, 0.0, 1.0))
