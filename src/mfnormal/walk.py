@@ -19,8 +19,10 @@ vertex, which forgets height correlation.
   part of ``eval`` is deterministic and only the longer walks add noise;
 - ``mis_pdf``: a deterministic function for MIS (MODEL.md §2.8): the exact
   density of the low-order terms plus a cosine lobe for the rest, that lobe
-  boosted by the nested lobe's sharpness (variance-aware MIS: the rest's
-  ``eval`` is the noisy part).
+  boosted by the nested lobe's sharpness where longer walks are likely
+  (variance-aware MIS: the rest's ``eval`` is the noisy part).
+
+Walks play Russian roulette on their throughput from ``rr_depth`` facet bounces on.
 """
 
 from __future__ import annotations
