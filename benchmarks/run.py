@@ -209,38 +209,46 @@ def _copy_dicts(d):
     return {k: _copy_dicts(v) if isinstance(v, dict) else v for k, v in d.items()}
 
 
-def swap_bsdfs(scene: dict, method: str, nested: dict) -> dict:
-    """Rewrite every ``normalmap_microfacet`` in ``scene`` for ``method`` around ``nested``."""
-    key, model, tangent_facet = METHOD_BY_KEY[method]
+def rewrite_plugins(scene: dict, plugin_type: str, rewrite, what: str) -> dict:
+    """Copy of ``scene`` with ``rewrite(d)`` applied to every nested dict of ``plugin_type``."""
     count = 0
 
     def visit(d):
         nonlocal count
-        for k, v in list(d.items()):
+        for v in d.values():
             if not isinstance(v, dict):
                 continue
-            if v.get("type") == "normalmap_microfacet":
+            if v.get("type") == plugin_type:
+                rewrite(v)
                 count += 1
-                for kk in [kk for kk, vv in v.items() if isinstance(vv, dict) and kk != "normalmap"]:
-                    del v[kk]
-                v["bsdf"] = copy.deepcopy(nested)
-                for p in ("model", "tangent_facet", "max_bounces"):
-                    v.pop(p, None)
-                if key == "builtin":
-                    v["type"] = "normalmap"
-                    for p in ("strength", "normalmap_convention"):
-                        v.pop(p, None)
-                else:
-                    v["model"] = model
-                    if tangent_facet is not None:
-                        v["tangent_facet"] = tangent_facet
             else:
                 visit(v)
     scene = _copy_dicts(scene)
     visit(scene)
     if count == 0:
-        raise RuntimeError("scene has no normalmap_microfacet BSDF to swap")
+        raise RuntimeError(f"scene has no {what} to swap")
     return scene
+
+
+def swap_bsdfs(scene: dict, method: str, nested: dict) -> dict:
+    """Rewrite every ``normalmap_microfacet`` in ``scene`` for ``method`` around ``nested``."""
+    key, model, tangent_facet = METHOD_BY_KEY[method]
+
+    def rewrite(v):
+        for kk in [kk for kk, vv in v.items() if isinstance(vv, dict) and kk != "normalmap"]:
+            del v[kk]
+        v["bsdf"] = copy.deepcopy(nested)
+        for p in ("model", "tangent_facet", "max_bounces"):
+            v.pop(p, None)
+        if key == "builtin":
+            v["type"] = "normalmap"
+            for p in ("strength", "normalmap_convention"):
+                v.pop(p, None)
+        else:
+            v["model"] = model
+            if tangent_facet is not None:
+                v["tangent_facet"] = tangent_facet
+    return rewrite_plugins(scene, "normalmap_microfacet", rewrite, "normalmap_microfacet BSDF")
 
 
 def _resolved_xml(src: str, dst: Path, params: dict) -> Path:
@@ -304,22 +312,9 @@ def load_scene(name, assets, method, nested, width, height, spp, sunless=False):
 
 def with_envmap(scene: dict, filename: str) -> dict:
     """``scene`` with every ``envmap`` emitter reading ``filename``."""
-    count = 0
-
-    def visit(d):
-        nonlocal count
-        for v in d.values():
-            if isinstance(v, dict):
-                if v.get("type") == "envmap":
-                    v["filename"] = filename
-                    count += 1
-                else:
-                    visit(v)
-    scene = _copy_dicts(scene)
-    visit(scene)
-    if count == 0:
-        raise RuntimeError("scene has no envmap emitter to swap")
-    return scene
+    def rewrite(v):
+        v["filename"] = filename
+    return rewrite_plugins(scene, "envmap", rewrite, "envmap emitter")
 
 
 def timed_render(scene, spp: int, seed: int):

@@ -36,6 +36,8 @@ from .shading import ONE_MINUS_EPS, hash_floats, select_frame, uniform
 
 # Default depth (facet bounces) from which walks play Russian roulette on their throughput.
 RR_DEPTH = 3
+# Default cap of the boost of the longer walks' share in the MIS pdf (GGX α ≤ 1/16 reaches it).
+MIS_BOOST_MAX = 64.0
 
 SAMPLE_SALT = 0x6d666e32
 EVAL_SALT = 0x6d666e33
@@ -78,11 +80,7 @@ def _walk(sp, separable, specular_t, max_bounces, active, wo=None, sample1=None,
     if eval_mode:
         g_o_p, g_o_t = sp.G1_p(wo), sp.G1_t(wo)
         if specular_t:
-            # Depths on p whose ray along ω'_o = flip_t(ω_o) reflects off t toward ω_o
-            # (H_r, §3.5: heights [(1 − G1(ω_o, t))·h_r, h_r] with h_r = 1 − G1(ω'_o, p)).
-            wo_m = sp.flip_t(wo)
-            r_lo = sp.G1_p(wo_m)
-            r_hi = dr.select(g_o_t > 0, r_lo + g_o_t * (1.0 - r_lo), r_lo)
+            wo_m, r_lo, r_hi = mirror_leg(sp, wo, g_o_t)
 
     # Rao-Blackwellised first vertex (eval only): the NEE at the first nested vertex
     # is taken in expectation over the random start facet and, with a mirror
@@ -194,6 +192,15 @@ def _walk(sp, separable, specular_t, max_bounces, active, wo=None, sample1=None,
     return d, e, escaped, nondelta, (L + L0) if rb else L
 
 
+def mirror_leg(sp, wo, g_o_t):
+    """(ω'_o, lo, hi): the depths [lo, hi] on p whose ray along ω'_o = flip_t(ω_o)
+    reflects off the mirror t toward ω_o (H_r, §3.5: heights [(1 − G1(ω_o, t))·h_r, h_r]
+    with h_r = 1 − G1(ω'_o, p)); ``g_o_t`` = G1(ω_o, t)."""
+    wo_m = sp.flip_t(wo)
+    r_lo = sp.G1_p(wo_m)
+    return wo_m, r_lo, dr.select(g_o_t > 0, r_lo + g_o_t * (1.0 - r_lo), r_lo)
+
+
 def t_start_nee(sp, wo, lp, separable, specular_t, max_bounces, active):
     """λ_t(ω_i)·E[NEE toward wo at the first nested vertex of a walk that starts on t].
 
@@ -215,9 +222,7 @@ def t_start_nee(sp, wo, lp, separable, specular_t, max_bounces, active):
     tau, k = ms.crest_map(mi.Bool(False), d_m, wt, cot)
     stay = (1.0 - lp) * (1.0 - ms.escape_fraction(0.0, b_t, tau)) * (1.0 if max_bounces > 1 else 0.0)
     a, b = (mi.Float(0.0), mi.Float(1.0)) if separable else ms.land(0.0, b_t, tau, k)
-    wo_m = sp.flip_t(wo)
-    r_lo = sp.G1_p(wo_m)
-    r_hi = dr.select(g_o_t > 0, r_lo + g_o_t * (1.0 - r_lo), r_lo)
+    wo_m, r_lo, r_hi = mirror_leg(sp, wo, g_o_t)
     w2 = stay * ms.fraction_inside(a, b, 0.0, sp.G1_p(wo))
     wr = stay * dr.select(g_o_t > 0, ms.fraction_inside(a, b, r_lo, r_hi), 0.0)
     return (sp.eval(sp.frame_p, -d_m, wo, active & (w2 > 0)) * w2
@@ -317,18 +322,15 @@ def mis_pdf(sp, wo, separable, specular_t, active, boost_max=None):
     # Variance-aware MIS: the terms that eval estimates stochastically get the boost c;
     # the longer walks' share by the chance q2 that a walk has them (a cosine lobe of
     # weight c·q2 instead of the plain density's 1 − cosθ_p, where c > 1).
-    c = stochastic_share_boost(sp, boost_max, active)
-    if boost_max is None or boost_max > 1.0:
+    boost_max = MIS_BOOST_MAX if boost_max is None else boost_max
+    if boost_max > 1.0:
+        c = stochastic_share_boost(sp, boost_max, active)
         h_t_first = h_tp if specular_t else land(start(false_), false_, -wi_m)
         q2 = lp * second_visit(h_p, wi) + (1.0 - lp) * second_visit(h_t_first, wi_m)
         pdf = explicit + stochastic * c + rest + (c - 1.0) * q2 * dr.maximum(wo.z, 0.0) * dr.inv_pi
     else:
         pdf = explicit + stochastic + rest
     return dr.select(active & dr.isfinite(pdf), pdf, 0.0)
-
-
-# Default cap of the boost of the longer walks' share in the MIS pdf (GGX α ≤ 1/16 reaches it).
-MIS_BOOST_MAX = 64.0
 
 
 def stochastic_share_boost(sp, boost_max, active):
@@ -343,14 +345,11 @@ def stochastic_share_boost(sp, boost_max, active):
     applied as a boost of the BSDF technique's weight on the longer walks,
     proportional to the nested lobe's sharpness: π × the nested pdf of the
     mirror direction at normal incidence (1 for Lambertian, 1/(4α²) for GGX),
-    clamped to [1, boost_max] (default MIS_BOOST_MAX; 1 turns the boost off and
-    leaves the density approximation). Deterministic per shading point, so MIS
+    clamped to [1, boost_max] (mis_pdf skips the boost for boost_max = 1 and keeps
+    the density approximation). Deterministic per shading point, so MIS
     stays unbiased; the low-order terms, whose ``eval`` is deterministic, keep
     their exact density.
     """
-    boost_max = MIS_BOOST_MAX if boost_max is None else boost_max
-    if not boost_max > 1.0:
-        return 1.0
     sharp = dr.pi * sp.pdf(sp.frame_p, sp.wp, sp.wp, active)
     return dr.clip(sharp, 1.0, boost_max)
 
