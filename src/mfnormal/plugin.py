@@ -141,11 +141,12 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from . import analytic, walk
-from .microsurface import decode_normal
+from . import analytic, faithful, walk
+from .microsurface import COS_P_MIN, decode_normal
 from .shading import ShadingPoint, from_tangent_frame
 
-MODELS = ("analytic", "separable", "nonseparable")
+MODELS = ("faithful", "analytic", "separable", "nonseparable")
+DEFAULT_MODEL = "faithful"
 TANGENT_FACETS = ("specular", "same")
 CONVENTIONS = ("opengl", "directx")
 MITSUBA_TANGENTS = "mitsuba"
@@ -182,15 +183,15 @@ class NormalMapMicrofacet:
                   "type=\"bitmap\"> with <boolean name=\"raw\" value=\"true\"/>)")
 
         # Model parameters
-        self.model = props.get("model", "analytic")
+        self.model = props.get("model", DEFAULT_MODEL)
         if self.model not in MODELS:
             _fail(f"unknown model '{self.model}'; choose one of {', '.join(MODELS)}")
         self.tangent_facet = props.get("tangent_facet", "specular")
         if self.tangent_facet not in TANGENT_FACETS:
             _fail(f"unknown tangent_facet '{self.tangent_facet}'; use 'specular' or 'same'")
-        if self.model == "analytic" and self.tangent_facet != "specular":
-            _fail("tangent_facet 'same' needs model='separable' or 'nonseparable'; the analytic "
-                  "model's tangent facet is always a mirror")
+        if self.model in ("analytic", "faithful") and self.tangent_facet != "specular":
+            _fail(f"tangent_facet 'same' needs model='separable' or 'nonseparable'; the {self.model} "
+                  "model has no tangent facet of the nested material")
         self.max_bounces = int(props.get("max_bounces", 1024))
         if self.max_bounces < 1:
             _fail(f"max_bounces must be >= 1, got {self.max_bounces}")
@@ -214,6 +215,8 @@ class NormalMapMicrofacet:
             _fail(f"tangents must be '{MITSUBA_TANGENTS}' or a vertex attribute name such as "
                   f"'vertex_tangent', got '{tangents}'")
         self.tangent_attr = None if tangents == MITSUBA_TANGENTS else tangents
+        self.faithful = (faithful.Model(self.nested, self._map_rms_slope(), COS_P_MIN)
+                         if self.model == "faithful" else None)
 
         # The nested BSDF's components; the microsurface only reflects.
         # The microsurface only reflects: report the nested BSDF's reflection components.
@@ -235,6 +238,33 @@ class NormalMapMicrofacet:
     def parameters_changed(self, keys):
         if "strength" in keys:
             dr.make_opaque(self.strength)
+        if self.faithful is not None and (not keys or any(k == "strength" or k.startswith("normalmap")
+                                                          for k in keys)):
+            self.faithful.set_sigma(self._map_rms_slope())
+
+    def _map_rms_slope(self) -> float:
+        """The map's rms slope per axis (about the macro normal), from its decoded texels."""
+        import numpy as np
+        res = 256 if dr.is_jit_v(mi.Float) else 32
+        params = mi.traverse(self.normalmap)
+        if "data" in params.keys():
+            shape = params["data"].shape
+            res = min(res, max(shape[0], shape[1]))
+        u = (np.arange(res) + 0.5) / res
+        uu, vv = np.meshgrid(u, u, indexing="ij")
+        si = dr.zeros(mi.SurfaceInteraction3f, res * res)
+        si.uv = mi.Point2f(mi.Float(uu.ravel()), mi.Float(vv.ravel()))
+        if dr.is_jit_v(mi.Float):
+            wp = decode_normal(self.normalmap.eval_3(si), self.strength, self.directx)
+            normals = np.stack([np.array(wp.x), np.array(wp.y), np.array(wp.z)], -1)
+        else:
+            normals = []
+            for x, y in zip(uu.ravel(), vv.ravel()):
+                s1 = mi.SurfaceInteraction3f()
+                s1.uv = mi.Point2f(x, y)
+                n = decode_normal(self.normalmap.eval_3(s1), self.strength, self.directx)
+                normals.append([n.x, n.y, n.z])
+        return faithful.rms_slope(np.array(normals))
 
     def _shading_point(self, ctx, si, active):
         """The microsurface at ``si``: ω_p from the normal map, in the base shading frame."""
@@ -260,8 +290,21 @@ class NormalMapMicrofacet:
     def _walk_args(self):
         return self.model == "separable", self.tangent_facet == "specular", self.max_bounces
 
+    def _texel(self, sp, wi=None):
+        return self.faithful.texel(sp, sp.wi if wi is None else wi)
+
+    @staticmethod
+    def _adjoint(ctx):
+        """Light tracing asks for the adjoint BSDF; only the faithful model is not reciprocal."""
+        return ctx.mode == mi.TransportMode.Importance
+
     def sample(self, ctx, si, sample1, sample2, active=True):
         sp = self._shading_point(ctx, si, active)
+        if self.model == "faithful":
+            if self._adjoint(ctx):
+                return self.faithful.sample_adjoint(sp, self._texel(sp), sample1, sample2, mi.Bool(active),
+                                                    lambda b: self._texel(sp, b))
+            return self.faithful.sample(sp, self._texel(sp), sample1, sample2, mi.Bool(active))
         if self.model == "analytic":
             return analytic.sample(sp, sample1, sample2, mi.Bool(active))
         return walk.sample(sp, sample1, sample2, *self._walk_args(), mi.Bool(active), self.mis_boost_max,
@@ -269,18 +312,33 @@ class NormalMapMicrofacet:
 
     def eval(self, ctx, si, wo, active=True):
         sp = self._shading_point(ctx, si, active)
+        if self.model == "faithful":
+            if self._adjoint(ctx):
+                return self.faithful.eval_pdf_adjoint(sp, self._texel(sp), self._texel(sp, wo), mi.Bool(active),
+                                                      lambda b: self._texel(sp, b), want_pdf=False)[0]
+            return self.faithful.eval_pdf(sp, self._texel(sp), wo, mi.Bool(active), want_pdf=False)[0]
         if self.model == "analytic":
             return analytic.eval_pdf(sp, wo, mi.Bool(active), want_pdf=False)[0]
         return walk.eval(sp, wo, *self._walk_args(), mi.Bool(active), rr_depth=self.rr_depth)
 
     def pdf(self, ctx, si, wo, active=True):
         sp = self._shading_point(ctx, si, active)
+        if self.model == "faithful":
+            if self._adjoint(ctx):
+                return self.faithful.eval_pdf_adjoint(sp, self._texel(sp), self._texel(sp, wo), mi.Bool(active),
+                                                      lambda b: self._texel(sp, b), want_value=False)[1]
+            return self.faithful.eval_pdf(sp, self._texel(sp), wo, mi.Bool(active), want_value=False)[1]
         if self.model == "analytic":
             return analytic.eval_pdf(sp, wo, mi.Bool(active), want_value=False)[1]
         return walk.mis_pdf(sp, wo, *self._walk_args()[:2], mi.Bool(active), self.mis_boost_max)
 
     def eval_pdf(self, ctx, si, wo, active=True):
         sp = self._shading_point(ctx, si, active)
+        if self.model == "faithful":
+            if self._adjoint(ctx):
+                return self.faithful.eval_pdf_adjoint(sp, self._texel(sp), self._texel(sp, wo), mi.Bool(active),
+                                                      lambda b: self._texel(sp, b))
+            return self.faithful.eval_pdf(sp, self._texel(sp), wo, mi.Bool(active))
         if self.model == "analytic":
             return analytic.eval_pdf(sp, wo, mi.Bool(active))
         return (walk.eval(sp, wo, *self._walk_args(), mi.Bool(active), rr_depth=self.rr_depth),

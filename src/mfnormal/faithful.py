@@ -1,0 +1,437 @@
+"""The default model: the tilted facet as the true geometry around it shows it (docs/faithful.md).
+
+A texel of a normal map baked from a heightfield is a small piece of surface with
+normal ω_p among neighbours whose slopes average to zero. Seen from the camera
+direction ω_i (``si.wi``) and lit from ω_o, it shows
+
+    eval(ω_i, ω_o) = V(ω_i)·[ f_p(ω_i, ω_o)·S(ω_o|ω_i)                       lit directly
+                             + f_p^gl(ω_i, T⁻¹ω_o)·(1 − S(T⁻¹ω_o|ω_i))     glossy light the neighbours block
+                             + B(ω_i)·ρ_d(ω_i)·⟨ω_o, ω_g⟩/π ]              diffuse light the neighbours block
+                   + (1 − V(ω_i))·f_g(ω_i, ω_o)                             the neighbours, where the texel is hidden
+
+- f_p, f_g: the nested f·cos on the facet (frame ω_p) and on the macro surface
+  (frame ω_g); f_p^gl its non-diffuse components, ρ_d its diffuse albedo;
+- V(ω) = min(1, R(ω)·G1(ω)): the share of the texel's footprint in which a ray from ω
+  hits the texel, R(ω) = ⟨ω,ω_p⟩₊ / (cosθ_p⟨ω,ω_g⟩) its projected area and G1 Smith's
+  masking by neighbours whose slopes have the map's own rms slope σ (Beckmann);
+- S(ω|ω_i) = χ⁺(⟨ω,ω_p⟩)χ⁺(⟨ω,ω_g⟩)·(1 + Λ(ω_i)) / (1 + Λ(ω_i) + Λ(ω)): the chance that a
+  visible point of the texel sees ω past its neighbours (height-correlated Smith);
+- light the neighbours block is not lost: its glossy part leaves in the direction it
+  would have had on the macro surface (T rotates ω_p onto ω_g: energy exact, one nested
+  call), its diffuse part as a cosine lobe weighted by B(ω_i), the blocked share of a
+  Lambertian facet's light (a table, exact for Lambertian facets).
+
+So the white furnace is exactly the nested albedo (1 for white facets), energy never
+exceeds it, nothing turns black, and the texel keeps classic normal mapping's relief
+under directional light (the ⟨ω_o, ω_p⟩ of f_p). The model is **not reciprocal** in
+the macro frame: a reciprocal BSDF that is white in the white furnace has the same
+view-averaged response to every light direction for every texel, i.e. no relief
+(docs/faithful.md). Light tracing sees the adjoint (``TransportMode.Importance``):
+eval*(a, b) = eval(b, a)·⟨b, ω_g⟩ / ⟨a, ω_g⟩, so path tracing and light tracing agree.
+"""
+
+from __future__ import annotations
+
+import math
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from .microsurface import negate
+from .shading import ONE_MINUS_EPS, hash_floats, uniform
+
+SAMPLE_SALT = 0x6d666e34
+INV_PI = 1.0 / math.pi
+SQRT_PI = math.sqrt(math.pi)
+# Λ(a) < 1e-8 beyond this a = 1/(√2 σ tanθ): treat as unmasked.
+A_UNMASKED = 4.0
+
+
+# -- Smith masking by the neighbourhood (Beckmann slopes, rms slope σ per axis) --------------
+
+def smith_lambda(cos_theta, sigma):
+    """Beckmann Λ(ω) for neighbours of rms slope ``sigma`` per axis; 0 where unmasked."""
+    c = dr.clip(cos_theta, 1e-7, 1.0)
+    tan = dr.safe_sqrt(1.0 - c * c) / c
+    a = dr.rcp(dr.maximum(math.sqrt(2.0) * sigma * tan, 1e-30))
+    lam = 0.5 * (dr.exp(-a * a) / (a * SQRT_PI) - (1.0 - dr.erf(a)))
+    return dr.select(a < A_UNMASKED, dr.maximum(lam, 0.0), 0.0)
+
+
+def smith_lambda_np(cos_theta, sigma):
+    """numpy twin of :func:`smith_lambda` (for the tables)."""
+    from math import erf
+    c = np.clip(cos_theta, 1e-7, 1.0)
+    tan = np.sqrt(np.maximum(1.0 - c * c, 0.0)) / c
+    a = 1.0 / np.maximum(math.sqrt(2.0) * sigma * tan, 1e-30)
+    erf_a = np.vectorize(erf)(np.minimum(a, 10.0))
+    lam = 0.5 * (np.exp(-a * a) / (a * SQRT_PI) - (1.0 - erf_a))
+    return np.where(a < A_UNMASKED, np.maximum(lam, 0.0), 0.0)
+
+
+# -- The blocked share of a Lambertian facet's light: B(cosθ_p, G1(ω_i)) ------------------------
+
+TABLE_COS = 48      # cosθ_p from COS_P_MIN to 1
+TABLE_G = 32        # √G1(ω_i), G1 = 1/(1 + Λ(ω_i)), from 0 to 1 (B is close to linear in √G1)
+_QUAD = 48          # quadrature: _QUAD² stratified cosine-weighted directions on the facet
+
+
+def _quadrature():
+    """Stratified cosine-weighted directions around +z (deterministic)."""
+    u = (np.arange(_QUAD) + 0.5) / _QUAD
+    u1, u2 = np.meshgrid(u, u, indexing="ij")
+    r, phi = np.sqrt(u1.ravel()), 2.0 * np.pi * u2.ravel()
+    return np.stack([r * np.cos(phi), r * np.sin(phi), np.sqrt(np.maximum(1.0 - r * r, 0.0))], -1)
+
+
+def blocked_table(sigma: float, cos_min: float) -> np.ndarray:
+    """B[i, j]: 1 − ∫ (1/π)⟨ω,ω_p⟩ S(ω|ω_i) dω for a white Lambertian facet, at cosθ_p = cos_i
+    (TABLE_COS steps from ``cos_min`` to 1) and G1(ω_i) = g_j² (g_j: TABLE_G steps from 0 to 1)."""
+    local = _quadrature()
+    cos_p = np.linspace(cos_min, 1.0, TABLE_COS)
+    g = np.linspace(0.0, 1.0, TABLE_G) ** 2
+    table = np.zeros((TABLE_COS, TABLE_G))
+    for a, c in enumerate(cos_p):
+        s = math.sqrt(max(1.0 - c * c, 0.0))
+        # Directions on a facet tilted by θ_p about y: their macro cosine.
+        dz = -s * local[:, 0] + c * local[:, 2]
+        lam_d = smith_lambda_np(dz, sigma) if sigma > 0 else np.zeros_like(dz)
+        up = dz > 0
+        for b, gi in enumerate(g):
+            lam_i = (1.0 / gi - 1.0) if gi > 0 else 1e30
+            seen = np.where(up, (1.0 + lam_i) / (1.0 + lam_i + lam_d), 0.0)
+            table[a, b] = 1.0 - seen.mean()
+    return np.clip(table, 0.0, 1.0).astype(np.float32)
+
+
+def lookup(table, cos_min, cos_p, g):
+    """Bilinear lookup of B(cosθ_p, G1 = g) in the table stored flat in a Dr.Jit Float."""
+    x = dr.clip((cos_p - cos_min) / (1.0 - cos_min), 0.0, 1.0) * (TABLE_COS - 1)
+    y = dr.sqrt(dr.clip(g, 0.0, 1.0)) * (TABLE_G - 1)
+    x0 = dr.minimum(mi.UInt32(x), TABLE_COS - 2)
+    y0 = dr.minimum(mi.UInt32(y), TABLE_G - 2)
+    fx, fy = x - mi.Float(x0), y - mi.Float(y0)
+    i00 = x0 * TABLE_G + y0
+    v00 = dr.gather(mi.Float, table, i00)
+    v01 = dr.gather(mi.Float, table, i00 + 1)
+    v10 = dr.gather(mi.Float, table, i00 + TABLE_G)
+    v11 = dr.gather(mi.Float, table, i00 + TABLE_G + 1)
+    return dr.lerp(dr.lerp(v00, v01, fy), dr.lerp(v10, v11, fy), fx)
+
+
+# -- The model at one shading point ------------------------------------------------------------
+
+def macro_frame():
+    return mi.Frame3f(mi.Vector3f(1, 0, 0), mi.Vector3f(0, 1, 0), mi.Vector3f(0, 0, 1))
+
+
+class Lobes:
+    """Which nested components exist (decided once per plugin: Python bools, baked into kernels)."""
+
+    def __init__(self, nested):
+        flags = nested.flags()
+        self.diffuse = mi.has_flag(flags, mi.BSDFFlags.DiffuseReflection)
+        self.glossy = mi.has_flag(flags, mi.BSDFFlags.GlossyReflection) or \
+            mi.has_flag(flags, mi.BSDFFlags.DeltaReflection)
+
+
+class Texel:
+    """Geometry of one texel among its neighbours, seen from ω_i (all in the base frame)."""
+
+    def __init__(self, sp, model, wi):
+        self.sp, self.wi, self.sigma = sp, wi, model.sigma
+        wp = sp.wp
+        self.lam_i = smith_lambda(wi.z, model.sigma)
+        g1_i = dr.rcp(1.0 + self.lam_i)
+        proj = dr.maximum(dr.dot(wi, wp), 0.0) / (wp.z * dr.maximum(wi.z, 1e-30))
+        self.vis = dr.minimum(1.0, proj * g1_i)
+        self.blocked = lookup(model.table, model.cos_min, wp.z, g1_i)
+        # The neighbour that blocks the texel's light: the mirror image of ω_p (a V-groove).
+        self.wq = mi.Vector3f(-wp.x, -wp.y, wp.z)
+
+    def seen(self, w):
+        """S(ω|ω_i): a visible point of the texel sees ω past the neighbours (0 below either horizon)."""
+        up = (w.z > 0) & (dr.dot(w, self.sp.wp) > 0)
+        lam = smith_lambda(w.z, self.sigma)
+        return dr.select(up, (1.0 + self.lam_i) / (1.0 + self.lam_i + lam), 0.0)
+
+    def _mirror(self, w):
+        return w - 2.0 * dr.dot(w, self.wq) * self.wq
+
+    def bounce(self, d):
+        """M(d): where blocked light travelling along d leaves after the neighbour ω_q mirrors it
+        (and, if it still heads down, the macro plane does): a piecewise isometry onto ω_g's
+        hemisphere, so it keeps energy exactly."""
+        r = self._mirror(d)
+        return mi.Vector3f(r.x, r.y, dr.abs(r.z))
+
+    def preimages(self, w):
+        """The (up to) two blocked directions d with M(d) = ω, each with whether it lies on the facet."""
+        d1 = self._mirror(w)
+        d2 = self._mirror(mi.Vector3f(w.x, w.y, -w.z))
+        wp = self.sp.wp
+        return (d1, dr.dot(d1, wp) > 0), (d2, dr.dot(d2, wp) > 0)
+
+
+def _nested(sp, ctx, frame, wi, wo, active, want_value=True, want_pdf=True):
+    """(f·cos, pdf) of the nested BSDF with context ``ctx`` on the facet with ``frame``."""
+    si_f, wo_f, active = sp._facet_query(frame, wi, wo, active)
+    if want_value and want_pdf:
+        v, p = sp.nested.eval_pdf(ctx, si_f, wo_f, active)
+    elif want_value:
+        v, p = sp.nested.eval(ctx, si_f, wo_f, active), mi.Float(0.0)
+    else:
+        v, p = mi.Spectrum(0.0), sp.nested.pdf(ctx, si_f, wo_f, active)
+    return dr.select(active, v, 0.0), dr.select(active, p, 0.0)
+
+
+RADIANCE = mi.TransportMode.Radiance
+
+
+class Model:
+    """The faithful model for one plugin instance: its lobes, the map's σ and the Lambertian table."""
+
+    def __init__(self, nested, sigma: float, cos_min: float):
+        self.lobes = Lobes(nested)
+        self.cos_min = cos_min
+        self.set_sigma(sigma)
+
+    def set_sigma(self, sigma: float):
+        """(Re)build what depends on the map's rms slope σ (opaque: no recompile per value)."""
+        self.sigma_value = float(sigma)
+        self.sigma = mi.Float(self.sigma_value)
+        dr.make_opaque(self.sigma)
+        self.table = mi.Float(blocked_table(self.sigma_value, self.cos_min).ravel())
+        dr.make_opaque(self.table)
+
+    def texel(self, sp, wi):
+        return Texel(sp, self, wi)
+
+    def _fill(self, sp, tx, active):
+        """The blocked diffuse light from ω_i, B(ω_i)·ρ_d(ω_i), ρ_d = π f_d(ω_i, ω_p) of the
+        diffuse components: re-emitted as a cosine lobe about ω_g."""
+        if not self.lobes.diffuse:
+            return mi.Spectrum(0.0)
+        ctx = mi.BSDFContext(RADIANCE, mi.BSDFFlags.DiffuseReflection)
+        f_d, _ = _nested(sp, ctx, sp.frame_p, tx.wi, sp.wp, active, want_pdf=False)
+        return tx.blocked * math.pi * f_d
+
+    def _branches(self, tx):
+        """The sampler's branch probabilities: the texel (a nested sample, bounced if blocked),
+        the diffuse fill, the hidden texel's neighbours."""
+        if self.lobes.diffuse:
+            p_fill = tx.vis * tx.blocked * (0.5 if self.lobes.glossy else 1.0)
+        else:
+            p_fill = mi.Float(0.0)
+        return tx.vis - p_fill, p_fill, 1.0 - tx.vis
+
+    def eval_pdf(self, sp, tx, wo, active, want_value=True, want_pdf=True):
+        """(eval, pdf) in radiance mode: camera side ``tx.wi``, light side ``wo``."""
+        wi = tx.wi
+        active = active & (wi.z > 0) & (wo.z > 0)
+        full = mi.BSDFContext(RADIANCE)
+        glossy = mi.BSDFContext(RADIANCE, mi.BSDFFlags.All & ~mi.BSDFFlags.DiffuseReflection)
+        on_texel = active & (tx.vis > 0)
+        value, pdf = mi.Spectrum(0.0), mi.Float(0.0)
+
+        # Lit directly past the neighbours.
+        s_o = tx.seen(wo)
+        f_dir, p_dir = _nested(sp, full, sp.frame_p, wi, wo, on_texel & (s_o > 0), want_value, want_pdf)
+        value_t, pdf_t = f_dir * s_o, p_dir * s_o
+        # Light the neighbours block, bounced toward ω_o: the glossy part in eval (the diffuse
+        # part is the fill), every lobe in the sampler's pdf.
+        for d, on_facet in tx.preimages(wo):
+            s_d = tx.seen(d)
+            blocked = on_texel & on_facet & (s_d < 1.0)
+            if self.lobes.glossy and want_value:
+                f_b, _ = _nested(sp, glossy, sp.frame_p, wi, d, blocked, True, False)
+                value_t += f_b * (1.0 - s_d)
+            if want_pdf:
+                _, p_b = _nested(sp, full, sp.frame_p, wi, d, blocked, False, True)
+                pdf_t += p_b * (1.0 - s_d)
+        # The neighbours, where the texel is hidden.
+        f_hid, p_hid = _nested(sp, full, macro_frame(), wi, wo, active & (tx.vis < 1.0), want_value, want_pdf)
+
+        if want_value:
+            fill = self._fill(sp, tx, on_texel) * (wo.z * INV_PI)
+            value = tx.vis * (value_t + fill) + (1.0 - tx.vis) * f_hid
+            value = dr.select(active & dr.all(dr.isfinite(value)), dr.maximum(value, 0.0), 0.0)
+        if want_pdf:
+            b_tex, b_fill, b_hid = self._branches(tx)
+            pdf = b_tex * pdf_t + b_fill * (wo.z * INV_PI) + b_hid * p_hid
+            pdf = dr.select(active & dr.isfinite(pdf), dr.maximum(pdf, 0.0), 0.0)
+        return value, pdf
+
+    def _draw(self, sp, tx, sample1, sample2, active):
+        """One draw of the radiance-mode sampler from ``tx.wi``: the exit direction and its path."""
+        wi = tx.wi
+        active = active & (wi.z > 0)
+        b_tex, b_fill, b_hid = self._branches(tx)
+        on_tex = sample1 < b_tex
+        on_fill = negate(on_tex) & (sample1 < b_tex + b_fill)
+        on_hid = negate(on_tex | on_fill)
+        lo = dr.select(on_tex, 0.0, dr.select(on_fill, b_tex, b_tex + b_fill))
+        width = dr.select(on_tex, b_tex, dr.select(on_fill, b_fill, b_hid))
+        s1 = dr.clip((sample1 - lo) / dr.maximum(width, 1e-30), 0.0, ONE_MINUS_EPS)
+
+        # Nested sample on the facet (texel branch) or on the macro surface (hidden branch).
+        frame = _select_frame(on_tex, sp.frame_p, macro_frame())
+        bs, w = sp.sample(frame, wi, s1, sample2, active & (on_tex | on_hid))
+        # Texel branch: the sample leaves past the neighbours, or is blocked and bounced.
+        u = uniform(hash_floats(SAMPLE_SALT, sample1, sample2.x, sample2.y), 0)
+        s_b = tx.seen(bs.wo)
+        bounced = on_tex & (u >= s_b)
+        wo = dr.select(bounced, tx.bounce(bs.wo), bs.wo)
+        # Diffuse fill: a cosine lobe about ω_g.
+        wo = dr.select(on_fill, mi.warp.square_to_cosine_hemisphere(sample2), wo)
+        ok = dr.select(on_fill, True, bs.pdf > 0) & (wo.z > 0) & dr.all(dr.isfinite(wo)) & (width > 0)
+        delta = negate(on_fill) & mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
+        bs.sampled_type = dr.select(on_fill, mi.UInt32(+mi.BSDFFlags.DiffuseReflection), bs.sampled_type)
+        bs.sampled_component = dr.select(on_fill, mi.UInt32(0), bs.sampled_component)
+        bs.wo = wo
+        # The draw's probability factor for delta lobes (the nested pdf times this).
+        prob = dr.select(on_tex, b_tex * dr.select(bounced, 1.0 - s_b, s_b), b_hid)
+        return _Draw(bs, w, active & ok, delta, on_tex, bounced, prob, b_tex, b_hid)
+
+    def sample(self, sp, tx, sample1, sample2, active):
+        """Radiance-mode sample from ``tx.wi``: (BSDFSample3f in the base frame, weight)."""
+        dw = self._draw(sp, tx, sample1, sample2, active)
+        bs, active = dw.bs, dw.active
+        value, pdf = self.eval_pdf(sp, tx, bs.wo, active & negate(dw.delta))
+        # Delta lobes (non-diffuse, so bounced ones are the eval's too): the path weight, the
+        # branch probabilities cancelling against the eval's factors.
+        w_delta = dw.w * dr.select(dw.on_tex, tx.vis / dr.maximum(dw.b_tex, 1e-30),
+                                   (1.0 - tx.vis) / dr.maximum(dw.b_hid, 1e-30))
+        weight = dr.select(dw.delta, w_delta, value / dr.select(pdf > 0, pdf, 1.0))
+        bs.pdf = dr.select(dw.delta, bs.pdf * dw.prob, pdf)
+        return _finish(bs, weight, active)
+
+    # -- Light tracing: the adjoint eval*(a, b) = eval(b, a)·⟨b, ω_g⟩/⟨a, ω_g⟩ -------------------
+
+    def _adjoint_branches(self, tx_a, texel_for):
+        """The adjoint sampler's extra branches, for the parts of eval* that radiance sampling from
+        a does not cover (their weight depends on the camera side b): the fill (a cosine lobe about
+        ω_g) and, for glossy lobes, b sampled on the facet from each preimage d of a under the bounce
+        and b sampled on ω_g from a (the hidden texel's neighbours).
+        Returns [(probability, kind, frame, incident direction), ...]."""
+        sp, a = tx_a.sp, tx_a.wi
+        branches = [(mi.Float(0.05), "cosine", None, None)]
+        if self.lobes.glossy:
+            for d, on_facet in tx_a.preimages(a):
+                s_d = tx_a.seen(d)
+                p = dr.select(on_facet & (s_d < 1.0), dr.maximum(0.2 * tx_a.vis * (1.0 - s_d), 0.05), 0.0)
+                branches.append((p, "bounce", sp.frame_p, d))
+            vis_c = texel_for(mi.Vector3f(-a.x, -a.y, a.z)).vis      # at the flat lobe's centre
+            branches.append((dr.maximum(0.3 * (1.0 - vis_c), 0.05), "hidden", macro_frame(), a))
+        return branches
+
+    def eval_pdf_adjoint(self, sp, tx_a, tx_b, active, texel_for, want_value=True, want_pdf=True):
+        """(eval*, pdf*) for light tracing: light side ``tx_a.wi``, camera side ``tx_b.wi``."""
+        a, b = tx_a.wi, tx_b.wi
+        active = active & (a.z > 0) & (b.z > 0)
+        value, pdf = mi.Spectrum(0.0), mi.Float(0.0)
+        if want_value:
+            value, _ = self.eval_pdf(sp, tx_b, a, active, want_pdf=False)
+            value *= b.z / dr.maximum(a.z, 1e-30)
+            value = dr.select(active & dr.all(dr.isfinite(value)), value, 0.0)
+        if want_pdf:
+            _, p_rad = self.eval_pdf(sp, tx_a, b, active, want_value=False)
+            share = mi.Float(0.0)
+            for p, kind, frame, inc in self._adjoint_branches(tx_a, texel_for):
+                if kind == "cosine":
+                    p_k = b.z * INV_PI
+                else:
+                    _, p_k = _nested(sp, mi.BSDFContext(RADIANCE), frame, inc, b, active & (p > 0), False, True)
+                pdf, share = pdf + p * p_k, share + p
+            pdf = pdf + (1.0 - share) * p_rad
+            pdf = dr.select(active & dr.isfinite(pdf), dr.maximum(pdf, 0.0), 0.0)
+        return value, pdf
+
+    def sample_adjoint(self, sp, tx_a, sample1, sample2, active, texel_for):
+        """Light-tracing sample from the light side ``tx_a.wi``; ``texel_for(b)`` builds the texel seen from b."""
+        a = tx_a.wi
+        extra = self._adjoint_branches(tx_a, texel_for)
+        # Choose a branch: the extra ones first (consecutive intervals), then the radiance sampler.
+        p_rad = 1.0 - sum((br[0] for br in extra), mi.Float(0.0))
+        picked, lo_k, width, acc = mi.UInt32(len(extra)), 1.0 - p_rad, p_rad, mi.Float(0.0)
+        for k, br in enumerate(extra):
+            hit = (sample1 >= acc) & (sample1 < acc + br[0])
+            picked = dr.select(hit, k, picked)
+            lo_k = dr.select(hit, acc, lo_k)
+            width = dr.select(hit, br[0], width)
+            acc = acc + br[0]
+        s1 = dr.clip((sample1 - lo_k) / dr.maximum(width, 1e-30), 0.0, ONE_MINUS_EPS)
+        on_rad = picked == len(extra)
+        dw = self._draw(sp, tx_a, s1, sample2, active & on_rad)
+        bs, w, delta, ok = dw.bs, dw.w, dw.delta, dw.active
+        for k, (p, kind, frame, inc) in enumerate(extra):
+            on_k = picked == k
+            if kind == "cosine":
+                bs.wo = dr.select(on_k, mi.warp.square_to_cosine_hemisphere(sample2), bs.wo)
+                delta &= negate(on_k)
+                ok = dr.select(on_k, active, ok)
+                continue
+            bs_k, w_k = sp.sample(frame, inc, s1, sample2, active & on_k)
+            bs = _select_sample(on_k, bs_k, bs)
+            w = dr.select(on_k, w_k, w)
+            delta = dr.select(on_k, mi.has_flag(bs_k.sampled_type, mi.BSDFFlags.Delta), delta)
+            ok = dr.select(on_k, active & (bs_k.pdf > 0) & (bs_k.wo.z > 0), ok)
+        b = bs.wo
+        tx_b = texel_for(b)
+
+        value, pdf = self.eval_pdf_adjoint(sp, tx_a, tx_b, ok & negate(delta), texel_for)
+        # Delta lobes: eval*'s coefficient on the sampled path over the draws that give that path.
+        ratio = b.z / dr.maximum(a.z, 1e-30)
+        p_hid_x = extra[-1][0] if self.lobes.glossy else mi.Float(0.0)
+        on_flat = on_rad & negate(dw.on_tex)
+        if self.lobes.glossy:
+            on_flat |= picked == len(extra) - 1
+        c_delta = tx_b.vis * tx_b.seen(a) * ratio / dr.maximum(p_rad * dw.prob, 1e-30)
+        c_delta = dr.select(dw.bounced, 0.0, c_delta)
+        prob_delta = p_rad * dw.prob
+        c_delta = dr.select(on_flat, (1.0 - tx_b.vis) / dr.maximum(p_hid_x + p_rad * dw.b_hid, 1e-30), c_delta)
+        prob_delta = dr.select(on_flat, p_hid_x + p_rad * dw.b_hid, prob_delta)
+        for k, (p, kind, frame, inc) in enumerate(extra):
+            if kind == "bounce":
+                c_k = tx_b.vis * (1.0 - tx_b.seen(inc)) * ratio / dr.maximum(p, 1e-30)
+                c_delta = dr.select(picked == k, c_k, c_delta)
+                prob_delta = dr.select(picked == k, p, prob_delta)
+        weight = dr.select(delta, w * c_delta, value / dr.select(pdf > 0, pdf, 1.0))
+        bs.pdf = dr.select(delta, bs.pdf * prob_delta, pdf)
+        return _finish(bs, weight, ok)
+
+
+class _Draw:
+    def __init__(self, bs, w, active, delta, on_tex, bounced, prob, b_tex, b_hid):
+        self.bs, self.w, self.active, self.delta = bs, w, active, delta
+        self.on_tex, self.bounced, self.prob, self.b_tex, self.b_hid = on_tex, bounced, prob, b_tex, b_hid
+
+
+def _finish(bs, weight, active):
+    active &= (bs.pdf > 0) & dr.all(dr.isfinite(weight))
+    bs.wo = dr.select(active, bs.wo, mi.Vector3f(0.0, 0.0, 1.0))   # never a NaN direction
+    bs.pdf = dr.select(active, bs.pdf, 0.0)
+    return bs, dr.select(active, dr.maximum(weight, 0.0), 0.0)
+
+
+def _select_sample(mask, a, b):
+    bs = dr.zeros(mi.BSDFSample3f, dr.width(mask))
+    for name in ("wo", "pdf", "eta", "sampled_type", "sampled_component"):
+        setattr(bs, name, dr.select(mask, getattr(a, name), getattr(b, name)))
+    return bs
+
+
+def _select_frame(mask, a, b):
+    return mi.Frame3f(dr.select(mask, a.s, b.s), dr.select(mask, a.t, b.t), dr.select(mask, a.n, b.n))
+
+
+# -- The map's rms slope --------------------------------------------------------------------
+
+def rms_slope(normals: np.ndarray) -> float:
+    """σ per axis of the slopes (−n_x/n_z, −n_y/n_z) of unit normals (N×3), about 0: the
+    neighbourhood roughness of a map whose mean normal is the macro normal."""
+    n = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
+    z = np.maximum(n[:, 2], 1e-3)
+    slope2 = (n[:, 0] ** 2 + n[:, 1] ** 2) / (z * z)
+    return float(math.sqrt(max(slope2.mean(), 0.0) / 2.0))
