@@ -51,9 +51,9 @@ import numpy as np  # noqa: E402
 import run as bench  # noqa: E402
 
 mfnormal, mi, dr = bench.import_mitsuba()
-from mfnormal import analytic, walk  # noqa: E402
+from mfnormal import analytic, rng, walk  # noqa: E402
 from mfnormal.microsurface import negate  # noqa: E402
-from mfnormal.shading import ONE_MINUS_EPS  # noqa: E402
+from mfnormal.rng import ONE_MINUS_EPS  # noqa: E402
 
 
 def log(msg):
@@ -152,7 +152,7 @@ def sample_reuse(sp, sample1, sample2, active):
     s1 = dr.clip(s1, 0.0, ONE_MINUS_EPS)
     bs, w = sp.sample(sp.frame_p, dr.select(on_p, wi, sp.flip_t(wi)), s1, sample2, active)
     g_p = sp.G1_p(bs.wo)
-    to_t = on_p & (analytic.uniform(analytic.hash_floats(0x6d666e31, sample1, sample2.x, sample2.y), 0) >= g_p)
+    to_t = on_p & (rng.uniform(rng.hash_floats(0x6d666e31, sample1, sample2.x, sample2.y), 0) >= g_p)
     wo = dr.select(to_t, sp.flip_t(bs.wo), bs.wo)
     path = dr.select(to_t, sp.G1_t(wo), g_p)
     prob = dr.select(on_p, lp * dr.select(to_t, 1.0 - g_p, g_p), 1.0 - lp)
@@ -240,7 +240,7 @@ def exp_ops(b: Bench) -> list:
             with bench.stubbed_nested():
                 so_stub, eo_stub = ops()
             with patched(walk, uniform=cheap_uniform, hash_floats=cheap_hash_floats), \
-                    patched(analytic, uniform=cheap_uniform, hash_floats=cheap_hash_floats):
+                    patched(rng, uniform=cheap_uniform, hash_floats=cheap_hash_floats):
                 so_mix, eo_mix = ops()
             rows.append({"nested": nested, "method": method, "sample_ops": so, "eval_ops": eo,
                          "sample_ops_stub": so_stub, "eval_ops_stub": eo_stub,

@@ -32,15 +32,14 @@ import mitsuba as mi
 
 from . import microsurface as ms
 from .microsurface import negate
-from .shading import ONE_MINUS_EPS, hash_floats, select_frame, uniform
+from .rng import (SALT_WALK_EVAL, SALT_WALK_SAMPLE, SLOT_START_FACET, SLOT_START_HEIGHT, choose, hash_floats,
+                  slot_escape, slot_nested, slot_roulette, uniform)
+from .shading import select_frame
 
 # Default depth (facet bounces) from which walks play Russian roulette on their throughput.
 RR_DEPTH = 3
 # Default cap of the boost of the longer walks' share in the MIS pdf (GGX α ≤ 1/16 reaches it).
 MIS_BOOST_MAX = 64.0
-
-SAMPLE_SALT = 0x6d666e32
-EVAL_SALT = 0x6d666e33
 
 
 def _walk(sp, separable, specular_t, max_bounces, active, wo=None, sample1=None, sample2=None,
@@ -59,23 +58,21 @@ def _walk(sp, separable, specular_t, max_bounces, active, wo=None, sample1=None,
     active = mi.Bool(active) & (wi.z > 0)
 
     if eval_mode:
-        seed = hash_floats(EVAL_SALT, wi.x, wi.y, wo.x, wo.y, sp.si.p.x, sp.si.p.y, sp.si.p.z)
-        u0 = uniform(seed, 0xFFFFFFFF)
+        seed = hash_floats(SALT_WALK_EVAL, wi.x, wi.y, wo.x, wo.y, sp.si.p.x, sp.si.p.y, sp.si.p.z)
+        u0 = uniform(seed, SLOT_START_FACET)
     else:
-        seed = hash_floats(SAMPLE_SALT, sample1, sample2.x, sample2.y)
+        seed = hash_floats(SALT_WALK_SAMPLE, sample1, sample2.x, sample2.y)
         u0 = sample1
 
     # First facet, chosen by the intersection probability from wi.
     lp = sp.lambda_p(wi)
-    on_p = u0 < lp
-    s1_first = dr.clip(dr.select(on_p, u0 / dr.maximum(lp, 1e-30), (u0 - lp) / dr.maximum(1.0 - lp, 1e-30)),
-                       0.0, ONE_MINUS_EPS)
+    on_p, s1_first = choose(u0, lp)
     # Initial depth interval [a, b]: the part of the facet visible from wi, the
     # top G1 of its height (Algorithm 2); the separable walk forgets it.
     a = mi.Float(0.0)
     b = mi.Float(1.0) if separable else sp.G1(wi, on_p)
     if sampled_height and not separable:
-        a = b = uniform(seed, 0xFFFFFFFE) * sp.G1(wi, on_p)
+        a = b = uniform(seed, SLOT_START_HEIGHT) * sp.G1(wi, on_p)
 
     if eval_mode:
         g_o_p, g_o_t = sp.G1_p(wo), sp.G1_t(wo)
@@ -131,7 +128,8 @@ def _walk(sp, separable, specular_t, max_bounces, active, wo=None, sample1=None,
             # same results as one vertex per iteration.)
             mirror = walking & negate(on_p)
             d_m = ms.flip_t(d, wt)
-            leaves, stays, a_m, b_m = move(mi.Bool(False), d_m, a, b, mirror & (dr.dot(d_m, wt) > 0), depth * 4)
+            leaves, stays, a_m, b_m = move(mi.Bool(False), d_m, a, b, mirror & (dr.dot(d_m, wt) > 0),
+                                           slot_escape(depth))
             d = dr.select(mirror, d_m, d)
             a, b = dr.select(mirror, a_m, a), dr.select(mirror, b_m, b)
             depth = dr.select(mirror, depth + 1, depth)
@@ -161,11 +159,10 @@ def _walk(sp, separable, specular_t, max_bounces, active, wo=None, sample1=None,
 
         # Continue: sample the facet's BSDF.
         first = depth == 0
-        c = depth * 4
-        s1 = uniform(seed, c + 1)
+        s1 = uniform(seed, slot_nested(depth, 0))
         if not eval_mode:
             s1 = dr.select(first, s1_first, s1)
-        s2 = mi.Point2f(uniform(seed, c + 2), uniform(seed, c + 3))
+        s2 = mi.Point2f(uniform(seed, slot_nested(depth, 1)), uniform(seed, slot_nested(depth, 2)))
         if not eval_mode:
             s2 = dr.select(first, mi.Point2f(sample2), s2)
         bs, w = sp.sample(frame, -d, s1, s2, walking)
@@ -174,13 +171,13 @@ def _walk(sp, separable, specular_t, max_bounces, active, wo=None, sample1=None,
         nondelta |= walking & negate(mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta))
         e = dr.select(walking, e * w, e)
 
-        leaves, stays, a, b = move(on_p, d_new, a, b, ok, c)
+        leaves, stays, a, b = move(on_p, d_new, a, b, ok, slot_escape(depth))
         if rr_depth > 0:
             # Russian roulette on the throughput from rr_depth bounces on: unbiased, and it
             # ends the long walks of dark materials that cost a packet most of its time.
             q = dr.minimum(dr.max(e), 1.0)
             roulette = stays & (depth + 1 >= rr_depth) & (q < 1.0)
-            survive = uniform(seed, 0x7F000000 + depth) < q
+            survive = uniform(seed, slot_roulette(depth)) < q
             e = dr.select(roulette & survive, e / dr.maximum(q, 1e-30), e)
             stays &= negate(roulette) | survive
         d = dr.select(walking, d_new, d)
