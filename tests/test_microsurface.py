@@ -1,6 +1,6 @@
 """Tests of ``mfnormal.microsurface`` against an independent brute-force sawtooth tracer.
 
-The reference is ``tests/sawtooth.py`` (numpy only, no mfnormal code, no closed-form
+The reference is ``tests/reference/sawtooth.py`` (numpy only, no mfnormal code, no closed-form
 λ or G1): it intersects rays with the line segments of the periodic sawtooth of
 MODEL.md §2.2. Statistical tolerances are binomial: an estimate from N independent
 rays has standard deviation σ = sqrt(p(1−p)/N); we allow 5σ plus a tiny absolute
@@ -18,7 +18,7 @@ mfnormal.register()
 
 from mfnormal import microsurface as ms  # noqa: E402
 
-import sawtooth as sw  # noqa: E402
+from reference import sawtooth as sw  # noqa: E402
 
 N_RAYS = 40_000
 # Directions within this of a facet's plane see that facet edge-on (see below).

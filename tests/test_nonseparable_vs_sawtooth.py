@@ -1,6 +1,6 @@
 """The non-separable walk against brute-force ray tracing of the sawtooth (MODEL.md §2.2, §3).
 
-The reference is ``tests/sawtooth.py``: numpy ray tracing of the periodic sawtooth
+The reference is ``tests/reference/sawtooth.py``: numpy ray tracing of the periodic sawtooth
 microsurface, sharing no code with ``mfnormal``. MODEL.md §2.2 claims the
 non-separable model *equals* that ray tracing, while the separable model forgets
 the height correlation between bounces (§3.7). Both claims are tested here for
@@ -63,7 +63,7 @@ VARIANT = "llvm_ad_rgb"
 mi.set_variant(VARIANT)
 mfnormal.register()
 
-import sawtooth_compare as C  # noqa: E402
+from reference import sawtooth_compare as C  # noqa: E402
 
 N_PATHS = 400_000       # paths per side (tracer and model) per case
 EVAL_PER_CELL = 8192    # eval() queries per histogram cell per case

@@ -5,7 +5,7 @@
 Writes PNG figures and ``RESULTS.md`` (tables with the measured numbers) to ``--out``:
 
 - ``microgeometry_polar.png``: exit distributions of the ray-traced sawtooth mesh
-  (Mitsuba's own ray tracer on real microgeometry, ``tests/microgeometry.py``) next to
+  (Mitsuba's own ray tracer on real microgeometry, ``tests/reference/microgeometry.py``) next to
   the ``nonseparable`` and ``separable`` models, on polar axes;
 - ``l1_distances.png``: L1 distance of each model to the ray-traced reference;
 - ``furnace.png``: white-furnace albedo of every model against θ_i;
@@ -84,7 +84,7 @@ def cosine_directions(n, seed):
 
 def microgeometry(out, quick, results):
     import matplotlib.pyplot as plt
-    import microgeometry as mg
+    from reference import microgeometry as mg
 
     n = 200_000 if quick else 1_000_000
     cases = [(60, 70, 0, WHITE, "specular", "Lambert p, mirror t"),
