@@ -222,12 +222,8 @@ def naive_estimates(tf, nested, q, tex):
 
 def naive_eval(sp, wo, specular):
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
-    try:
-        from reference.naive_walk import naive_eval as new
-    except ImportError:
-        from mfnormal import walk
-        return walk.eval(sp, wo, False, specular, 1024, mi.Bool(True), sampled_height=True)
-    return new(sp, wo, specular)
+    from reference.naive_walk import naive_eval as naive
+    return naive(sp, wo, specular)
 
 
 def record(only=None):

@@ -30,6 +30,7 @@ mi.set_variant(VARIANT)
 mfnormal.register()
 
 from mfnormal import shading, walk  # noqa: E402
+from reference.naive_walk import naive_eval  # noqa: E402
 
 WALKS = [("separable", "specular"), ("separable", "same"),
          ("nonseparable", "specular"), ("nonseparable", "same")]
@@ -706,7 +707,7 @@ def variance_grid():
 def test_interval_tracking_beats_sampled_height(tangent_facet):
     """Supplemental §3: evaluating the non-separable model with height intervals
     (Algorithms 2/3) has the same mean as the naive estimator (one sampled height,
-    binary shadow tests; ``walk.eval(..., sampled_height=True)``) and less variance.
+    binary shadow tests; ``tests/reference/naive_walk.py``) and less variance.
 
     Why it must win: both estimators follow the same distribution of paths, and the
     interval estimator's NEE weight |H ∩ visible|/|H| is the expectation of the naive
@@ -737,8 +738,9 @@ def test_interval_tracking_beats_sampled_height(tangent_facet):
     sp = shading.ShadingPoint(nested, mi.BSDFContext(), si, vec3(wp))
     specular = tangent_facet == "specular"
     out = {}
+    params = walk.WalkParams(separable=False, specular_tangent=specular, rr_depth=0)
     for sampled in (False, True):
-        value = walk.eval(sp, vec3(wo), False, specular, 1024, mi.Bool(True), sampled_height=sampled)
+        value = naive_eval(sp, vec3(wo), specular) if sampled else walk.eval(sp, params, vec3(wo), mi.Bool(True))
         out[sampled] = np1(value[0]).reshape(len(grid), m)
     interval, naive = out[False], out[True]
     diff = naive - interval

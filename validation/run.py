@@ -160,6 +160,7 @@ def variance(out, quick, results):
     from mfnormal import walk
     from mfnormal.microsurface import decode_normal
     from mfnormal.shading import ShadingPoint
+    from reference.naive_walk import naive_eval
 
     n = 50_000 if quick else 200_000
     nested = mi.load_dict(WHITE)
@@ -174,8 +175,9 @@ def variance(out, quick, results):
                     wo = sph(to, side + 150)
                     wo_v = mi.Vector3f(*[float(c) for c in wo])
                     est = {}
+                    params = walk.WalkParams(separable=False, specular_tangent=tf == "specular", rr_depth=0)
                     for naive in (False, True):
-                        L = walk.eval(sp, wo_v, False, tf == "specular", 1024, mi.Bool(True), sampled_height=naive)
+                        L = naive_eval(sp, wo_v, tf == "specular") if naive else walk.eval(sp, params, wo_v, True)
                         est[naive] = np.array(L)[0]
                     m0, m1 = est[False].mean(), est[True].mean()
                     v0, v1 = est[False].var(), est[True].var()

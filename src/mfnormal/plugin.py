@@ -191,7 +191,7 @@ class NormalMapMicrofacet:
         if self.model == "analytic" and self.tangent_facet != "specular":
             _fail("tangent_facet 'same' needs model='separable' or 'nonseparable'; the analytic "
                   "model's tangent facet is always a mirror")
-        self.max_bounces = int(props.get("max_bounces", 1024))
+        self.max_bounces = int(props.get("max_bounces", walk.MAX_BOUNCES))
         if self.max_bounces < 1:
             _fail(f"max_bounces must be >= 1, got {self.max_bounces}")
         self.rr_depth = int(props.get("rr_depth", walk.RR_DEPTH))
@@ -214,6 +214,9 @@ class NormalMapMicrofacet:
             _fail(f"tangents must be '{MITSUBA_TANGENTS}' or a vertex attribute name such as "
                   f"'vertex_tangent', got '{tangents}'")
         self.tangent_attr = None if tangents == MITSUBA_TANGENTS else tangents
+        self.walk_params = None if self.model == "analytic" else walk.WalkParams(
+            separable=self.model == "separable", specular_tangent=self.tangent_facet == "specular",
+            max_bounces=self.max_bounces, rr_depth=self.rr_depth, mis_boost_max=self.mis_boost_max)
 
         # The nested BSDF's components; the microsurface only reflects.
         # The microsurface only reflects: report the nested BSDF's reflection components.
@@ -236,7 +239,7 @@ class NormalMapMicrofacet:
         if "strength" in keys:
             dr.make_opaque(self.strength)
 
-    def _shading_point(self, ctx, si, active):
+    def shading_point(self, ctx, si, active=True):
         """The microsurface at ``si``: ω_p from the normal map, in the base shading frame."""
         rgb = self.normalmap.eval_3(si, active)
         wp = decode_normal(rgb, self.strength, self.directx)
@@ -257,34 +260,30 @@ class NormalMapMicrofacet:
             dr.is_jit_v(mi.Float) or shape.has_attribute(name + "_sign")) else 1.0
         return from_tangent_frame(wp, si.sh_frame, tangent, sign)
 
-    def _walk_args(self):
-        return self.model == "separable", self.tangent_facet == "specular", self.max_bounces
-
     def sample(self, ctx, si, sample1, sample2, active=True):
-        sp = self._shading_point(ctx, si, active)
+        sp = self.shading_point(ctx, si, active)
         if self.model == "analytic":
             return analytic.sample(sp, sample1, sample2, mi.Bool(active))
-        return walk.sample(sp, sample1, sample2, *self._walk_args(), mi.Bool(active), self.mis_boost_max,
-                           rr_depth=self.rr_depth)
+        return walk.sample(sp, self.walk_params, sample1, sample2, mi.Bool(active))
 
     def eval(self, ctx, si, wo, active=True):
-        sp = self._shading_point(ctx, si, active)
+        sp = self.shading_point(ctx, si, active)
         if self.model == "analytic":
             return analytic.eval_pdf(sp, wo, mi.Bool(active), want_pdf=False)[0]
-        return walk.eval(sp, wo, *self._walk_args(), mi.Bool(active), rr_depth=self.rr_depth)
+        return walk.eval(sp, self.walk_params, wo, mi.Bool(active))
 
     def pdf(self, ctx, si, wo, active=True):
-        sp = self._shading_point(ctx, si, active)
+        sp = self.shading_point(ctx, si, active)
         if self.model == "analytic":
             return analytic.eval_pdf(sp, wo, mi.Bool(active), want_value=False)[1]
-        return walk.mis_pdf(sp, wo, *self._walk_args()[:2], mi.Bool(active), self.mis_boost_max)
+        return walk.mis_pdf(sp, self.walk_params, wo, mi.Bool(active))
 
     def eval_pdf(self, ctx, si, wo, active=True):
-        sp = self._shading_point(ctx, si, active)
+        sp = self.shading_point(ctx, si, active)
         if self.model == "analytic":
             return analytic.eval_pdf(sp, wo, mi.Bool(active))
-        return (walk.eval(sp, wo, *self._walk_args(), mi.Bool(active), rr_depth=self.rr_depth),
-                walk.mis_pdf(sp, wo, *self._walk_args()[:2], mi.Bool(active), self.mis_boost_max))
+        return (walk.eval(sp, self.walk_params, wo, mi.Bool(active)),
+                walk.mis_pdf(sp, self.walk_params, wo, mi.Bool(active)))
 
     def to_string(self):
         return (f"NormalMapMicrofacet[model={self.model}, tangent_facet={self.tangent_facet}, "

@@ -51,6 +51,7 @@ class ShadingPoint:
         self.wp = dr.select(self.sin_p > 0, wp, mi.Vector3f(0.0, 0.0, 1.0))
         self.frame_p = ms.facet_frame(self.wp)
         self.frame_t = ms.facet_frame(self.wt)
+        self.cot_p = ms.cot_p(self.wp, self.sin_p)
 
     # Masking and intersection probabilities at this point
     def lambda_p(self, w):
@@ -73,6 +74,10 @@ class ShadingPoint:
 
     def flip_t(self, w):
         return ms.flip_t(w, self.wt)
+
+    def crest_map(self, on_p, d):
+        """(τ, κ) of a ray leaving facet p (``on_p``) or t along d (microsurface.crest_map)."""
+        return ms.crest_map(on_p, d, self.wt, self.cot_p)
 
     # The nested BSDF on a facet
     def facet_si(self, frame, wi):
