@@ -1,4 +1,4 @@
-"""The paper's default model: up to two facet bounces, mirror tangent facet (MODEL.md §2.6).
+"""The paper's default model: up to two facet bounces, mirror tangent facet (docs/model.md §3).
 
     f(ω_i,ω_o)⟨ω_o,ω_g⟩ = λ_p(ω_i)·[ f_p(ω_i,ω_o) G1(ω_o,p)                                   i→p→o
                                    + f_p(ω_i,ω'_o)(1 − G1(ω'_o,p)) G1(ω_o,t) ]            i→p→t→o

@@ -82,10 +82,11 @@ Contracts (each one is tested):
 
 - ``eval`` returns :math:`f\cdot\langle\omega_o,\omega_g\rangle` in the base
   shading frame (:math:`\omega_g` = +z of ``si.sh_frame``), zero below it;
-- ``eval_pdf`` equals ``(eval, pdf)``; ``pdf`` is the exact density of
-  ``sample`` and a deterministic function of (wi, wo);
-- a sample's weight equals ``eval / pdf`` (for delta nested lobes it is the
-  unbiased path weight);
+- ``eval_pdf`` equals ``(eval, pdf)``; ``pdf`` is a deterministic function of
+  (wi, wo): for ``analytic`` the exact density of ``sample``, for the random
+  walks a function for MIS (below);
+- a sample's weight is ``eval / pdf`` (``analytic``; for delta nested lobes the
+  unbiased path weight), or the walk's throughput, an unbiased estimate of it;
 - normals that are NaN, infinite, zero, or point below the horizon never
   produce NaN: they decode to the flat normal, or are clamped to
   :math:`\cos\theta_p \ge 0.02`. A flat map reproduces the nested BSDF.

@@ -3,7 +3,7 @@
 One walk serves both (docs/model.md §4). It starts on the facet that a ray
 from ω_i hits first and bounces between the two facets until it leaves the
 microsurface. The non-separable model tracks the interval H of heights the walk
-can be at on the current facet, stored as depths below the crest (§2.3): rays
+can be at on the current facet, stored as depths below the crest (§1, §2.2): rays
 from a uniform height in H stay uniform after each bounce, because the facets
 are planar. The separable model is the same walk with H reset to [0, 1] at
 every vertex, which forgets height correlation (§4.1).
@@ -97,7 +97,7 @@ def vertex_frame(sp, params, on_p):
 
 def cross(sp, params, on_p, d, a, b, ok, u):
     """A ray from depths [a, b] on facet ``on_p`` along d: leave the microsurface with the
-    escape fraction (u decides), or land on the other facet (κ, docs/model.md §2.3).
+    escape fraction (u decides), or land on the other facet (κ, docs/model.md §2.2).
 
     Returns (leaves, stays, a, b): the depths are those on the other facet where it stays.
     For a point interval (a = b) the escape is the binary test D < τ whatever u is.

@@ -7,7 +7,7 @@ reflectance of the microgeometry is measured by shooting rays at an actual mesh
 with ``scene.ray_intersect`` and scattering them with the facets' own Mitsuba
 BSDFs (``si.bsdf().sample``) until they escape.
 
-Geometry (MODEL.md §2.2, §3.1)
+Geometry (docs/model.md §2.2)
 ------------------------------
 All directions are in the *tilt frame*: ω_g = +z and ω_p leans toward +x,
 ω_p = (sinθ_p, 0, cosθ_p). The tangent facet normal is ω_t = normalize(−p_x, −p_y, 0)
