@@ -289,8 +289,9 @@ def markdown(res, retired="") -> str:
         L += [""]
     if res.get("ops"):
         L += ["## ops: Dr.Jit operations in the BSDF kernels (compile cost scales with these)", "",
-              "`stub`: the nested BSDF replaced by a closed-form Lambertian (probes.py; runs before "
-              "issue 15 patched the stub into the facet calls, skipping the facet interactions too).", "",
+              "`stub`: the nested BSDF replaced by a closed-form Lambertian (probes.py). Runs from "
+              "before issue 15 patched the stub into the facet calls instead, which also skipped "
+              "building the facet interactions.", "",
               "| nested | method | sample ops (stub) | eval ops (stub) |", "|---|---|---|---|"]
         L += [f"| {r['nested']} | {r['method']} | {r['sample_ops']} ({r['sample_ops_stub']}) | "
               f"{r['eval_ops']} ({r['eval_ops_stub']}) |" for r in res["ops"]]

@@ -150,8 +150,7 @@ def import_mitsuba():
     import mitsuba as mi
     mi.set_variant(VARIANT)
     mfnormal.register()
-    sys.path.insert(0, str(HERE))
-    import probes
+    import probes            # benchmarks/probes.py, beside this script
     probes.register()
     return mfnormal, mi, dr
 
