@@ -288,43 +288,50 @@ def markdown(res, retired="") -> str:
         L += [f"- {name}: {stamp}" for name, stamp in res["remeasured"].items()]
         L += [""]
     if res.get("ops"):
-        L += ["## ops: Dr.Jit operations in the BSDF kernels (compile cost scales with these)", "",
-              "`stub`: the nested BSDF replaced by a closed-form Lambertian (probes.py). Runs from "
-              "before issue 15 patched the stub into the facet calls instead, which also skipped "
-              "building the facet interactions.", "",
-              "| nested | method | sample ops (stub) | eval ops (stub) |", "|---|---|---|---|"]
-        L += [f"| {r['nested']} | {r['method']} | {r['sample_ops']} ({r['sample_ops_stub']}) | "
-              f"{r['eval_ops']} ({r['eval_ops_stub']}) |" for r in res["ops"]]
-        L += [""]
-    L += ["## cap: max_bounces", "",
-          "| nested | method | max_bounces | sample Mq/s | eval Mq/s | energy lost |", "|---|---|---|---|---|---|"]
-    L += [f"| {r['nested']} | {r['method']} | {r['max_bounces']} | {r['sample_mqps']:.2f} | {r['eval_mqps']:.2f} | "
-          f"{100 * r['energy_lost']:.3f} % |" for r in res["cap"]]
+        L += _section("ops: Dr.Jit operations in the BSDF kernels (compile cost scales with these)",
+                      "`stub`: the nested BSDF replaced by a closed-form Lambertian (probes.py). Runs from "
+                      "before issue 15 patched the stub into the facet calls instead, which also skipped "
+                      "building the facet interactions.",
+                      ["nested", "method", "sample ops (stub)", "eval ops (stub)"],
+                      [(r["nested"], r["method"], f"{r['sample_ops']} ({r['sample_ops_stub']})",
+                        f"{r['eval_ops']} ({r['eval_ops_stub']})") for r in res["ops"]])
+    L += _section("cap: max_bounces", None,
+                  ["nested", "method", "max_bounces", "sample Mq/s", "eval Mq/s", "energy lost"],
+                  [(r["nested"], r["method"], r["max_bounces"], f"{r['sample_mqps']:.2f}", f"{r['eval_mqps']:.2f}",
+                    f"{100 * r['energy_lost']:.3f} %") for r in res["cap"]])
     if res.get("control"):
-        L += ["", "## control: scene (c) with its wave map vs constant normal maps (16 spp, equal spp)", "",
-              "| map | nested | method | relMSE | ratio to built-in | reference mean | error share of top 0.1 % pixels |",
-              "|---|---|---|---|---|---|---|"]
-        L += [f"| {r['map']} | {r['nested']} | {r['method']} | {r['relmse']:.4f} | {r['relmse_ratio']:.2f} | "
-              f"{r['ref_mean']:.3f} | {r['top_0.1%_share']:.2f} |" for r in res["control"]]
+        L += _section("control: scene (c) with its wave map vs constant normal maps (16 spp, equal spp)", None,
+                      ["map", "nested", "method", "relMSE", "ratio to built-in", "reference mean",
+                       "error share of top 0.1 % pixels"],
+                      [(r["map"], r["nested"], r["method"], f"{r['relmse']:.4f}", f"{r['relmse_ratio']:.2f}",
+                        f"{r['ref_mean']:.3f}", f"{r['top_0.1%_share']:.2f}") for r in res["control"]])
     if res.get("evalnoise"):
-        L += ["", "## evalnoise: relative std of one `eval` (the walks' NEE estimate)", "",
-              "At directions each method samples itself; θ_p / θ_i / φ_i = " +
-              ", ".join(f"{a:.0f}°/{c:.0f}°/{d:.0f}°" for a, c, d in CONFIGS) + ".", "",
-              "| nested | method | median | p90 |", "|---|---|---|---|"]
-        L += [f"| {r['nested']} | {r['method']} | {r['rel_std_median']:.2f} | {r['rel_std_p90']:.2f} |"
-              for r in res["evalnoise"]]
+        L += _section("evalnoise: relative std of one `eval` (the walks' NEE estimate)",
+                      "At directions each method samples itself; θ_p / θ_i / φ_i = "
+                      + ", ".join(f"{a:.0f}°/{c:.0f}°/{d:.0f}°" for a, c, d in CONFIGS) + ".",
+                      ["nested", "method", "median", "p90"],
+                      [(r["nested"], r["method"], f"{r['rel_std_median']:.2f}", f"{r['rel_std_p90']:.2f}")
+                       for r in res["evalnoise"]])
     if res.get("mispdf"):
-        L += ["", "## mispdf: MIS pdf / actual density of `sample`'s directions", "",
-              "Histogram of 2^21 samples per configuration; quantiles weighted by sample mass over the "
-              "bins holding 90 % of it. < 1: the MIS pdf underestimates the sampler's density there "
-              "(BSDF samples get too little MIS weight, light samples too much). The plugin's pdf "
-              "includes the variance-aware boost (mis_boost_max, default 64): ratios above 1 where the "
-              "longer walks are likely and eval is noisy are intended; the density part alone is "
-              "checked in tests/test_walk.py (mis_boost_max = 1).", "",
-              "| nested | method | p10 | median | p90 |", "|---|---|---|---|---|"]
-        L += [f"| {r['nested']} | {r['method']} | {r['ratio_p10']:.2f} | {r['ratio_median']:.2f} | "
-              f"{r['ratio_p90']:.2f} |" for r in res["mispdf"]]
-    return "\n".join(L) + "\n" + ("\n" + retired if retired else "")
+        L += _section("mispdf: MIS pdf / actual density of `sample`'s directions",
+                      "Histogram of 2^21 samples per configuration; quantiles weighted by sample mass over the "
+                      "bins holding 90 % of it. < 1: the MIS pdf underestimates the sampler's density there "
+                      "(BSDF samples get too little MIS weight, light samples too much). The plugin's pdf "
+                      "includes the variance-aware boost (mis_boost_max, default 64): ratios above 1 where the "
+                      "longer walks are likely and eval is noisy are intended; the density part alone is "
+                      "checked in tests/test_walk.py (mis_boost_max = 1).",
+                      ["nested", "method", "p10", "median", "p90"],
+                      [(r["nested"], r["method"], f"{r['ratio_p10']:.2f}", f"{r['ratio_median']:.2f}",
+                        f"{r['ratio_p90']:.2f}") for r in res["mispdf"]])
+    return "\n".join(L).rstrip("\n") + "\n" + ("\n" + retired if retired else "")
+
+
+def _section(title, intro, header, rows):
+    """Markdown lines of a section: its title, an intro paragraph (if any) and a table."""
+    lines = [f"## {title}", ""] + ([intro, ""] if intro else [])
+    lines += ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    return lines + ["| " + " | ".join(map(str, row)) + " |" for row in rows] + [""]
+
 
 
 def main(argv=None):
