@@ -1,25 +1,16 @@
 #!/usr/bin/env python
-r"""What-if variants of the model code, behind the optimisation suggestions of RESULTS.md.
+r"""Measurements behind the optimisation suggestions of RESULTS.md, on the plugin as it is.
 
     python benchmarks/experiments.py [--queries 20] [--out benchmarks]
 
-Each experiment swaps one piece of ``mfnormal.analytic`` / ``mfnormal.walk`` for a
-variant *in this process only* (monkeypatching; the package's files are not
-touched) and measures the BSDF on the queries of ``run.py``'s metric 4:
+Each experiment measures the BSDF on the queries of ``run.py``'s metric 4 or on its
+scenes, through the plugin's own parameters and the nested BSDFs of ``probes.py``
+(nothing in the package is patched):
 
-- ``ops``: Dr.Jit operations in the BSDF's sample / eval kernels, as is, with
-  the nested calls stubbed out, and with the murmur3 random numbers below;
-- ``rng``: the walks' TEA random numbers (6 rounds per number, 4 per hashed
-  float) replaced by a murmur3-style integer mix, with the nested BSDF real and
-  stubbed out (the model's own logic alone);
+- ``ops``: Dr.Jit operations in the BSDF's sample / eval kernels, as is and with
+  the nested BSDF replaced by the closed-form stub;
 - ``cap``: ``max_bounces`` 1024 (default) / 16 / 8 / 4: throughput and the
   energy the cap loses (mean sample weight against the uncapped walk's);
-- ``loop3``: ``analytic.eval_pdf`` with its three nested calls folded into one
-  call site inside a 3-iteration symbolic loop: kernel size and LLVM compile
-  time of a render's megakernel (cold cache), and the throughput;
-- ``reuse``: ``analytic.sample`` reusing the nested sample's own (f, pdf) for
-  the sampled path's term: 2 nested eval_pdf instead of 3, and the largest
-  relative difference of the weights against the original;
 - ``evalnoise``: the relative standard deviation of one stochastic ``eval``
   of the walks (their NEE estimate) at directions they sample themselves;
 - ``mispdf``: the walks' MIS pdf against the histogram density of the
@@ -27,13 +18,14 @@ touched) and measures the BSDF on the queries of ``run.py``'s metric 4:
 - ``control``: scene (c)'s relMSE with its wave normal map against constant
   normal maps (which separates estimator noise from sub-pixel image detail).
 
-Writes ``experiments.json`` and prints a Markdown summary (``experiments.md``).
+Writes ``experiments.json`` and ``experiments.md`` (whose *Retired experiments*
+section, the numbers of what-if variants of the model code that were measured once
+and whose code is gone, is kept as it is).
 """
 
 from __future__ import annotations
 
 import argparse
-import contextlib
 import json
 import os
 import sys
@@ -51,138 +43,10 @@ import numpy as np  # noqa: E402
 import run as bench  # noqa: E402
 
 mfnormal, mi, dr = bench.import_mitsuba()
-from mfnormal import analytic, walk  # noqa: E402
-from mfnormal.microsurface import negate  # noqa: E402
-from mfnormal.shading import ONE_MINUS_EPS  # noqa: E402
 
 
 def log(msg):
     print(msg, flush=True)
-
-
-@contextlib.contextmanager
-def patched(module, **attrs):
-    old = {k: getattr(module, k) for k in attrs}
-    for k, v in attrs.items():
-        setattr(module, k, v)
-    try:
-        yield
-    finally:
-        for k, v in old.items():
-            setattr(module, k, v)
-
-
-# -- Variants ------------------------------------------------------------------
-
-def _mix(h):
-    """murmur3's 32-bit finaliser."""
-    h = h ^ (h >> 16)
-    h = h * 0x85EBCA6B
-    h = h ^ (h >> 13)
-    h = h * 0xC2B2AE35
-    return h ^ (h >> 16)
-
-
-def cheap_uniform(seed, counter):
-    h = _mix(mi.UInt32(seed) ^ (mi.UInt32(counter) * 0x9E3779B9 + 0x7F4A7C15))
-    return dr.minimum(mi.Float(h >> 8) * (1.0 / 16777216.0), ONE_MINUS_EPS)
-
-
-def cheap_hash_floats(salt, *values):
-    h = mi.UInt32(salt)
-    for v in values:
-        h = _mix(h ^ (dr.reinterpret_array(mi.UInt32, mi.Float32(v)) + 0x9E3779B9 + (h << 6) + (h >> 2)))
-    return h
-
-
-def _coefficients(sp, wi, wo):
-    lp = sp.lambda_p(wi)
-    wo_m, wi_m = sp.flip_t(wo), sp.flip_t(wi)
-    g_o_p, g_o_t = sp.G1_p(wo), sp.G1_t(wo)
-    c1 = lp * g_o_p
-    c2 = dr.select(g_o_t > 0, lp * sp.one_minus_G1_p(wo_m), 0.0)
-    c3 = dr.select(g_o_p > 0, sp.lambda_t(wi), 0.0)
-    return wo_m, wi_m, (c1, c2, c3), (c1, c2 * g_o_t, c3 * g_o_p)
-
-
-def _term_args(k, wi, wo, wi_m, wo_m, cp, cv):
-    """(wi, wo, pdf coefficient, value coefficient) of term k ∈ {0, 1, 2}."""
-    pick = lambda a: dr.select(k == 0, a[0], dr.select(k == 1, a[1], a[2]))  # noqa: E731
-    return dr.select(k == 2, wi_m, wi), dr.select(k == 1, wo_m, wo), pick(cp), pick(cv)
-
-
-def _finish(value, pdf, active, want_value, want_pdf):
-    if want_value:
-        value = dr.select(active & dr.all(dr.isfinite(value)), dr.maximum(value, 0.0), 0.0)
-    if want_pdf:
-        pdf = dr.select(active & dr.isfinite(pdf), dr.maximum(pdf, 0.0), 0.0)
-    return value, pdf
-
-
-def eval_pdf_loop3(sp, wo, active, want_value=True, want_pdf=True):
-    """analytic.eval_pdf with one nested call site, run 3 times by a symbolic loop."""
-    wi = sp.wi
-    active = active & (wi.z > 0) & (wo.z > 0)
-    wo_m, wi_m, cp, cv = _coefficients(sp, wi, wo)
-    n = dr.width(wi)
-
-    def body(k, value, pdf):
-        a_wi, a_wo, c_p, c_v = _term_args(k, wi, wo, wi_m, wo_m, cp, cv)
-        a = active & (c_p > 0)
-        if want_value and want_pdf:
-            f, p = sp.eval_pdf(sp.frame_p, a_wi, a_wo, a)
-        elif want_value:
-            f, p = sp.eval(sp.frame_p, a_wi, a_wo, a), mi.Float(0.0)
-        else:
-            f, p = mi.Spectrum(0.0), sp.pdf(sp.frame_p, a_wi, a_wo, a)
-        return k + 1, value + f * c_v, pdf + p * c_p
-
-    _, value, pdf = dr.while_loop((dr.zeros(mi.UInt32, n), dr.zeros(mi.Spectrum, n), dr.zeros(mi.Float, n)),
-                                  lambda k, v, p: k < 3, body, label="analytic_terms")
-    return _finish(value, pdf, active, want_value, want_pdf)
-
-
-def sample_reuse(sp, sample1, sample2, active):
-    """analytic.sample, with the sampled term's nested (f, pdf) taken from the sample."""
-    wi = sp.wi
-    active = active & (wi.z > 0)
-    lp = sp.lambda_p(wi)
-    on_p = sample1 < lp
-    s1 = dr.select(on_p, sample1 / dr.maximum(lp, 1e-30), (sample1 - lp) / dr.maximum(1.0 - lp, 1e-30))
-    s1 = dr.clip(s1, 0.0, ONE_MINUS_EPS)
-    bs, w = sp.sample(sp.frame_p, dr.select(on_p, wi, sp.flip_t(wi)), s1, sample2, active)
-    g_p = sp.G1_p(bs.wo)
-    to_t = on_p & (analytic.uniform(analytic.hash_floats(0x6d666e31, sample1, sample2.x, sample2.y), 0) >= g_p)
-    wo = dr.select(to_t, sp.flip_t(bs.wo), bs.wo)
-    path = dr.select(to_t, sp.G1_t(wo), g_p)
-    prob = dr.select(on_p, lp * dr.select(to_t, 1.0 - g_p, g_p), 1.0 - lp)
-    active &= (bs.pdf > 0) & (path > 0) & (wo.z > 0) & dr.all(dr.isfinite(wo))
-    delta = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
-    smooth = active & negate(delta)
-
-    # The sampled term k_s and the two others, A < B.
-    wo_m, wi_m, cp, cv = _coefficients(sp, wi, wo)
-    k_s = dr.select(on_p, dr.select(to_t, mi.UInt32(1), mi.UInt32(0)), mi.UInt32(2))
-    k_a = dr.select(k_s == 0, mi.UInt32(1), mi.UInt32(0))
-    k_b = dr.select(k_s == 2, mi.UInt32(1), mi.UInt32(2))
-    value, pdf = mi.Spectrum(0.0), mi.Float(0.0)
-    for k in (k_a, k_b):
-        a_wi, a_wo, c_p, c_v = _term_args(k, wi, wo, wi_m, wo_m, cp, cv)
-        f, p = sp.eval_pdf(sp.frame_p, a_wi, a_wo, smooth & (c_p > 0))
-        value += f * c_v
-        pdf += p * c_p
-    _, _, c_p, c_v = _term_args(k_s, wi, wo, wi_m, wo_m, cp, cv)
-    own = smooth & (c_p > 0)
-    value += dr.select(own, w * bs.pdf, 0.0) * c_v
-    pdf += dr.select(own, bs.pdf, 0.0) * c_p
-    value, pdf = _finish(value, pdf, smooth, True, True)
-
-    weight = dr.select(delta, w * path, value / dr.select(pdf > 0, pdf, 1.0))
-    bs.pdf = dr.select(delta, bs.pdf * prob, pdf)
-    active &= (bs.pdf > 0) & dr.all(dr.isfinite(weight))
-    bs.wo = dr.select(active, wo, mi.Vector3f(0.0, 0.0, 1.0))
-    bs.pdf = dr.select(active, bs.pdf, 0.0)
-    return bs, dr.select(active, dr.maximum(weight, 0.0), 0.0)
 
 
 # -- Measurements --------------------------------------------------------------
@@ -194,15 +58,8 @@ class Bench:
         self.ctx = mi.BSDFContext()
         self.si, self.wo, self.s1, self.s2 = bench.make_queries(n)
 
-    def bsdf(self, method, nested, **extra):
-        b = bench.make_bsdf(method, nested, self.texture)
-        if extra:
-            d = {"type": "normalmap_microfacet", "normalmap": self.texture,
-                 "bsdf": dict(bench.NESTED[nested]), "model": bench.METHOD_BY_KEY[method][1], **extra}
-            if bench.METHOD_BY_KEY[method][2]:
-                d["tangent_facet"] = bench.METHOD_BY_KEY[method][2]
-            b = mi.load_dict(d)
-        return b
+    def bsdf(self, method, nested, probe=None, **params):
+        return bench.make_bsdf(method, nested, self.texture, probe, **params)
 
     def qps(self, bsdf):
         ws, _ = bench.time_queries(lambda: bsdf.sample(self.ctx, self.si, self.s1, self.s2), self.reps)
@@ -227,49 +84,20 @@ def kernel_ops(fn) -> int:
 
 
 def exp_ops(b: Bench) -> list:
-    """Operations in the BSDF's sample / eval kernels, with and without the nested calls."""
+    """Operations in the BSDF's sample / eval kernels, with the nested BSDF and with the stub."""
+    def ops(bsdf):
+        return (kernel_ops(lambda: bsdf.sample(b.ctx, b.si, b.s1, b.s2)),
+                kernel_ops(lambda: bsdf.eval(b.ctx, b.si, b.wo)))
+
     rows = []
     for nested in ("diffuse", "ggx_0.3"):
         for method in bench.METHOD_KEYS:
-            bsdf = b.bsdf(method, nested)
-
-            def ops():
-                return (kernel_ops(lambda: bsdf.sample(b.ctx, b.si, b.s1, b.s2)),
-                        kernel_ops(lambda: bsdf.eval(b.ctx, b.si, b.wo)))
-            so, eo = ops()
-            with bench.stubbed_nested():
-                so_stub, eo_stub = ops()
-            with patched(walk, uniform=cheap_uniform, hash_floats=cheap_hash_floats), \
-                    patched(analytic, uniform=cheap_uniform, hash_floats=cheap_hash_floats):
-                so_mix, eo_mix = ops()
+            so, eo = ops(b.bsdf(method, nested))
+            # (The built-in keeps its nested BSDF: the stub times the microfacet models' own logic.)
+            so_stub, eo_stub = ops(b.bsdf(method, nested, probe=None if method == "builtin" else "stub"))
             rows.append({"nested": nested, "method": method, "sample_ops": so, "eval_ops": eo,
-                         "sample_ops_stub": so_stub, "eval_ops_stub": eo_stub,
-                         "sample_ops_mix": so_mix, "eval_ops_mix": eo_mix})
-            log(f"  ops   {nested:8s} {method:22s} sample {so} (stub {so_stub}, mix {so_mix}), "
-                f"eval {eo} (stub {eo_stub}, mix {eo_mix})")
-    return rows
-
-
-def exp_rng(b: Bench) -> list:
-    rows = []
-    for nested in ("ggx_0.3", "diffuse"):
-        for method in ("separable_same", "nonseparable_specular"):
-            bsdf = b.bsdf(method, nested)
-            for stub in (False, True):
-                def ops():
-                    return {"sample_ops": kernel_ops(lambda: bsdf.sample(b.ctx, b.si, b.s1, b.s2)),
-                            "eval_ops": kernel_ops(lambda: bsdf.eval(b.ctx, b.si, b.wo))}
-                with bench.stubbed_nested() if stub else contextlib.nullcontext():
-                    base = {**b.qps(bsdf), **ops()}
-                    with patched(walk, uniform=cheap_uniform, hash_floats=cheap_hash_floats):
-                        cheap = {**b.qps(bsdf), **ops()}
-                row = {"nested": nested, "method": method, "nested_stubbed": stub, "tea": base, "mix": cheap,
-                       "sample_speedup": cheap["sample_mqps"] / base["sample_mqps"],
-                       "eval_speedup": cheap["eval_mqps"] / base["eval_mqps"]}
-                rows.append(row)
-                log(f"  rng   {nested:8s} {method:22s} stub={stub!s:5s} sample ×{row['sample_speedup']:.2f} "
-                    f"eval ×{row['eval_speedup']:.2f}; eval kernel ops {base['eval_ops']} → {cheap['eval_ops']}, "
-                    f"sample {base['sample_ops']} → {cheap['sample_ops']}")
+                         "sample_ops_stub": so_stub, "eval_ops_stub": eo_stub})
+            log(f"  ops   {nested:8s} {method:22s} sample {so} (stub {so_stub}), eval {eo} (stub {eo_stub})")
     return rows
 
 
@@ -289,64 +117,6 @@ def exp_cap(b: Bench) -> list:
                 rows.append(row)
                 log(f"  cap   {nested:8s} {method:22s} {cap:5d}: sample {q['sample_mqps']:.2f} eval "
                     f"{q['eval_mqps']:.2f} Mq/s, energy lost {100 * row['energy_lost']:.3f} %")
-    return rows
-
-
-def _render_kernel(scene, spp=4):
-    """(LLVM backend s, ops) of the largest kernel of a first render, and the warm time."""
-    dr.set_flag(dr.JitFlag.KernelHistory, True)
-    dr.kernel_history_clear()
-    bench.timed_render(scene, spp, 0)
-    hist = [h for h in dr.kernel_history() if h.get("operation_count")]
-    big = max(hist, key=lambda h: h["operation_count"])
-    warm = bench.median([bench.timed_render(scene, spp, i + 1)[0] for i in range(3)])
-    dr.set_flag(dr.JitFlag.KernelHistory, False)
-    return {"backend_s": (big.get("backend_time") or 0.0) / 1e3, "ops": big["operation_count"],
-            "cache_hit": bool(big.get("cache_hit")), "warm_s": warm}
-
-
-def exp_loop3(b: Bench, assets) -> list:
-    rows = []
-    for nested in ("ggx_0.3", "roughplastic"):
-        bsdf = b.bsdf("analytic", nested)
-        for variant in ("original", "loop3"):
-            patch = patched(analytic, eval_pdf=eval_pdf_loop3) if variant == "loop3" else contextlib.nullcontext()
-            with patch:
-                scene = bench.load_scene("demo", assets, "analytic", nested, 96, 72, 4)
-                k = _render_kernel(scene)
-                q = b.qps(bsdf)
-                q["bsdf_eval_ops"] = kernel_ops(lambda: bsdf.eval(b.ctx, b.si, b.wo))
-                q["bsdf_sample_ops"] = kernel_ops(lambda: bsdf.sample(b.ctx, b.si, b.s1, b.s2))
-            row = {"nested": nested, "variant": variant, **k, **q}
-            rows.append(row)
-            log(f"  loop3 {nested:12s} {variant:8s} megakernel {k['ops']} ops, LLVM {k['backend_s']:.2f} s "
-                f"(cache hit {k['cache_hit']}), warm render {k['warm_s']:.3f} s, sample {q['sample_mqps']:.2f} "
-                f"eval {q['eval_mqps']:.2f} Mq/s")
-    return rows
-
-
-def exp_reuse(b: Bench) -> list:
-    rows = []
-    for nested in ("ggx_0.05", "ggx_0.3", "roughplastic", "diffuse"):
-        bsdf = b.bsdf("analytic", nested)
-        w0, d0 = b.sample_weights(bsdf)
-        q0 = b.qps(bsdf)
-        with patched(analytic, sample=sample_reuse):
-            w1, d1 = b.sample_weights(bsdf)
-            q1 = b.qps(bsdf)
-            with bench.instrumented(b.n) as (counts, sites, loops):
-                out = bsdf.sample(b.ctx, b.si, b.s1, b.s2)
-                dr.eval(out, sites)
-                simd = float(np.array(sites).max())
-        same_dir = np.abs(d0 - d1).max()
-        rel = np.abs(w1 - w0) / np.maximum(np.abs(w0), 1e-3)
-        row = {"nested": nested, "original": q0, "reuse": q1,
-               "sample_speedup": q1["sample_mqps"] / q0["sample_mqps"], "nested_call_sites": simd,
-               "max_dir_diff": float(same_dir), "weight_rel_diff_p99": float(np.percentile(rel, 99)),
-               "weight_rel_diff_max": float(rel.max()), "mean_weight": [float(w0.mean()), float(w1.mean())]}
-        rows.append(row)
-        log(f"  reuse {nested:12s} sample ×{row['sample_speedup']:.2f} ({simd:.0f} nested call sites), weights: "
-            f"p99 rel diff {row['weight_rel_diff_p99']:.2e}, mean {w0.mean():.5f} → {w1.mean():.5f}")
     return rows
 
 
@@ -378,6 +148,18 @@ def _dir(theta_deg, phi_deg):
     return np.array([np.sin(t) * np.cos(f), np.sin(t) * np.sin(f), np.cos(t)])
 
 
+def _vec(a):
+    """A Dr.Jit 3-vector from an (n, 3) numpy array."""
+    return mi.Vector3f(*(mi.Float(np.ascontiguousarray(a[:, i], np.float32)) for i in range(3)))
+
+
+def _sampled_directions(bsdf, wi, n, rng):
+    """The directions of ``bsdf.sample`` from ω_i = ``wi`` (n samples) that have a pdf > 0."""
+    u = [mi.Float(rng.uniform(0, 1, n).astype(np.float32)) for _ in range(3)]
+    bs, _ = bsdf.sample(mi.BSDFContext(), _si(n, np.tile(wi, (n, 1))), u[0], mi.Point2f(u[1], u[2]))
+    return np.array(bs.wo, dtype=np.float64).T[np.array(bs.pdf) > 0]
+
+
 CONFIGS = ((50.0, 30.0, 180.0), (50.0, 70.0, 180.0), (70.0, 60.0, 0.0))   # (θ_p, θ_i, φ_i)
 
 
@@ -392,17 +174,13 @@ def exp_eval_noise(b: Bench, m: int = 1024, k: int = 64) -> list:
             for theta_p, theta_i, phi_i in CONFIGS:
                 tex = _constant_normal(theta_p)
                 bsdf = bench.make_bsdf(method, nested, tex)
-                wi = np.tile(_dir(theta_i, phi_i), (k, 1))
-                bs, w = bsdf.sample(ctx, _si(k, wi), mi.Float(rng.uniform(0, 1, k).astype(np.float32)),
-                                    mi.Point2f(*(mi.Float(rng.uniform(0, 1, k).astype(np.float32)) for _ in range(2))))
-                wo = np.array(bs.wo, dtype=np.float64).T[np.array(bs.pdf) > 0]
+                wo = _sampled_directions(bsdf, _dir(theta_i, phi_i), k, rng)
                 if len(wo) == 0:
                     continue
                 q = len(wo) * m
                 wo_r = np.repeat(wo, m, axis=0)
                 si = _si(q, np.tile(_dir(theta_i, phi_i), (q, 1)), rng.uniform(0, 1, (q, 3)))
-                f = np.array(bsdf.eval(ctx, si, mi.Vector3f(*(mi.Float(np.ascontiguousarray(wo_r[:, i], np.float32))
-                                                             for i in range(3)))), dtype=np.float64)
+                f = np.array(bsdf.eval(ctx, si, _vec(wo_r)), dtype=np.float64)
                 f = f.mean(axis=0).reshape(len(wo), m)
                 mu, sd = f.mean(axis=1), f.std(axis=1)
                 rel += list(sd[mu > 0] / mu[mu > 0])
@@ -427,12 +205,7 @@ def exp_mis_pdf(b: Bench, n: int = 1 << 21, bins=(32, 64)) -> list:
             ratios = []
             for theta_p, theta_i, phi_i in CONFIGS:
                 bsdf = bench.make_bsdf(method, nested, _constant_normal(theta_p))
-                wi = np.tile(_dir(theta_i, phi_i), (n, 1))
-                bs, w = bsdf.sample(ctx, _si(n, wi), mi.Float(rng.uniform(0, 1, n).astype(np.float32)),
-                                    mi.Point2f(*(mi.Float(rng.uniform(0, 1, n).astype(np.float32)) for _ in range(2))))
-                wo = np.array(bs.wo, dtype=np.float64).T
-                ok = np.array(bs.pdf) > 0
-                wo = wo[ok]
+                wo = _sampled_directions(bsdf, _dir(theta_i, phi_i), n, rng)
                 iu = np.clip((wo[:, 2] * nu).astype(int), 0, nu - 1)
                 ip = np.clip((np.mod(np.arctan2(wo[:, 1], wo[:, 0]), 2 * np.pi) / (2 * np.pi) * nphi).astype(int), 0, nphi - 1)
                 hist = np.bincount(iu * nphi + ip, minlength=nu * nphi) / (n * d_omega)
@@ -443,9 +216,8 @@ def exp_mis_pdf(b: Bench, n: int = 1 << 21, bins=(32, 64)) -> list:
                 rr = np.sqrt(np.maximum(1 - uu * uu, 0))
                 dirs = np.stack([rr * np.cos(pp), rr * np.sin(pp), uu], -1)
                 m = len(dirs)
-                pdf = np.array(bsdf.pdf(ctx, _si(m, np.tile(_dir(theta_i, phi_i), (m, 1))),
-                                        mi.Vector3f(*(mi.Float(np.ascontiguousarray(dirs[:, i], np.float32))
-                                                      for i in range(3)))), dtype=np.float64)
+                pdf = np.array(bsdf.pdf(ctx, _si(m, np.tile(_dir(theta_i, phi_i), (m, 1))), _vec(dirs)),
+                               dtype=np.float64)
                 pdf = pdf.reshape(-1, jit).mean(axis=1)
                 mass = hist * d_omega
                 order = np.argsort(-hist)
@@ -498,8 +270,17 @@ def exp_control(b: Bench, assets, root: Path) -> list:
     return rows
 
 
-def markdown(res) -> str:
-    L = ["# Optimisation experiments (what-if variants, monkeypatched)", "",
+RETIRED = "## Retired experiments"
+
+
+def retired_section(path: Path) -> str:
+    """The *Retired experiments* section of an existing experiments.md (kept as it is)."""
+    text = path.read_text() if path.is_file() else ""
+    return text[text.index(RETIRED):] if RETIRED in text else ""
+
+
+def markdown(res, retired="") -> str:
+    L = ["# Optimisation experiments", "",
          f"Machine: {res['machine']['cpu']}, {res['machine']['cores']} cores, load "
          f"{res['machine']['loadavg_start'][0]:.1f}; {res['queries']} queries; `{res['command']}`", ""]
     if res.get("remeasured"):
@@ -507,68 +288,57 @@ def markdown(res) -> str:
         L += [f"- {name}: {stamp}" for name, stamp in res["remeasured"].items()]
         L += [""]
     if res.get("ops"):
-        L += ["## ops: Dr.Jit operations in the BSDF kernels (compile cost scales with these)", "",
-              "`stub`: nested calls replaced by a closed-form Lambertian; `mix`: TEA random numbers "
-              "replaced by a murmur3 mix.", "",
-              "| nested | method | sample ops (stub, mix) | eval ops (stub, mix) |", "|---|---|---|---|"]
-        L += [f"| {r['nested']} | {r['method']} | {r['sample_ops']} ({r['sample_ops_stub']}, {r['sample_ops_mix']}) | "
-              f"{r['eval_ops']} ({r['eval_ops_stub']}, {r['eval_ops_mix']}) |" for r in res["ops"]]
-        L += [""]
-    L += ["## rng: TEA → murmur3 mix in the walk", "",
-          "| nested | method | nested stubbed | sample speed-up | eval speed-up | sample kernel ops | eval kernel ops |",
-          "|---|---|---|---|---|---|---|"]
-    L += [f"| {r['nested']} | {r['method']} | {r['nested_stubbed']} | {r['sample_speedup']:.2f}× | "
-          f"{r['eval_speedup']:.2f}× | {r['tea']['sample_ops']} → {r['mix']['sample_ops']} | "
-          f"{r['tea']['eval_ops']} → {r['mix']['eval_ops']} |" for r in res["rng"]]
-    L += ["", "## cap: max_bounces", "",
-          "| nested | method | max_bounces | sample Mq/s | eval Mq/s | energy lost |", "|---|---|---|---|---|---|"]
-    L += [f"| {r['nested']} | {r['method']} | {r['max_bounces']} | {r['sample_mqps']:.2f} | {r['eval_mqps']:.2f} | "
-          f"{100 * r['energy_lost']:.3f} % |" for r in res["cap"]]
-    L += ["", "## loop3: analytic.eval_pdf's 3 nested calls as one call site in a 3-iteration loop", "",
-          "| nested | variant | demo megakernel ops | LLVM compile s | warm render s | BSDF sample / eval kernel ops | "
-          "sample Mq/s | eval Mq/s |",
-          "|---|---|---|---|---|---|---|---|"]
-    L += [f"| {r['nested']} | {r['variant']} | {r['ops']} | {r['backend_s']:.2f} | {r['warm_s']:.3f} | "
-          f"{r['bsdf_sample_ops']} / {r['bsdf_eval_ops']} | "
-          f"{r['sample_mqps']:.2f} | {r['eval_mqps']:.2f} |" for r in res["loop3"]]
-    L += ["", "## reuse: analytic.sample takes the sampled term's (f, pdf) from the nested sample", "",
-          "| nested | sample speed-up | nested call sites | weight rel. diff p99 / max | mean weight orig → reuse |",
-          "|---|---|---|---|---|"]
-    L += [f"| {r['nested']} | {r['sample_speedup']:.2f}× | {r['nested_call_sites']:.0f} (orig 4) | "
-          f"{r['weight_rel_diff_p99']:.1e} / {r['weight_rel_diff_max']:.1e} | "
-          f"{r['mean_weight'][0]:.5f} → {r['mean_weight'][1]:.5f} |" for r in res["reuse"]]
+        L += _section("ops: Dr.Jit operations in the BSDF kernels (compile cost scales with these)",
+                      "`stub`: the nested BSDF replaced by a closed-form Lambertian (probes.py). Runs from "
+                      "before issue 15 patched the stub into the facet calls instead, which also skipped "
+                      "building the facet interactions.",
+                      ["nested", "method", "sample ops (stub)", "eval ops (stub)"],
+                      [(r["nested"], r["method"], f"{r['sample_ops']} ({r['sample_ops_stub']})",
+                        f"{r['eval_ops']} ({r['eval_ops_stub']})") for r in res["ops"]])
+    L += _section("cap: max_bounces", None,
+                  ["nested", "method", "max_bounces", "sample Mq/s", "eval Mq/s", "energy lost"],
+                  [(r["nested"], r["method"], r["max_bounces"], f"{r['sample_mqps']:.2f}", f"{r['eval_mqps']:.2f}",
+                    f"{100 * r['energy_lost']:.3f} %") for r in res["cap"]])
     if res.get("control"):
-        L += ["", "## control: scene (c) with its wave map vs constant normal maps (16 spp, equal spp)", "",
-              "| map | nested | method | relMSE | ratio to built-in | reference mean | error share of top 0.1 % pixels |",
-              "|---|---|---|---|---|---|---|"]
-        L += [f"| {r['map']} | {r['nested']} | {r['method']} | {r['relmse']:.4f} | {r['relmse_ratio']:.2f} | "
-              f"{r['ref_mean']:.3f} | {r['top_0.1%_share']:.2f} |" for r in res["control"]]
+        L += _section("control: scene (c) with its wave map vs constant normal maps (16 spp, equal spp)", None,
+                      ["map", "nested", "method", "relMSE", "ratio to built-in", "reference mean",
+                       "error share of top 0.1 % pixels"],
+                      [(r["map"], r["nested"], r["method"], f"{r['relmse']:.4f}", f"{r['relmse_ratio']:.2f}",
+                        f"{r['ref_mean']:.3f}", f"{r['top_0.1%_share']:.2f}") for r in res["control"]])
     if res.get("evalnoise"):
-        L += ["", "## evalnoise: relative std of one `eval` (the walks' NEE estimate)", "",
-              "At directions each method samples itself; θ_p / θ_i / φ_i = " +
-              ", ".join(f"{a:.0f}°/{c:.0f}°/{d:.0f}°" for a, c, d in CONFIGS) + ".", "",
-              "| nested | method | median | p90 |", "|---|---|---|---|"]
-        L += [f"| {r['nested']} | {r['method']} | {r['rel_std_median']:.2f} | {r['rel_std_p90']:.2f} |"
-              for r in res["evalnoise"]]
+        L += _section("evalnoise: relative std of one `eval` (the walks' NEE estimate)",
+                      "At directions each method samples itself; θ_p / θ_i / φ_i = "
+                      + ", ".join(f"{a:.0f}°/{c:.0f}°/{d:.0f}°" for a, c, d in CONFIGS) + ".",
+                      ["nested", "method", "median", "p90"],
+                      [(r["nested"], r["method"], f"{r['rel_std_median']:.2f}", f"{r['rel_std_p90']:.2f}")
+                       for r in res["evalnoise"]])
     if res.get("mispdf"):
-        L += ["", "## mispdf: MIS pdf / actual density of `sample`'s directions", "",
-              "Histogram of 2^21 samples per configuration; quantiles weighted by sample mass over the "
-              "bins holding 90 % of it. < 1: the MIS pdf underestimates the sampler's density there "
-              "(BSDF samples get too little MIS weight, light samples too much). The plugin's pdf "
-              "includes the variance-aware boost (mis_boost_max, default 64): ratios above 1 where the "
-              "longer walks are likely and eval is noisy are intended; the density part alone is "
-              "checked in tests/test_walk.py (mis_boost_max = 1).", "",
-              "| nested | method | p10 | median | p90 |", "|---|---|---|---|---|"]
-        L += [f"| {r['nested']} | {r['method']} | {r['ratio_p10']:.2f} | {r['ratio_median']:.2f} | "
-              f"{r['ratio_p90']:.2f} |" for r in res["mispdf"]]
-    return "\n".join(L) + "\n"
+        L += _section("mispdf: MIS pdf / actual density of `sample`'s directions",
+                      "Histogram of 2^21 samples per configuration; quantiles weighted by sample mass over the "
+                      "bins holding 90 % of it. < 1: the MIS pdf underestimates the sampler's density there "
+                      "(BSDF samples get too little MIS weight, light samples too much). The plugin's pdf "
+                      "includes the variance-aware boost (mis_boost_max, default 64): ratios above 1 where the "
+                      "longer walks are likely and eval is noisy are intended; the density part alone is "
+                      "checked in tests/test_walk.py (mis_boost_max = 1).",
+                      ["nested", "method", "p10", "median", "p90"],
+                      [(r["nested"], r["method"], f"{r['ratio_p10']:.2f}", f"{r['ratio_median']:.2f}",
+                        f"{r['ratio_p90']:.2f}") for r in res["mispdf"]])
+    return "\n".join(L).rstrip("\n") + "\n" + ("\n" + retired if retired else "")
+
+
+def _section(title, intro, header, rows):
+    """Markdown lines of a section: its title, an intro paragraph (if any) and a table."""
+    lines = [f"## {title}", ""] + ([intro, ""] if intro else [])
+    lines += ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    return lines + ["| " + " | ".join(map(str, row)) + " |" for row in rows] + [""]
+
 
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--queries", type=int, default=20, help="log2 of the number of queries (default 20)")
     ap.add_argument("--reps", type=int, default=5)
-    ap.add_argument("--only", default="ops,rng,cap,loop3,reuse,evalnoise,mispdf,control")
+    ap.add_argument("--only", default="ops,cap,evalnoise,mispdf,control")
     ap.add_argument("--out", default=str(HERE))
     ap.add_argument("--merge", action="store_true",
                     help="re-measure only the --only sections and keep the others from --out's experiments.json")
@@ -584,8 +354,7 @@ def main(argv=None):
         res.setdefault("remeasured", {}).update({name: stamp for name in only})
     root = Path(tempfile.mkdtemp(prefix="mfnormal_exp_assets_"))
     assets = bench.prepare_assets(root, ("demo", "plane"))
-    for name, fn in (("ops", exp_ops), ("rng", exp_rng), ("cap", exp_cap), ("loop3", lambda b: exp_loop3(b, assets)),
-                     ("reuse", exp_reuse), ("evalnoise", exp_eval_noise), ("mispdf", exp_mis_pdf),
+    for name, fn in (("ops", exp_ops), ("cap", exp_cap), ("evalnoise", exp_eval_noise), ("mispdf", exp_mis_pdf),
                      ("control", lambda b: exp_control(b, assets, root))):
         if name in only:
             res[name] = fn(b)
@@ -594,8 +363,9 @@ def main(argv=None):
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "experiments.json").write_text(json.dumps(res, indent=1, default=float))
-    (out / "experiments.md").write_text(markdown(res))
-    log(markdown(res))
+    text = markdown(res, retired_section(out / "experiments.md"))
+    (out / "experiments.md").write_text(text)
+    log(text)
 
 
 if __name__ == "__main__":

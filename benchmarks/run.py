@@ -27,7 +27,9 @@ Metrics:
 4. BSDF throughput: sample/eval queries per second on 2^20 random queries
    (random wi, wo, and normals from a texture), random-walk lengths, nested
    calls per query, and the share of time spent in nested BSDF calls (the
-   plugin timed with the nested calls replaced by a closed-form stub);
+   plugin timed with the nested BSDF replaced by a closed-form stub); calls
+   and stub are nested BSDFs of ``probes.py``, walk lengths the walk loops'
+   own bounce counter (nothing in the package is patched);
 5. peak memory: max RSS of the metric-2 subprocess.
 
 Writes ``results.json`` and ``RESULTS.md`` into ``--out``. ``--quick`` runs a
@@ -148,6 +150,8 @@ def import_mitsuba():
     import mitsuba as mi
     mi.set_variant(VARIANT)
     mfnormal.register()
+    import probes            # benchmarks/probes.py, beside this script
+    probes.register()
     return mfnormal, mi, dr
 
 
@@ -230,6 +234,15 @@ def rewrite_plugins(scene: dict, plugin_type: str, rewrite, what: str) -> dict:
     return scene
 
 
+def nested_spec(nested: str, probe: str | None = None) -> dict:
+    """The nested BSDF ``nested``: as is, wrapped in the call counter (``probe="counting"``)
+    or replaced by the closed-form stub (``probe="stub"``), see probes.py."""
+    if probe == "stub":
+        return {"type": "bench_stub"}
+    spec = copy.deepcopy(NESTED[nested])
+    return {"type": "bench_counting", "bsdf": spec} if probe == "counting" else spec
+
+
 def swap_bsdfs(scene: dict, method: str, nested: dict) -> dict:
     """Rewrite every ``normalmap_microfacet`` in ``scene`` for ``method`` around ``nested``."""
     key, model, tangent_facet = METHOD_BY_KEY[method]
@@ -262,7 +275,7 @@ def _resolved_xml(src: str, dst: Path, params: dict) -> Path:
 
 
 def scene_dict(name: str, assets: dict, method: str, nested: str, width: int, height: int,
-               spp: int) -> dict:
+               spp: int, probe: str | None = None) -> dict:
     from mfnormal import demo
     if name == "demo":
         base = demo.demo_scene(model="analytic", spp=spp, resolution=(width, height),
@@ -300,11 +313,11 @@ def scene_dict(name: str, assets: dict, method: str, nested: str, width: int, he
         }
     else:
         raise ValueError(f"unknown scene {name!r}")
-    return swap_bsdfs(base, method, NESTED[nested])
+    return swap_bsdfs(base, method, nested_spec(nested, probe))
 
 
-def load_scene(name, assets, method, nested, width, height, spp, sunless=False):
-    d = scene_dict(name, assets, method, nested, width, height, spp)
+def load_scene(name, assets, method, nested, width, height, spp, sunless=False, probe=None):
+    d = scene_dict(name, assets, method, nested, width, height, spp, probe)
     if sunless:
         d = with_envmap(d, assets["sunless_envmap"])
     return mi.load_dict(d)
@@ -358,13 +371,12 @@ def worker_main(args: dict) -> dict:
     """Runs in a fresh process whose DRJIT_CACHE_DIR is an empty directory."""
     rss0 = memory_mb()["VmHWM"]
     import_mitsuba()
-    with stubbed_nested() if args.get("stub") else contextlib.nullcontext():
-        return _worker(args, rss0)
+    return _worker(args, rss0)
 
 
 def _worker(args: dict, rss0) -> dict:
     scene = load_scene(args["scene"], args["assets"], args["method"], args["nested"],
-                       args["width"], args["height"], args["spp"])
+                       args["width"], args["height"], args["spp"], probe="stub" if args.get("stub") else None)
     rss_load = memory_mb()["VmRSS"]
     dr.set_flag(dr.JitFlag.KernelHistory, True)
     dr.kernel_history_clear()
@@ -458,13 +470,14 @@ def make_queries(n: int, coherent: int = 1, seed: int = 11):
     return si, wo, s1, s2
 
 
-def make_bsdf(method: str, nested: str, texture):
+def make_bsdf(method: str, nested: str, texture, probe: str | None = None, **params):
+    """``method`` around the nested BSDF ``nested`` (see nested_spec), with plugin ``params``."""
     key, model, tangent_facet = METHOD_BY_KEY[method]
-    d = {"normalmap": texture, "bsdf": copy.deepcopy(NESTED[nested])}
+    d = {"normalmap": texture, "bsdf": nested_spec(nested, probe)}
     if key == "builtin":
         d["type"] = "normalmap"
     else:
-        d.update(type="normalmap_microfacet", model=model)
+        d.update(type="normalmap_microfacet", model=model, **params)
         if tangent_facet:
             d["tangent_facet"] = tangent_facet
     return mi.load_dict(d)
@@ -489,98 +502,32 @@ def time_queries(fn, reps: int):
     return median(walls), median(kernels)
 
 
-NESTED_OPS = ("eval", "pdf", "eval_pdf", "sample")
+def nested_calls(bsdf, mode: str, queries):
+    """Per lane: the calls that reach the nested BSDF, per method, and the call sites passed
+    (``bsdf`` made with ``probe="counting"``)."""
+    si, wo, s1, s2 = queries
+    counter = bsdf.nested
+    counter.reset(dr.width(si.wi))
+    out = bsdf.sample(mi.BSDFContext(), si, s1, s2) if mode == "sample" else bsdf.eval(mi.BSDFContext(), si, wo)
+    dr.eval(out, counter.counts, counter.sites)
+    return ({op: np.array(c, dtype=np.float64) for op, c in counter.counts.items()},
+            np.array(counter.sites, dtype=np.float64))
 
 
-@contextlib.contextmanager
-def instrumented(n: int):
-    """Count, per query lane, the nested BSDF calls (``ShadingPoint`` methods) and
-    the random-walk iterations (``dr.while_loop`` in :mod:`mfnormal.walk`).
-
-    ``walk._walk`` discards its bounce counter, so the loop is wrapped here: an
-    extra loop variable counts the iterations each lane runs."""
-    from mfnormal import shading, walk
-    counts = {op: dr.zeros(mi.UInt32, n) for op in NESTED_OPS}
-    sites = dr.zeros(mi.UInt32, n)     # call sites each lane passes, masked or not
-    loops = []
-    orig = {op: getattr(shading.ShadingPoint, op) for op in NESTED_OPS}
-
-    def counting(op):
-        f = orig[op]
-
-        def g(self, *args):
-            active = mi.Bool(args[-1])
-            idx = dr.arange(mi.UInt32, dr.width(active))
-            dr.scatter_add(counts[op], mi.UInt32(1), idx, active)
-            dr.scatter_add(sites, mi.UInt32(1), idx)
-            return f(self, *args)
-        return g
-
-    real_dr = walk.dr
-
-    class LoopCounter:
-        def __getattr__(self, name):
-            return getattr(real_dr, name)
-
-        def while_loop(self, state, cond, body, **kw):
-            state = tuple(state) + (dr.zeros(mi.UInt32, dr.width(state[0])),)
-            out = real_dr.while_loop(state, lambda *s: cond(*s[:-1]),
-                                     lambda *s: tuple(body(*s[:-1])) + (s[-1] + 1,), **kw)
-            loops.append(out[-1])
-            return out[:-1]
-
-    for op in NESTED_OPS:
-        setattr(shading.ShadingPoint, op, counting(op))
-    walk.dr = LoopCounter()
-    try:
-        yield counts, sites, loops
-    finally:
-        walk.dr = real_dr
-        for op in NESTED_OPS:
-            setattr(shading.ShadingPoint, op, orig[op])
-
-
-@contextlib.contextmanager
-def stubbed_nested():
-    """Replace the nested BSDF on the facets by a closed-form white-ish Lambertian
-    (no ``facet_si``, no nested call): times the model's own logic."""
-    from mfnormal import shading
-
-    def cos_o(frame, wo):
-        return dr.maximum(dr.dot(wo, frame.n), 0.0)
-
-    def ok(frame, wi, active):
-        return mi.Bool(active) & (dr.dot(wi, frame.n) > 0)
-
-    def s_eval(self, frame, wi, wo, active):
-        return dr.select(ok(frame, wi, active), mi.Spectrum(0.5 * dr.inv_pi * cos_o(frame, wo)), 0.0)
-
-    def s_pdf(self, frame, wi, wo, active):
-        return dr.select(ok(frame, wi, active), dr.inv_pi * cos_o(frame, wo), 0.0)
-
-    def s_eval_pdf(self, frame, wi, wo, active):
-        return s_eval(self, frame, wi, wo, active), s_pdf(self, frame, wi, wo, active)
-
-    def s_sample(self, frame, wi, sample1, sample2, active):
-        active = ok(frame, wi, active)
-        local = mi.warp.square_to_cosine_hemisphere(sample2)
-        bs = dr.zeros(mi.BSDFSample3f, dr.width(local))
-        bs.wo = frame.to_world(local)
-        bs.pdf = dr.select(active, local.z * dr.inv_pi, 0.0)
-        bs.eta = 1.0
-        bs.sampled_type = mi.UInt32(+mi.BSDFFlags.DiffuseReflection)
-        bs.sampled_component = 0
-        return bs, dr.select(active, mi.Spectrum(0.5), 0.0)
-
-    stubs = {"eval": s_eval, "pdf": s_pdf, "eval_pdf": s_eval_pdf, "sample": s_sample}
-    orig = {op: getattr(shading.ShadingPoint, op) for op in stubs}
-    for op, f in stubs.items():
-        setattr(shading.ShadingPoint, op, f)
-    try:
-        yield
-    finally:
-        for op, f in orig.items():
-            setattr(shading.ShadingPoint, op, f)
+def walk_lengths(bsdf, mode: str, queries):
+    """Facet bounces per lane of the model's walk (the walk loops' own counter), or None for
+    a model without a walk. Each lane walks as in ``bsdf.sample`` / ``bsdf.eval``."""
+    from mfnormal import walk
+    if getattr(bsdf, "walk_params", None) is None:
+        return None
+    si, wo, s1, s2 = queries
+    sp = bsdf.shading_point(mi.BSDFContext(), si)
+    if mode == "sample":
+        w = walk.sample_walk(sp, bsdf.walk_params, s1, s2, mi.Bool(True))
+    else:
+        w = walk.eval_walk(sp, bsdf.walk_params, wo, wo.z > 0)[1]
+    dr.eval(w.depth)
+    return np.array(w.depth, dtype=np.float64)
 
 
 def walk_stats(lengths, width: int) -> dict:
@@ -609,6 +556,7 @@ def throughput(nested: str, methods, prof: Profile) -> list:
 
     for method in methods:
         bsdf = make_bsdf(method, nested, texture)
+        counted = make_bsdf(method, nested, texture, probe="counting") if method != "builtin" else None
         row = {"nested": nested, "method": method, "queries": n}
         ws, ks = time_queries(lambda: bsdf.sample(ctx, si, s1, s2), prof.tput_reps)
         we, ke = time_queries(lambda: bsdf.eval(ctx, si, wo), prof.tput_reps)
@@ -618,16 +566,13 @@ def throughput(nested: str, methods, prof: Profile) -> list:
         if method != "builtin":
             # Nested calls and walk lengths per query (executed lanes, not SIMD work).
             for mode in ("sample", "eval"):
-                for coh, (q_si, q_wo, q_s1, q_s2) in queries.items():
-                    with instrumented(n) as (counts, sites, loops):
-                        out = (bsdf.sample(ctx, q_si, q_s1, q_s2) if mode == "sample"
-                               else bsdf.eval(ctx, q_si, q_wo))
-                        dr.eval(out, counts, sites, loops)
-                        calls = {op: float(np.mean(np.array(c))) for op, c in counts.items()}
-                        walk = walk_stats(loops[0], width) if loops else None
-                        # A packet runs every call site until its longest lane is done.
-                        st = np.array(sites, dtype=np.float64)
-                        simd_calls = float(st[: n // width * width].reshape(-1, width).max(axis=1).mean())
+                for coh, q in queries.items():
+                    counts, sites = nested_calls(counted, mode, q)
+                    calls = {op: float(c.mean()) for op, c in counts.items()}
+                    lengths = walk_lengths(bsdf, mode, q)
+                    walk = walk_stats(lengths, width) if lengths is not None else None
+                    # A packet runs every call site until its longest lane is done.
+                    simd_calls = float(sites[: n // width * width].reshape(-1, width).max(axis=1).mean())
                     tag = "" if coh == 1 else "_coherent"
                     row[f"{mode}_simd_nested_calls{tag}"] = simd_calls
                     if coh == 1:
@@ -635,10 +580,10 @@ def throughput(nested: str, methods, prof: Profile) -> list:
                         row[f"{mode}_nested_time_est_s"] = sum(calls[op] * nested_cost[op] * n
                                                                for op in calls)
                     row[f"{mode}_walk{tag}"] = walk
-            # The model with the nested calls stubbed out.
-            with stubbed_nested():
-                ss, _ = time_queries(lambda: bsdf.sample(ctx, si, s1, s2), prof.stub_reps)
-                se, _ = time_queries(lambda: bsdf.eval(ctx, si, wo), prof.stub_reps)
+            # The model around the closed-form stub.
+            stub = make_bsdf(method, nested, texture, probe="stub")
+            ss, _ = time_queries(lambda: stub.sample(ctx, si, s1, s2), prof.stub_reps)
+            se, _ = time_queries(lambda: stub.eval(ctx, si, wo), prof.stub_reps)
             row.update(stub_sample_s=ss, stub_eval_s=se,
                        sample_nested_share=max(0.0, 1.0 - ss / ws), eval_nested_share=max(0.0, 1.0 - se / we))
         rows.append(row)
@@ -686,9 +631,9 @@ def render_metrics(scene: str, nested: str, assets: dict, prof: Profile) -> tupl
     for row in timing:
         if row["pass"]:
             continue
-        with stubbed_nested():
-            timed_render(scenes[row["method"]], spp, 0)
-            ts = median([timed_render(scenes[row["method"]], spp, 300 + r)[0] for r in range(3)])
+        stubbed = load_scene(scene, assets, row["method"], nested, W, H, spp, probe="stub")
+        timed_render(stubbed, spp, 0)
+        ts = median([timed_render(stubbed, spp, 300 + r)[0] for r in range(3)])
         row.update(stub_s=ts, stub_ratio=ts / row["builtin_s"],
                    render_nested_share=max(0.0, 1.0 - ts / row["method_s"]))
         log(f"         stubbed nested calls: {ts:6.3f} s (ratio {ts / row['builtin_s']:.2f}, nested "
@@ -853,7 +798,7 @@ def why_lines(results: dict) -> list:
         lines.append("")
         lines.append("| scene | nested | method | time ratio | stubbed ratio | nested share of render | "
                      "eval / sample slowdown | nested calls / eval | nested calls / sample | "
-                     "walk mean / p99 / SIMD iters (coherent) |")
+                     "walk mean / p99 / SIMD bounces (coherent) |")
         lines.append("|---|---|---|---|---|---|---|---|---|---|")
         for c in fails_t:
             r = tput.get((c["nested"], c["method"]), {})
@@ -979,16 +924,17 @@ def write_markdown(results: dict, path: Path):
     L += ["## BSDF throughput (metric 4)", "",
           f"{results['config']['queries']} queries: wi, wo uniform on the hemisphere, normals from a "
           "256² texture of random normals (θ_p uniform in [0°, 75°], nearest filtering). "
-          "Mq/s = 10⁶ queries per second (wall, median). Nested calls: executed nested BSDF "
-          "calls per query (eval + pdf + eval_pdf + sample), and in brackets the calls the CPU "
-          "runs per query (a packet runs every call site on all its lanes until its longest "
-          "walk ends; random lanes). Walk: iterations of the random "
-          "walk per query in `sample`; SIMD = the mean over "
+          "Mq/s = 10⁶ queries per second (wall, median). Nested calls: nested BSDF calls "
+          "per query that reach the nested BSDF (eval + pdf + eval_pdf + sample), and in "
+          "brackets the calls the CPU runs per query (a packet runs every call site on all its "
+          "lanes until its longest walk ends; random lanes). Walk: facet bounces of the random "
+          "walk per query in `sample` (the walk loop's counter; a mirror bounce shares its "
+          "loop iteration with the next nested vertex); SIMD = the mean over "
           f"{m['simd_lanes']}-lane packets of the longest walk in the packet (what the CPU "
           "executes), for random lanes / for packets that share wi and the normal. Nested "
-          "share: 1 − time with the nested calls replaced by a closed-form Lambertian stub.", "",
+          "share: 1 − time with the nested BSDF replaced by a closed-form Lambertian stub.", "",
           "| nested | method | sample Mq/s | eval Mq/s | sample ×builtin | eval ×builtin | "
-          "nested calls sample / eval | walk mean / p99 / max | SIMD iters random / coherent | "
+          "nested calls sample / eval | walk mean / p99 / max | SIMD bounces random / coherent | "
           "nested share sample / eval |",
           "|---|---|---|---|---|---|---|---|---|---|"]
     for r in results["throughput"]:
@@ -1163,8 +1109,9 @@ def main(argv=None) -> int:
             f"{results['loadavg_end'][0]:.1f} on {os.cpu_count()} cores): timings are noisy; re-run on "
             "an idle machine before trusting the pass/fail of the time-based targets")
     results["notes"].append(
-        "walk lengths come from wrapping dr.while_loop inside mfnormal.walk (walk._walk does not "
-        "return its bounce counter); nested calls are counted by wrapping ShadingPoint's methods")
+        "walk lengths are the walk loops' bounce counter (mfnormal.walk.sample_walk / eval_walk); "
+        "nested calls are counted, and the nested BSDF stubbed, by the nested BSDFs of "
+        "benchmarks/probes.py")
     (out / "results.json").write_text(json.dumps(results, indent=1, default=float))
     write_markdown(results, out / "RESULTS.md")
     log(f"wrote {out / 'results.json'} and {out / 'RESULTS.md'} in {results['duration_s']:.0f} s")

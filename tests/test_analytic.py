@@ -1,11 +1,12 @@
-"""Tests of the analytic model of ``normalmap_microfacet`` (MODEL.md §2.6).
+"""Tests of the analytic model of ``normalmap_microfacet`` (docs/model.md §3).
 
 Every query runs vectorised in ``llvm_ad_rgb``. Per-query normals come from an
 N×1 float32 bitmap with nearest filtering, query k reading texel k. References
-are computed here in float64 numpy from the formulas of MODEL.md §2.1/§2.6,
+are computed here in float64 numpy from the formulas of docs/model.md §2.1/§3,
 independently of ``mfnormal.microsurface``. Every seed is fixed.
 """
 
+import functools
 import json
 import subprocess
 import sys
@@ -22,6 +23,9 @@ VARIANT = "llvm_ad_rgb"
 mi.set_variant(VARIANT)
 mfnormal.register()
 
+from helpers import (WHITE, decode_ref, encode, make_bsdf, make_si, normalmap, np1, np3,  # noqa: E402
+                     random_hemisphere, sph, vec3)
+
 # The nested BSDFs required by the acceptance criteria.
 NESTED = {
     "diffuse": {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.2, 0.5, 0.9]}},
@@ -33,91 +37,22 @@ NESTED = {
 # Plus a delta lobe where the contract is about not breaking.
 NESTED_WITH_DELTA = dict(NESTED, conductor={"type": "conductor"})
 
-WHITE = {"type": "diffuse", "reflectance": {"type": "rgb", "value": [1.0, 1.0, 1.0]}}
-
 
 # -- Helpers -----------------------------------------------------------------------------
 
 
-def wp_from_angles(theta_p_deg, phi_p=0.0):
-    """Unit perturbed normal(s) with tilt θ_p (degrees) toward azimuth φ_p (radians)."""
-    t = np.radians(np.asarray(theta_p_deg, np.float64))
-    phi = np.asarray(phi_p, np.float64)
-    return np.stack(np.broadcast_arrays(np.sin(t) * np.cos(phi), np.sin(t) * np.sin(phi), np.cos(t)), -1)
-
-
-def encode(wp):
-    """Raw float32 texels whose decode 2·rgb − 1 is ω_p."""
-    return (np.asarray(wp, np.float64) * 0.5 + 0.5).astype(np.float32)
-
-
-def decode_ref(texels):
-    """float64 normalize(2·rgb − 1) of float32 texels: the ω_p the plugin should see."""
-    n = 2.0 * np.asarray(texels, np.float64) - 1.0
-    return n / np.linalg.norm(n, axis=-1, keepdims=True)
-
-
-def normalmap(texels):
-    tex = np.array(texels, np.float32, copy=True).reshape(1, -1, 3).copy()
-    return {"type": "bitmap", "bitmap": mi.Bitmap(tex), "raw": True, "filter_type": "nearest"}
-
-
-def make_bsdf(nested, texels, **kwargs):
-    return mi.load_dict({"type": "normalmap_microfacet", "normalmap": normalmap(texels),
-                         "bsdf": nested, **kwargs})
-
-
-def make_si(wi, n_texels=1, texel_index=None):
-    """Interactions with wi (n×3) and uv on texel ``texel_index`` (default: query k → texel k)."""
-    wi = np.asarray(wi, np.float64).reshape(-1, 3)
-    n = wi.shape[0]
-    if texel_index is None:
-        texel_index = np.arange(n) % n_texels
-    si = dr.zeros(mi.SurfaceInteraction3f, n)
-    si.wi = vec3(wi)
-    si.uv = mi.Point2f(((np.asarray(texel_index) + 0.5) / n_texels).astype(np.float32),
-                       np.full(n, 0.5, np.float32))
-    si.sh_frame = mi.Frame3f(mi.Vector3f(1, 0, 0), mi.Vector3f(0, 1, 0), mi.Vector3f(0, 0, 1))
-    si.n = mi.Normal3f(0, 0, 1)
-    return si
-
-
-def vec3(a):
-    a = np.asarray(a, np.float32).reshape(-1, 3)
-    return mi.Vector3f(a[:, 0], a[:, 1], a[:, 2])
-
-
-def np3(v, n=None):
-    """(n, 3) float64 array from a Dr.Jit 3-vector or colour (width-1 literals broadcast)."""
-    a = np.array(v, dtype=np.float64).reshape(3, -1).T
-    return a if n is None else np.broadcast_to(a, (n, 3)).copy()
-
-
-def np1(v, n=None):
-    a = np.array(v, dtype=np.float64).reshape(-1)
-    return a if n is None else np.broadcast_to(a, (n,)).copy()
-
-
-def random_hemisphere(rng, n, z_min=0.0):
-    """Uniform directions on the upper hemisphere (z > z_min)."""
-    z = rng.uniform(z_min, 1.0, n)
-    phi = rng.uniform(0.0, 2.0 * np.pi, n)
-    r = np.sqrt(np.maximum(0.0, 1.0 - z * z))
-    return np.stack([r * np.cos(phi), r * np.sin(phi), z], -1)
-
-
 def random_tilts(rng, n, theta_max_deg):
-    return wp_from_angles(rng.uniform(0.0, theta_max_deg, n), rng.uniform(0.0, 2.0 * np.pi, n))
+    return sph(rng.uniform(0.0, theta_max_deg, n), rng.uniform(0.0, 2.0 * np.pi, n))
 
 
 def wt_ref(wp):
-    """ω_t = (−p_x, −p_y, 0)/sinθ_p (MODEL.md §2.1), float64; (0, 0, 0) for ω_p = ω_g."""
+    """ω_t = (−p_x, −p_y, 0)/sinθ_p (docs/model.md §2.1), float64; (0, 0, 0) for ω_p = ω_g."""
     sin_p = np.hypot(wp[:, 0], wp[:, 1])
     return np.stack([-wp[:, 0], -wp[:, 1], np.zeros_like(sin_p)], -1) / np.maximum(sin_p, 1e-300)[:, None]
 
 
 def lambda_t_ref(w, wp):
-    """λ_t(ω) = 1 − ⟨ω,ω_p⟩₊ / (⟨ω,ω_p⟩₊ + sinθ_p⟨ω,ω_t⟩₊) (MODEL.md §2.1), float64."""
+    """λ_t(ω) = 1 − ⟨ω,ω_p⟩₊ / (⟨ω,ω_p⟩₊ + sinθ_p⟨ω,ω_t⟩₊) (docs/model.md §2.1), float64."""
     sin_p = np.hypot(wp[:, 0], wp[:, 1])
     wt = wt_ref(wp)
     a_p = np.maximum(0.0, np.sum(w * wp, -1))
@@ -148,7 +83,7 @@ def sample(bsdf, si, sample1, sample2):
 
 
 def test_lambertian_facet_matches_closed_form():
-    """f = (ρ/π)·cosθ_p·(1 − λ_t(ω_i)λ_t(ω_o)) (MODEL.md §2.6) over 4000 random configurations.
+    """f = (ρ/π)·cosθ_p·(1 − λ_t(ω_i)λ_t(ω_o)) (docs/model.md §3.3) over 4000 random configurations.
 
     Tolerance: 1e-4 relative, plus an absolute 1e-6·ρ/π floor for the configurations
     where 1 − λ_tλ_t → 0 (both directions on the t side), where float32 rounding of
@@ -230,7 +165,7 @@ def test_sampler_matches_pdf_chi2(nested):
     for seed, (tilt, theta_i, phi) in enumerate(chi2_cases()):
         t = np.radians(theta_i)
         wi = mi.Vector3f(float(np.sin(t) * np.cos(phi)), float(np.sin(t) * np.sin(phi)), float(np.cos(t)))
-        spec = {"type": "normalmap_microfacet", "normalmap": normalmap(encode(wp_from_angles(tilt))),
+        spec = {"type": "normalmap_microfacet", "normalmap": normalmap(encode(sph(tilt))),
                 "bsdf": NESTED[nested]}
         sample_func, pdf_func = BSDFAdapter("normalmap_microfacet", spec, wi=wi)
         test = ChiSquareTest(domain=SphericalDomain(), sample_func=finite_zero_weight_directions(sample_func),
@@ -240,37 +175,56 @@ def test_sampler_matches_pdf_chi2(nested):
     assert not failures, "\n".join(failures)
 
 
-# -- 3. Sample weights and eval_pdf are consistent with eval and pdf ------------------------------
+# -- 3. Sample weights, eval_pdf and pdf are consistent with eval ------------------------------------
 
 
-@pytest.mark.parametrize("nested", list(NESTED))
-def test_sample_weight_is_eval_over_pdf_and_eval_pdf_matches(nested):
-    """weight = eval/pdf, bs.pdf = pdf(wo), eval_pdf = (eval, pdf) for 40 000 random queries.
-
-    Tolerance 1e-4 relative (float32; eval, pdf and eval_pdf may take different code
-    paths in the nested BSDF, which differ by a few ulps).
-    """
+@functools.lru_cache(maxsize=None)
+def consistency_queries(nested):
+    """40 000 random queries (tilts up to 85°) of one BSDF: (bsdf, si, sampled wo, bs.pdf,
+    weight, random directions down to z = −0.2), shared by the three tests below."""
     rng = np.random.default_rng(3)
     n = 40_000
     wi = random_hemisphere(rng, n)
     texels = encode(random_tilts(rng, n, 85.0))
     bsdf = make_bsdf(NESTED[nested], texels)
     si = make_si(wi, n)
-
     wo, bs_pdf, weight = sample(bsdf, si, rng.random(n), rng.random((n, 2)))
-    live = np.any(weight > 0, 1)
-    assert live.sum() > n // 2, "too few non-zero samples for the test to mean anything"
-    assert np.all(wo[live, 2] > 0) and np.all(bs_pdf[live] > 0)
+    return bsdf, si, wo, bs_pdf, weight, random_hemisphere(rng, n, z_min=-0.2)
 
-    value, pdf, value_ep, pdf_ep = query(bsdf, si, wo)
+
+@pytest.mark.parametrize("nested", list(NESTED))
+def test_sample_weight_is_eval_over_pdf(nested):
+    """weight = eval/pdf and bs.pdf = pdf(wo) at the sampled directions.
+
+    Tolerance 1e-4 relative (float32; eval, pdf and eval_pdf may take different code
+    paths in the nested BSDF, which differ by a few ulps).
+    """
+    bsdf, si, wo, bs_pdf, weight, _ = consistency_queries(nested)
+    live = np.any(weight > 0, 1)
+    assert live.sum() > len(wo) // 2, "too few non-zero samples for the test to mean anything"
+    assert np.all(wo[live, 2] > 0) and np.all(bs_pdf[live] > 0)
+    value, pdf, _, _ = query(bsdf, si, wo)
     assert np.allclose(pdf[live], bs_pdf[live], rtol=1e-4, atol=0)
     assert np.allclose(weight[live], value[live] / pdf[live, None], rtol=1e-4, atol=0)
 
-    # eval_pdf against eval and pdf, at the sampled and at random directions.
-    for w in (wo, random_hemisphere(rng, n, z_min=-0.2)):
+
+@pytest.mark.parametrize("nested", list(NESTED))
+def test_eval_pdf_is_eval_and_pdf(nested):
+    """eval_pdf = (eval, pdf) at the sampled and at random directions (1e-4 relative, as above)."""
+    bsdf, si, wo, _, _, random_wo = consistency_queries(nested)
+    for w in (wo, random_wo):
         value, pdf, value_ep, pdf_ep = query(bsdf, si, w)
         assert np.allclose(value_ep, value, rtol=1e-4, atol=0)
         assert np.allclose(pdf_ep, pdf, rtol=1e-4, atol=0)
+
+
+@pytest.mark.parametrize("nested", list(NESTED))
+def test_pdf_is_positive_where_eval_is(nested):
+    """pdf > 0 wherever eval > 0, at the sampled and at random directions (else MIS could
+    never reach that direction by BSDF sampling)."""
+    bsdf, si, wo, _, _, random_wo = consistency_queries(nested)
+    for w in (wo, random_wo):
+        value, pdf, _, _ = query(bsdf, si, w)
         assert np.all((pdf > 0) | np.all(value == 0, 1)), "eval > 0 where pdf = 0"
 
 
@@ -296,7 +250,7 @@ def smallest_cosine(wi, wo, wp):
 
 
 def check_reciprocity(nested, theta_min, theta_max, seed, n):
-    """The analytic model is exactly reciprocal when the nested BSDF is (MODEL.md §2.6).
+    """The analytic model is exactly reciprocal when the nested BSDF is (docs/model.md §3.3).
 
     Tolerance per pair, relative to max(f(i,o), f(o,i)):
     max(1e-5, 16·ε₃₂/c) + A. Here c is the smallest cosine of the pair with a facet
@@ -312,7 +266,7 @@ def check_reciprocity(nested, theta_min, theta_max, seed, n):
     """
     rng = np.random.default_rng(seed)
     wi, wo = random_hemisphere(rng, n), random_hemisphere(rng, n)
-    texels = encode(wp_from_angles(rng.uniform(theta_min, theta_max, n), rng.uniform(0.0, 2.0 * np.pi, n)))
+    texels = encode(sph(rng.uniform(theta_min, theta_max, n), rng.uniform(0.0, 2.0 * np.pi, n)))
     wp = decode_ref(texels)
     err, scale = reciprocity_error(make_bsdf(NESTED[nested], texels), wi, wo, n)
     assert (scale > 0).sum() > n // 2
@@ -381,19 +335,19 @@ def energy_grid():
     for tilt in ENERGY_TILTS:
         for theta_i in ENERGY_THETA_I:
             for phi in ((0.0,) if theta_i == 0.0 else (0.0, np.pi)):
-                wps.append(wp_from_angles(tilt))
-                wis.append(wp_from_angles(theta_i, phi))
+                wps.append(sph(tilt))
+                wis.append(sph(theta_i, phi))
     return np.array(wps), np.array(wis)
 
 
 def test_white_lambertian_albedo_by_quadrature():
-    """Albedo ≤ cosθ_p ≤ 1 everywhere, and = cosθ_p when λ_t(ω_i) = 0 (MODEL.md §2.6).
+    """Albedo ≤ cosθ_p ≤ 1 everywhere, and = cosθ_p when λ_t(ω_i) = 0 (docs/model.md §3.3).
 
     The integrand is then exactly constant (cosθ_p/π · cosθ_o), so the quadrature is
     exact up to float32 rounding: tolerance 1e-5. Elsewhere the integrand has kinks
     along two planes; the 512² midpoint rule matches a float64 2048² integral of the
     closed form to < 3e-5 there (checked once), so the upper bound gets 2e-3.
-    Anchor: MODEL.md's 0.50 at θ_p = 45°, θ_i = 80° on the t side, to its 2 digits.
+    Anchor: docs/model.md §3.3's 0.50 at θ_p = 45°, θ_i = 80° on the t side, to its 2 digits.
     """
     wps, wis = energy_grid()
     texels = encode(wps)
@@ -613,7 +567,7 @@ def test_bad_texels_decode_to_flat_or_clamped_normal():
 @pytest.mark.parametrize("nested", list(NESTED_WITH_DELTA))
 def test_zero_strength_gives_nested_bsdf(nested):
     rng = np.random.default_rng(9)
-    texels = encode(wp_from_angles([50.0], [1.0]))
+    texels = encode(sph([50.0], [1.0]))
     compare_with_nested(make_bsdf(NESTED_WITH_DELTA[nested], texels, strength=0.0),
                         mi.load_dict(NESTED_WITH_DELTA[nested]), rng)
 
@@ -639,7 +593,7 @@ def test_directx_convention_inverts_green():
 def test_traverse_exposes_parameters_and_strength_updates_eval():
     """mi.traverse exposes strength, the normal map and the nested parameters, and
     updates take effect (1e-6 relative where a result must come back unchanged)."""
-    texels = encode(wp_from_angles([60.0]))
+    texels = encode(sph([60.0]))
     bsdf = make_bsdf(NESTED["diffuse"], texels)
     params = mi.traverse(bsdf)
     keys = set(params.keys())
@@ -682,7 +636,7 @@ def test_invalid_parameters_raise_clear_errors(override, word):
     normalmap_microfacet", which names the plugin anyway) must name the parameter.
     Mitsuba re-raises the ValueError as a RuntimeError carrying its text.
     (model='separable' is no longer invalid: the random-walk models exist now.)"""
-    spec = {"type": "normalmap_microfacet", "normalmap": normalmap(encode(wp_from_angles([30.0]))),
+    spec = {"type": "normalmap_microfacet", "normalmap": normalmap(encode(sph([30.0]))),
             "bsdf": NESTED["diffuse"]}
     spec.update(override)
     spec = {k: v for k, v in spec.items() if v is not None}
@@ -693,9 +647,9 @@ def test_invalid_parameters_raise_clear_errors(override, word):
 # -- 9. Other variants and wrappers ---------------------------------------------------------------
 
 SCALAR_QUERIES = {
-    "texels": encode(wp_from_angles([0.0, 30.0, 60.0, 85.0], [0.0, 1.0, 2.0, 4.0])).tolist(),
-    "wi": wp_from_angles([10.0, 45.0, 70.0, 89.0], [3.0, 0.5, 2.5, 4.5]).tolist(),
-    "wo": wp_from_angles([20.0, 80.0, 35.0, 60.0], [1.0, 3.5, 2.0, 0.2]).tolist(),
+    "texels": encode(sph([0.0, 30.0, 60.0, 85.0], [0.0, 1.0, 2.0, 4.0])).tolist(),
+    "wi": sph([10.0, 45.0, 70.0, 89.0], [3.0, 0.5, 2.5, 4.5]).tolist(),
+    "wo": sph([20.0, 80.0, 35.0, 60.0], [1.0, 3.5, 2.0, 0.2]).tolist(),
     "s1": [0.1, 0.35, 0.6, 0.95],
     "s2": [[0.2, 0.7], [0.9, 0.1], [0.4, 0.45], [0.05, 0.8]],
 }

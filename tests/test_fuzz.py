@@ -83,6 +83,9 @@ VARIANT = "llvm_ad_rgb"
 mi.set_variant(VARIANT)
 mfnormal.register()
 
+import helpers  # noqa: E402
+from helpers import np1, np3, vec3  # noqa: E402
+
 LONG = os.environ.get("MFNORMAL_FUZZ_LONG", "") not in ("", "0")
 FUZZ_EXAMPLES = int(os.environ.get("MFNORMAL_FUZZ_EXAMPLES", 20 if LONG else 2))
 QUERIES = (1 << 20) if LONG else (1 << 19)   # per example
@@ -386,26 +389,8 @@ def inherited_zero_pdf(case, kind, si, wo, value, pdf):
 
 
 def make_si(t, wi):
-    n = len(t)
-    si = dr.zeros(mi.SurfaceInteraction3f, n)
-    si.wi = vec3(wi)
-    si.uv = mi.Point2f(((t + 0.5) / N_TEXELS).astype(np.float32), np.full(n, 0.5, np.float32))
-    si.p = mi.Point3f(dr.arange(mi.Float, n), 0.0, 0.0)
-    si.sh_frame = mi.Frame3f(mi.Vector3f(1, 0, 0), mi.Vector3f(0, 1, 0), mi.Vector3f(0, 0, 1))
-    si.n = mi.Normal3f(0, 0, 1)
-    return si
-
-
-def vec3(a):
-    return mi.Vector3f(*(np.ascontiguousarray(a[:, i], np.float32) for i in range(3)))
-
-
-def np3(v, n):
-    return np.broadcast_to(np.array(v, dtype=np.float64).reshape(3, -1).T, (n, 3))
-
-
-def np1(v, n):
-    return np.broadcast_to(np.array(v, dtype=np.float64).reshape(-1), (n,))
+    """Queries on texels t with directions wi, query k at si.p = (k, 0, 0)."""
+    return helpers.make_si(wi, N_TEXELS, t, np.arange(len(t)))
 
 
 def timed(label, fn, timings):

@@ -1,7 +1,7 @@
 """The random-walk models of ``normalmap_microfacet`` against Mitsuba ray tracing real microgeometry.
 
-The reference (``tests/microgeometry.py``) builds the sawtooth microsurface of
-MODEL.md §2.2 as two triangle meshes (p facets and t walls, each with its own
+The reference (``tests/reference/microgeometry.py``) builds the sawtooth microsurface of
+docs/model.md §2.2 as two triangle meshes (p facets and t walls, each with its own
 Mitsuba BSDF), shoots a parallel beam from ω_i at it with ``scene.ray_intersect``
 and scatters with the facets' own ``bsdf.sample`` until the rays escape. It shares
 no code with the plugin's model.
@@ -26,7 +26,7 @@ import numpy as np
 import pytest
 from scipy import stats
 
-import microgeometry as mg  # noqa: E402  (imports mfnormal first: libLLVM)
+from reference import microgeometry as mg  # noqa: E402  (imports mfnormal first: libLLVM)
 import mitsuba as mi
 
 N = 500_000          # rays traced and plugin samples per case
@@ -60,7 +60,7 @@ def result(case):
 
 
 def lambda_p_ref(w, wp):
-    """λ_p(ω) = ⟨ω,ω_p⟩₊ / (⟨ω,ω_p⟩₊ + sinθ_p⟨ω,ω_t⟩₊) (MODEL.md §2.1), float64."""
+    """λ_p(ω) = ⟨ω,ω_p⟩₊ / (⟨ω,ω_p⟩₊ + sinθ_p⟨ω,ω_t⟩₊) (docs/model.md §2.1), float64."""
     sin_p = np.hypot(wp[0], wp[1])
     wt = -np.array([wp[0], wp[1], 0.0]) / sin_p
     a_p = max(0.0, float(w @ wp))
@@ -107,7 +107,7 @@ def test_mesh_facets_face_out_with_the_model_normals(theta_p):
 
 @pytest.mark.parametrize("theta_p", [30, 60])
 def test_first_hit_fractions_match_lambda_p(theta_p):
-    """Mitsuba's first hits agree with λ_p (MODEL.md §2.1) within 5 binomial σ."""
+    """Mitsuba's first hits agree with λ_p (docs/model.md §2.1) within 5 binomial σ."""
     geo = mg.SawtoothScene(theta_p, mg.WHITE_DIFFUSE, mg.MIRROR)
     n = 100_000
     for i, (theta, phi) in enumerate([(t, a) for t in (10, 40, 70, 85) for a in (0, 60, 120, 180)]):
@@ -144,7 +144,7 @@ def test_nonseparable_model_matches_raytraced_microgeometry(case):
 def test_separable_model_is_farther_from_raytracing_at_grazing_incidence(case):
     """At θ_i = 70° forgetting the height correlation is far beyond Monte Carlo noise.
 
-    MODEL.md §3.7 finds L1 = 0.25–0.54 (8 bins) for the separable model here.
+    docs/model.md §7 quotes L1 = 0.25–0.54 (8 bins) for the separable model here.
     """
     res = result(case)
     l1_sep, l1_ns = res["l1"]["separable"], res["l1"]["nonseparable"]

@@ -1,8 +1,8 @@
 """Tests of ``mfnormal.microsurface`` against an independent brute-force sawtooth tracer.
 
-The reference is ``tests/sawtooth.py`` (numpy only, no mfnormal code, no closed-form
+The reference is ``tests/reference/sawtooth.py`` (numpy only, no mfnormal code, no closed-form
 λ or G1): it intersects rays with the line segments of the periodic sawtooth of
-MODEL.md §2.2. Statistical tolerances are binomial: an estimate from N independent
+docs/model.md §2.2. Statistical tolerances are binomial: an estimate from N independent
 rays has standard deviation σ = sqrt(p(1−p)/N); we allow 5σ plus a tiny absolute
 term for the float32 model inputs. Every seed is fixed.
 """
@@ -18,7 +18,8 @@ mfnormal.register()
 
 from mfnormal import microsurface as ms  # noqa: E402
 
-import sawtooth as sw  # noqa: E402
+from helpers import np3, vec3  # noqa: E402
+from reference import sawtooth as sw  # noqa: E402
 
 N_RAYS = 40_000
 # Directions within this of a facet's plane see that facet edge-on (see below).
@@ -29,19 +30,9 @@ H_TOL = 1e-5
 
 # ---------------------------------------------------------------- helpers
 def sph(theta_deg, phi_deg):
+    """A unit vector at polar angle θ and azimuth φ, both in degrees (the tracer's convention)."""
     t, p = np.radians(theta_deg), np.radians(phi_deg)
     return np.array([np.sin(t) * np.cos(p), np.sin(t) * np.sin(p), np.cos(t)])
-
-
-def vec3(a):
-    """(n, 3) or (3,) numpy → mi.Vector3f."""
-    a = np.atleast_2d(np.asarray(a, dtype=np.float32))
-    return mi.Vector3f(a[:, 0].copy(), a[:, 1].copy(), a[:, 2].copy())
-
-
-def np3(v):
-    """mi.Vector3f → (n, 3) numpy."""
-    return np.array(v).T.astype(np.float64)
 
 
 def model(w, wp):
@@ -79,7 +70,7 @@ def test_lambda_and_G1_match_brute_force_sawtooth(theta_p):
     - λ_p vs the fraction of N parallel rays hitting p first (5σ binomial);
     - G1_m vs the visible fraction of N height-uniform points on m (5σ binomial);
     - exact: a point of m at height h is visible iff h > 1 − G1_m (the visible part
-      is the top interval, MODEL.md §2.2), and first hits on m land in that interval.
+      is the top interval, docs/model.md §2.2), and first hits on m land in that interval.
       This is noise-free; only points within H_TOL of the threshold are ignored.
 
     Edge-on facets are skipped deliberately: if |⟨ω,ω_m⟩| < EDGE_ON, facet m is seen
@@ -118,9 +109,9 @@ def test_lambda_and_G1_match_brute_force_sawtooth(theta_p):
     assert checked == 3 * (2 * 16 - 5 - (theta_p == 45))
 
 
-# ---------------------------------------------- 2. closed-form table §2.1
+# ---------------------------------------------- 2. closed-form table (docs/model.md §2.1)
 def test_closed_form_table_cases():
-    """The three rows of the MODEL.md §2.1 table, written out independently."""
+    """The three rows of the docs/model.md §2.1 table, written out independently."""
     rng = np.random.default_rng(7)
     rows = {1: [], 2: [], 3: []}
     while min(len(r) for r in rows.values()) < 20:

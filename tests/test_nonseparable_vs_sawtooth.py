@@ -1,9 +1,9 @@
-"""The non-separable walk against brute-force ray tracing of the sawtooth (MODEL.md §2.2, §3).
+"""The non-separable walk against brute-force ray tracing of the sawtooth (docs/model.md §2.2, §4).
 
-The reference is ``tests/sawtooth.py``: numpy ray tracing of the periodic sawtooth
-microsurface, sharing no code with ``mfnormal``. MODEL.md §2.2 claims the
+The reference is ``tests/reference/sawtooth.py``: numpy ray tracing of the periodic sawtooth
+microsurface, sharing no code with ``mfnormal``. docs/model.md §2.2 states that the
 non-separable model *equals* that ray tracing, while the separable model forgets
-the height correlation between bounces (§3.7). Both claims are tested here for
+the height correlation between bounces (§4.1, §7). Both claims are tested here for
 white Lambertian p facets with a mirror (``tangent_facet='specular'``) or white
 Lambertian (``'same'``) tangent facet, θ_p ∈ {30°, 60°}, θ_i ∈ {20°, 70°}, ω_i
 toward or away from the tilt (16 cases, ``sawtooth_compare.CASES``).
@@ -19,35 +19,8 @@ the family-wise false-alarm rate is below 1 % for a correct model; a real bug gi
 p ≈ 0 (the separable model, a genuinely different model, gets p < 1e-50 in every
 case). Both histograms' noise enters every statistic.
 
-Measured (``pytest -s``; N_PATHS = 4e5 per side, EVAL_PER_CELL = 8192, 48 cells):
-
-- nonseparable sample() vs tracer: χ² p-values 0.058-0.89, Šidák p ≥ 0.13, L1 0.010-0.015
-  (the noise floor at this N). Off-suite, at 1.5e6 tracer vs 3e6 model paths, L1 is
-  0.004-0.006 and the χ² summed over all 16 cases is 720.5 on 752 dof (p = 0.79);
-- nonseparable eval() cell integrals vs tracer: Šidák p ≥ 0.059 (worst
-  same/60°/20°/away, max|z| = 3.22), L1 0.008-0.014, totals 1 ± 0.0024. Off-suite, eval vs 4e6
-  sample() paths with 48×65536 eval queries: Šidák p ≥ 0.05 in all 16 cases;
-- separable vs tracer, L1 over the 48 cells (MODEL.md §3.7 quotes 0.05-0.54 over
-  8 bins; the "toward" columns match its table to ±0.04):
-
-  | θ_p | θ_i | same, toward | same, away | specular, toward | specular, away |
-  |---|---|---|---|---|---|
-  | 30° | 20° | 0.059 | 0.091 | 0.131 | 0.184 |
-  | 30° | 70° | 0.265 | 0.129 | 0.364 | 0.194 |
-  | 60° | 20° | 0.082 | 0.214 | 0.180 | 0.458 |
-  | 60° | 70° | 0.404 | 0.284 | 0.531 | 0.380 |
-
-  with χ² p-values 4e-155 (same/30°/20°/toward), 1e-309 (same/60°/20°/toward) and
-  0 in double precision elsewhere;
-- reciprocity: |z| ≤ 1.74 over 4 pairs × 4 walk variants (relative standard error
-  ≤ 0.4 % per direction).
-
-Power (off-suite mutations of ``mfnormal/walk.py`` at the suite's N): halving the
-initial height interval H₀'s lower end fails 12 of 16 cases at p < 1e-14 (the 4
-"away" cases at 20° have H₀ = [0, 1] and are unaffected); dropping the lower bound
-of H_r (§3.5) fails the eval test in all 8 specular cases at p < 1e-34; not
-clipping H' to the crest fails 11 of 16 sample tests and 14 of 16 eval tests, and
-every case fails at least one of them.
+The numbers these tests print (``pytest -s``), and the power of the tests against
+mutations of the walk, are in validation/results/measured_in_tests.md.
 """
 
 import functools
@@ -63,7 +36,7 @@ VARIANT = "llvm_ad_rgb"
 mi.set_variant(VARIANT)
 mfnormal.register()
 
-import sawtooth_compare as C  # noqa: E402
+from reference import sawtooth_compare as C  # noqa: E402
 
 N_PATHS = 400_000       # paths per side (tracer and model) per case
 EVAL_PER_CELL = 8192    # eval() queries per histogram cell per case
@@ -128,7 +101,7 @@ def test_nonseparable_eval_integrates_to_sawtooth_cell_fractions(k):
 
 
 def test_separable_model_is_distinguishable_from_sawtooth_ray_tracing():
-    """Forgetting height correlation (MODEL.md §3.7) shows: p ≈ 0 at grazing incidence.
+    """Forgetting height correlation (docs/model.md §7) shows: p ≈ 0 at grazing incidence.
 
     The same data put the non-separable model within noise (L1 at the noise floor),
     and the separable error is largest at grazing incidence for both tangent facets.

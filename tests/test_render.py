@@ -14,50 +14,8 @@ import mitsuba as mi
 mi.set_variant("llvm_ad_rgb")
 mfnormal.register()
 
+from helpers import bumps_normalmap, small_scene  # noqa: E402
 from mfnormal import demo  # noqa: E402
-
-
-def bumps_normalmap(size=64, cells=4, radius=0.4):
-    """Periodic grid of hemispherical bumps, OpenGL convention, as raw rgb in [0, 1]."""
-    c = (np.arange(size) + 0.5) / size * cells
-    x, y = np.meshgrid(c, c)
-    dx, dy = x - np.floor(x) - 0.5, y - np.floor(y) - 0.5
-    r2 = dx * dx + dy * dy
-    inside = r2 < radius * radius
-    h = np.sqrt(np.maximum(radius * radius - r2, 0.0))
-    n = np.stack([np.where(inside, dx, 0.0), np.where(inside, -dy, 0.0),
-                  np.where(inside, h, radius)], axis=-1)
-    n /= np.linalg.norm(n, axis=-1, keepdims=True)
-    return (n * 0.5 + 0.5).astype(np.float32)
-
-
-def small_scene(normalmap, spp=8, width=48, height=36):
-    def material(nested):
-        return {"type": "normalmap_microfacet",
-                "normalmap": {"type": "bitmap", "bitmap": mi.Bitmap(normalmap), "raw": True},
-                "bsdf": nested}
-
-    return {
-        "type": "scene",
-        "integrator": {"type": "path", "max_depth": 6},
-        "sensor": {
-            "type": "perspective", "fov": 45,
-            "to_world": mi.ScalarTransform4f().look_at(origin=[0, 1.2, 4.5], target=[0, 0.6, 0],
-                                                       up=[0, 1, 0]),
-            "sampler": {"type": "independent", "sample_count": spp},
-            "film": {"type": "hdrfilm", "width": width, "height": height,
-                     "rfilter": {"type": "box"}},
-        },
-        "sky": {"type": "constant", "radiance": {"type": "rgb", "value": 0.6}},
-        "sun": {"type": "directional", "direction": [0.5, -0.6, -0.6],
-                "irradiance": {"type": "rgb", "value": 3.0}},
-        "sphere": {"type": "sphere", "center": [0, 1, 0], "radius": 1.0,
-                   "bsdf": material({"type": "roughconductor", "material": "Au", "alpha": 0.2})},
-        "ground": {"type": "rectangle",
-                   "to_world": mi.ScalarTransform4f().rotate([1, 0, 0], -90).scale(10),
-                   "bsdf": material({"type": "diffuse",
-                                     "reflectance": {"type": "rgb", "value": 0.5}})},
-    }
 
 
 def test_plugin_scene_renders_finite_and_lit():

@@ -5,7 +5,7 @@
 Writes PNG figures and ``RESULTS.md`` (tables with the measured numbers) to ``--out``:
 
 - ``microgeometry_polar.png``: exit distributions of the ray-traced sawtooth mesh
-  (Mitsuba's own ray tracer on real microgeometry, ``tests/microgeometry.py``) next to
+  (Mitsuba's own ray tracer on real microgeometry, ``tests/reference/microgeometry.py``) next to
   the ``nonseparable`` and ``separable`` models, on polar axes;
 - ``l1_distances.png``: L1 distance of each model to the ray-traced reference;
 - ``furnace.png``: white-furnace albedo of every model against θ_i;
@@ -14,8 +14,9 @@ Writes PNG figures and ``RESULTS.md`` (tables with the measured numbers) to ``--
 - ``mis_pdf.png``: total-variation distance between the MIS pdf (its density part,
   ``mis_boost_max=1``) and the walk's actual sampling density.
 
-The references live in ``tests/`` (independent of the model code); this script
-imports them from there.
+The references are the package ``tests/reference`` (independent of the model code:
+a ray tracer of real microgeometry, the naive sampled-height estimator); this script
+puts ``tests/`` on its path to import that package and nothing else from the tests.
 """
 
 from __future__ import annotations
@@ -27,7 +28,7 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "tests"))
+sys.path.insert(0, str(ROOT / "tests"))   # for the package tests/reference
 
 import mfnormal  # noqa: E402  (first: selects a working libLLVM)
 
@@ -70,6 +71,28 @@ def sample(bsdf, wi, n, seed):
     return np.array(bs.wo).T, np.array(w)[0] if np.array(w).ndim == 2 and np.array(w).shape[0] == 3 else np.array(w)
 
 
+def bar_chart(path, labels, bars, ylabel, title=None, log=False, figsize=(8, 3.5), fontsize=6, rotation=90):
+    """A bar chart of one or more named series (``bars``: {name: values}) over ``labels``, saved to ``path``."""
+    import matplotlib.pyplot as plt
+    fig, ax = plt.subplots(figsize=figsize)
+    x = np.arange(len(labels))
+    width = 0.8 / len(bars)
+    for k, (name, values) in enumerate(bars.items()):
+        ax.bar(x + (k - (len(bars) - 1) / 2) * width, values, width, label=name)
+    if log:
+        ax.axhline(1.0, color="k", lw=0.5)
+        ax.set_yscale("log")
+    ax.set_xticks(x, labels, rotation=rotation, fontsize=fontsize)
+    ax.set_ylabel(ylabel)
+    if title:
+        ax.set_title(title)
+    if len(bars) > 1:
+        ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
 def cosine_directions(n, seed):
     """Stratified cosine-weighted directions (pdf = cosθ/π)."""
     rng = np.random.default_rng(seed)
@@ -84,7 +107,7 @@ def cosine_directions(n, seed):
 
 def microgeometry(out, quick, results):
     import matplotlib.pyplot as plt
-    import microgeometry as mg
+    from reference import microgeometry as mg
 
     n = 200_000 if quick else 1_000_000
     cases = [(60, 70, 0, WHITE, "specular", "Lambert p, mirror t"),
@@ -115,16 +138,9 @@ def microgeometry(out, quick, results):
     fig.savefig(out / "microgeometry_polar.png", dpi=90)
     plt.close(fig)
 
-    fig, ax = plt.subplots(figsize=(8, 3.5))
-    x = np.arange(len(rows))
-    ax.bar(x - 0.2, [r["nonseparable"] for r in rows], 0.4, label="nonseparable")
-    ax.bar(x + 0.2, [r["separable"] for r in rows], 0.4, label="separable")
-    ax.set_xticks(x, [r["case"].replace(", θ", "\nθ") for r in rows], fontsize=7)
-    ax.set_ylabel("L1 to ray-traced mesh")
-    ax.legend()
-    fig.tight_layout()
-    fig.savefig(out / "l1_distances.png", dpi=90)
-    plt.close(fig)
+    bar_chart(out / "l1_distances.png", [r["case"].replace(", θ", "\nθ") for r in rows],
+              {m: [r[m] for r in rows] for m in ("nonseparable", "separable")}, "L1 to ray-traced mesh",
+              fontsize=7, rotation=0)
     results["microgeometry_l1"] = {"samples": n, "rows": rows}
 
 
@@ -156,10 +172,10 @@ def furnace(out, quick, results):
 
 
 def variance(out, quick, results):
-    import matplotlib.pyplot as plt
     from mfnormal import walk
     from mfnormal.microsurface import decode_normal
     from mfnormal.shading import ShadingPoint
+    from reference.naive_walk import naive_eval
 
     n = 50_000 if quick else 200_000
     nested = mi.load_dict(WHITE)
@@ -174,31 +190,23 @@ def variance(out, quick, results):
                     wo = sph(to, side + 150)
                     wo_v = mi.Vector3f(*[float(c) for c in wo])
                     est = {}
+                    params = walk.WalkParams(separable=False, specular_tangent=tf == "specular", rr_depth=0)
                     for naive in (False, True):
-                        L = walk.eval(sp, wo_v, False, tf == "specular", 1024, mi.Bool(True), sampled_height=naive)
+                        L = naive_eval(sp, wo_v, tf == "specular") if naive else walk.eval(sp, params, wo_v, True)
                         est[naive] = np.array(L)[0]
                     m0, m1 = est[False].mean(), est[True].mean()
                     v0, v1 = est[False].var(), est[True].var()
                     rows.append({"tangent_facet": tf, "theta_p": tp, "theta_i": ti, "theta_o": to, "phi_i": side,
                                  "mean_interval": round(float(m0), 5), "mean_naive": round(float(m1), 5),
                                  "variance_ratio": round(float(v1 / v0), 2) if v0 > 0 else None})
-    fig, ax = plt.subplots(figsize=(8, 3.5))
-    ratios = [r["variance_ratio"] or np.nan for r in rows]
-    ax.bar(range(len(rows)), ratios)
-    ax.axhline(1.0, color="k", lw=0.5)
-    ax.set_yscale("log")
-    ax.set_ylabel("Var(naive) / Var(interval)")
-    ax.set_xticks(range(len(rows)), [f"{r['tangent_facet'][:4]} p{r['theta_p']} i{r['theta_i']}/{r['phi_i']}"
-                                     f" o{r['theta_o']}" for r in rows], rotation=90, fontsize=6)
-    ax.set_title("Non-separable eval: height-interval tracking (Algorithm 2/3) vs a sampled height")
-    fig.tight_layout()
-    fig.savefig(out / "variance.png", dpi=90)
-    plt.close(fig)
+    bar_chart(out / "variance.png", [f"{r['tangent_facet'][:4]} p{r['theta_p']} i{r['theta_i']}/{r['phi_i']}"
+                                     f" o{r['theta_o']}" for r in rows],
+              {"ratio": [r["variance_ratio"] or np.nan for r in rows]}, "Var(naive) / Var(interval)",
+              "Non-separable eval: height-interval tracking (Algorithm 2/3) vs a sampled height", log=True)
     results["variance"] = {"samples": n, "rows": rows}
 
 
 def mis_pdf(out, quick, results):
-    import matplotlib.pyplot as plt
 
     n = 200_000 if quick else 1_000_000
     n_cos, n_phi = 16, 32
@@ -229,15 +237,10 @@ def mis_pdf(out, quick, results):
                 tv = 0.5 * np.abs(hist - cell_pdf / mass).sum()
                 rows.append({"nested": nested_name, "model": model, "tangent_facet": tf, "theta_p": tp,
                              "theta_i": ti, "phi_i": side, "pdf_mass": round(float(mass), 3), "tv": round(float(tv), 3)})
-    fig, ax = plt.subplots(figsize=(9, 3.5))
-    ax.bar(range(len(rows)), [r["tv"] for r in rows])
-    ax.set_xticks(range(len(rows)), [f"{r['nested'][:5]} {r['model'][:6]}/{r['tangent_facet'][:4]} p{r['theta_p']} "
-                                     f"i{r['theta_i']}/{r['phi_i']}" for r in rows], rotation=90, fontsize=6)
-    ax.set_ylabel("TV(pdf, sampler)")
-    ax.set_title("MIS pdf vs the walk's sampling density (total variation, 16x32 cells)")
-    fig.tight_layout()
-    fig.savefig(out / "mis_pdf.png", dpi=90)
-    plt.close(fig)
+    bar_chart(out / "mis_pdf.png", [f"{r['nested'][:5]} {r['model'][:6]}/{r['tangent_facet'][:4]} p{r['theta_p']} "
+                                    f"i{r['theta_i']}/{r['phi_i']}" for r in rows],
+              {"tv": [r["tv"] for r in rows]}, "TV(pdf, sampler)",
+              "MIS pdf vs the walk's sampling density (total variation, 16x32 cells)", figsize=(9, 3.5))
     results["mis_pdf"] = {"samples": n, "rows": rows}
 
 

@@ -6,6 +6,8 @@ the active Mitsuba variant. Call ``mfnormal.register()`` again after
 ``mi.set_variant(...)``.
 """
 
+from __future__ import annotations  # ``str | None`` annotations on Python 3.9
+
 from ._llvm import LLVMError, ensure_llvm
 
 LLVM_PATH = ensure_llvm()

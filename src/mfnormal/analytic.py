@@ -1,4 +1,4 @@
-"""The paper's default model: up to two facet bounces, mirror tangent facet (MODEL.md §2.6).
+"""The paper's default model: up to two facet bounces, mirror tangent facet (docs/model.md §3).
 
     f(ω_i,ω_o)⟨ω_o,ω_g⟩ = λ_p(ω_i)·[ f_p(ω_i,ω_o) G1(ω_o,p)                                   i→p→o
                                    + f_p(ω_i,ω'_o)(1 − G1(ω'_o,p)) G1(ω_o,t) ]            i→p→t→o
@@ -14,8 +14,8 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
+from . import rng
 from .microsurface import negate
-from .shading import ONE_MINUS_EPS, hash_floats, uniform
 
 
 def eval_pdf(sp, wo, active, want_value=True, want_pdf=True):
@@ -61,16 +61,15 @@ def sample(sp, sample1, sample2, active):
 
     # Choose the first facet hit from wi; reuse sample1 for the nested BSDF.
     lp = sp.lambda_p(wi)
-    on_p = sample1 < lp
-    s1 = dr.select(on_p, sample1 / dr.maximum(lp, 1e-30), (sample1 - lp) / dr.maximum(1.0 - lp, 1e-30))
-    s1 = dr.clip(s1, 0.0, ONE_MINUS_EPS)
+    on_p, s1 = rng.choose(sample1, lp)
 
     # Light reaches p directly, or after mirroring off the tangent facet.
     bs, w = sp.sample(sp.frame_p, dr.select(on_p, wi, sp.flip_t(wi)), s1, sample2, active)
     g_p = sp.G1_p(bs.wo)
 
     # Leave after p, or hit the tangent facet and mirror (p→t→o).
-    to_t = on_p & (uniform(hash_floats(0x6d666e31, sample1, sample2.x, sample2.y), 0) >= g_p)
+    seed = rng.hash_floats(rng.SALT_ANALYTIC_SAMPLE, sample1, sample2.x, sample2.y)
+    to_t = on_p & (rng.uniform(seed, rng.SLOT_ANALYTIC_SHADOW) >= g_p)
     wo = dr.select(to_t, sp.flip_t(bs.wo), bs.wo)
     path = dr.select(to_t, sp.G1_t(wo), g_p)
     prob = dr.select(on_p, lp * dr.select(to_t, 1.0 - g_p, g_p), 1.0 - lp)

@@ -39,9 +39,8 @@ import mitsuba as mi
 import numpy as np
 
 from .microsurface import negate
-from .shading import ONE_MINUS_EPS, hash_floats, uniform
+from .rng import ONE_MINUS_EPS, SALT_FAITHFUL_SAMPLE, SLOT_FAITHFUL_BLOCKED, hash_floats, uniform
 
-SAMPLE_SALT = 0x6d666e34
 INV_PI = 1.0 / math.pi
 SQRT_PI = math.sqrt(math.pi)
 # Λ(a) < 1e-8 beyond this a = 1/(√2 σ tanθ): treat as unmasked.
@@ -279,7 +278,7 @@ class Model:
         frame = _select_frame(on_tex, sp.frame_p, macro_frame())
         bs, w = sp.sample(frame, wi, s1, sample2, active & (on_tex | on_hid))
         # Texel branch: the sample leaves past the neighbours, or is blocked and bounced.
-        u = uniform(hash_floats(SAMPLE_SALT, sample1, sample2.x, sample2.y), 0)
+        u = uniform(hash_floats(SALT_FAITHFUL_SAMPLE, sample1, sample2.x, sample2.y), SLOT_FAITHFUL_BLOCKED)
         s_b = tx.seen(bs.wo)
         bounced = on_tex & (u >= s_b)
         wo = dr.select(bounced, tx.bounce(bs.wo), bs.wo)

@@ -1,4 +1,4 @@
-"""The two-facet microsurface of Schüßler et al. 2017 (MODEL.md §2.1-2.2, §3.2).
+"""The two-facet microsurface of Schüßler et al. 2017 (docs/model.md §2.1-2.3).
 
 Pure functions on Dr.Jit arrays of the active Mitsuba variant. Every direction is
 expressed in the local frame whose +z axis is the geometric (base shading) normal
@@ -9,7 +9,7 @@ expressed in the local frame whose +z axis is the geometric (base shading) norma
   leans; ``sin_p`` = sinθ_p is its area factor;
 - λ_p, λ_t: probability that a ray from ω hits p or t first;
 - G1(ω, ω_m): visible fraction of facet m seen from ω (Smith form, robust t̃
-  variant of MODEL.md §2.1: no division by sinθ_p).
+  variant of docs/model.md §2.1: no division by sinθ_p).
 """
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-# Smallest cosθ_p we accept: steeper normals are clamped to this (MODEL.md §2.9).
+# Smallest cosθ_p we accept: steeper normals are clamped to this (docs/model.md §8).
 COS_P_MIN = 0.02
 # Below this sinθ_p the tangent facet has no area and ω_t is arbitrary.
 SIN_P_EPS = 1e-7
@@ -99,7 +99,7 @@ def one_minus_G1_p(w, wp):
     """1 − G1(ω, ω_p) without cancellation: ⟨ω_xy, p_xy⟩₊ / ⟨ω, ω_p⟩ (1 where G1 = 0).
 
     From G1 = cosθ_p⟨ω,ω_g⟩/⟨ω,ω_p⟩ when ⟨ω,ω_t⟩ ≤ 0 and G1 = 1 otherwise; exact
-    reciprocity of the analytic model rests on this small number (MODEL.md §2.6).
+    reciprocity of the analytic model rests on this small number (docs/model.md §3.3).
     """
     cos_p = dr.dot(w, wp)
     num = _pos(dr.fma(w.x, wp.x, w.y * wp.y))
@@ -130,7 +130,7 @@ def flip_t(w, wt):
 def facet_frame(wm):
     """Local frame of facet m: the minimal rotation taking ω_g = z to ω_m.
 
-    Continuous in ω_m, identity at ω_m = z (MODEL.md §2.10); needs wm.z > -1.
+    Continuous in ω_m, identity at ω_m = z (docs/model.md §2.3); needs wm.z > -1.
     """
     k = dr.rcp(1.0 + wm.z)
     s = mi.Vector3f(1.0 - wm.x * wm.x * k, -wm.x * wm.y * k, -wm.x)
@@ -138,7 +138,7 @@ def facet_frame(wm):
     return mi.Frame3f(s, t, wm)
 
 
-# -- The sawtooth height map (MODEL.md §3.1-3.2) --------------------------------
+# -- The sawtooth height map (docs/model.md §1, §2.2) --------------------------------
 #
 # Crest height 1; heights h ∈ [0, 1] measured from the foot of the t wall. A ray
 # leaving facet m at height h with travel direction d hits the other facet at

@@ -82,10 +82,11 @@ Contracts (each one is tested):
 
 - ``eval`` returns :math:`f\cdot\langle\omega_o,\omega_g\rangle` in the base
   shading frame (:math:`\omega_g` = +z of ``si.sh_frame``), zero below it;
-- ``eval_pdf`` equals ``(eval, pdf)``; ``pdf`` is the exact density of
-  ``sample`` and a deterministic function of (wi, wo);
-- a sample's weight equals ``eval / pdf`` (for delta nested lobes it is the
-  unbiased path weight);
+- ``eval_pdf`` equals ``(eval, pdf)``; ``pdf`` is a deterministic function of
+  (wi, wo): for ``analytic`` the exact density of ``sample``, for the random
+  walks a function for MIS (below);
+- a sample's weight is ``eval / pdf`` (``analytic``; for delta nested lobes the
+  unbiased path weight), or the walk's throughput, an unbiased estimate of it;
 - normals that are NaN, infinite, zero, or point below the horizon never
   produce NaN: they decode to the flat normal, or are clamped to
   :math:`\cos\theta_p \ge 0.02`. A flat map reproduces the nested BSDF.
@@ -192,7 +193,7 @@ class NormalMapMicrofacet:
         if self.model in ("analytic", "faithful") and self.tangent_facet != "specular":
             _fail(f"tangent_facet 'same' needs model='separable' or 'nonseparable'; the {self.model} "
                   "model has no tangent facet of the nested material")
-        self.max_bounces = int(props.get("max_bounces", 1024))
+        self.max_bounces = int(props.get("max_bounces", walk.MAX_BOUNCES))
         if self.max_bounces < 1:
             _fail(f"max_bounces must be >= 1, got {self.max_bounces}")
         self.rr_depth = int(props.get("rr_depth", walk.RR_DEPTH))
@@ -215,6 +216,9 @@ class NormalMapMicrofacet:
             _fail(f"tangents must be '{MITSUBA_TANGENTS}' or a vertex attribute name such as "
                   f"'vertex_tangent', got '{tangents}'")
         self.tangent_attr = None if tangents == MITSUBA_TANGENTS else tangents
+        self.walk_params = None if self.model in ("analytic", "faithful") else walk.WalkParams(
+            separable=self.model == "separable", specular_tangent=self.tangent_facet == "specular",
+            max_bounces=self.max_bounces, rr_depth=self.rr_depth, mis_boost_max=self.mis_boost_max)
         self.faithful = (faithful.Model(self.nested, self._map_rms_slope(), COS_P_MIN)
                          if self.model == "faithful" else None)
 
@@ -266,7 +270,7 @@ class NormalMapMicrofacet:
                 normals.append([n.x, n.y, n.z])
         return faithful.rms_slope(np.array(normals))
 
-    def _shading_point(self, ctx, si, active):
+    def shading_point(self, ctx, si, active=True):
         """The microsurface at ``si``: ω_p from the normal map, in the base shading frame."""
         rgb = self.normalmap.eval_3(si, active)
         wp = decode_normal(rgb, self.strength, self.directx)
@@ -287,62 +291,52 @@ class NormalMapMicrofacet:
             dr.is_jit_v(mi.Float) or shape.has_attribute(name + "_sign")) else 1.0
         return from_tangent_frame(wp, si.sh_frame, tangent, sign)
 
-    def _walk_args(self):
-        return self.model == "separable", self.tangent_facet == "specular", self.max_bounces
-
     def _texel(self, sp, wi=None):
         return self.faithful.texel(sp, sp.wi if wi is None else wi)
 
-    @staticmethod
-    def _adjoint(ctx):
-        """Light tracing asks for the adjoint BSDF; only the faithful model is not reciprocal."""
-        return ctx.mode == mi.TransportMode.Importance
+    def _faithful_eval_pdf(self, ctx, sp, wo, active, want_value=True, want_pdf=True):
+        """The faithful model's (eval, pdf); light tracing (``TransportMode.Importance``) gets its
+        adjoint, for it is the one model that is not reciprocal."""
+        if ctx.mode == mi.TransportMode.Importance:
+            return self.faithful.eval_pdf_adjoint(sp, self._texel(sp), self._texel(sp, wo), active,
+                                                  lambda b: self._texel(sp, b), want_value, want_pdf)
+        return self.faithful.eval_pdf(sp, self._texel(sp), wo, active, want_value, want_pdf)
 
     def sample(self, ctx, si, sample1, sample2, active=True):
-        sp = self._shading_point(ctx, si, active)
+        sp = self.shading_point(ctx, si, active)
         if self.model == "faithful":
-            if self._adjoint(ctx):
+            if ctx.mode == mi.TransportMode.Importance:
                 return self.faithful.sample_adjoint(sp, self._texel(sp), sample1, sample2, mi.Bool(active),
                                                     lambda b: self._texel(sp, b))
             return self.faithful.sample(sp, self._texel(sp), sample1, sample2, mi.Bool(active))
         if self.model == "analytic":
             return analytic.sample(sp, sample1, sample2, mi.Bool(active))
-        return walk.sample(sp, sample1, sample2, *self._walk_args(), mi.Bool(active), self.mis_boost_max,
-                           rr_depth=self.rr_depth)
+        return walk.sample(sp, self.walk_params, sample1, sample2, mi.Bool(active))
 
     def eval(self, ctx, si, wo, active=True):
-        sp = self._shading_point(ctx, si, active)
+        sp = self.shading_point(ctx, si, active)
         if self.model == "faithful":
-            if self._adjoint(ctx):
-                return self.faithful.eval_pdf_adjoint(sp, self._texel(sp), self._texel(sp, wo), mi.Bool(active),
-                                                      lambda b: self._texel(sp, b), want_pdf=False)[0]
-            return self.faithful.eval_pdf(sp, self._texel(sp), wo, mi.Bool(active), want_pdf=False)[0]
+            return self._faithful_eval_pdf(ctx, sp, wo, mi.Bool(active), want_pdf=False)[0]
         if self.model == "analytic":
             return analytic.eval_pdf(sp, wo, mi.Bool(active), want_pdf=False)[0]
-        return walk.eval(sp, wo, *self._walk_args(), mi.Bool(active), rr_depth=self.rr_depth)
+        return walk.eval(sp, self.walk_params, wo, mi.Bool(active))
 
     def pdf(self, ctx, si, wo, active=True):
-        sp = self._shading_point(ctx, si, active)
+        sp = self.shading_point(ctx, si, active)
         if self.model == "faithful":
-            if self._adjoint(ctx):
-                return self.faithful.eval_pdf_adjoint(sp, self._texel(sp), self._texel(sp, wo), mi.Bool(active),
-                                                      lambda b: self._texel(sp, b), want_value=False)[1]
-            return self.faithful.eval_pdf(sp, self._texel(sp), wo, mi.Bool(active), want_value=False)[1]
+            return self._faithful_eval_pdf(ctx, sp, wo, mi.Bool(active), want_value=False)[1]
         if self.model == "analytic":
             return analytic.eval_pdf(sp, wo, mi.Bool(active), want_value=False)[1]
-        return walk.mis_pdf(sp, wo, *self._walk_args()[:2], mi.Bool(active), self.mis_boost_max)
+        return walk.mis_pdf(sp, self.walk_params, wo, mi.Bool(active))
 
     def eval_pdf(self, ctx, si, wo, active=True):
-        sp = self._shading_point(ctx, si, active)
+        sp = self.shading_point(ctx, si, active)
         if self.model == "faithful":
-            if self._adjoint(ctx):
-                return self.faithful.eval_pdf_adjoint(sp, self._texel(sp), self._texel(sp, wo), mi.Bool(active),
-                                                      lambda b: self._texel(sp, b))
-            return self.faithful.eval_pdf(sp, self._texel(sp), wo, mi.Bool(active))
+            return self._faithful_eval_pdf(ctx, sp, wo, mi.Bool(active))
         if self.model == "analytic":
             return analytic.eval_pdf(sp, wo, mi.Bool(active))
-        return (walk.eval(sp, wo, *self._walk_args(), mi.Bool(active), rr_depth=self.rr_depth),
-                walk.mis_pdf(sp, wo, *self._walk_args()[:2], mi.Bool(active), self.mis_boost_max))
+        return (walk.eval(sp, self.walk_params, wo, mi.Bool(active)),
+                walk.mis_pdf(sp, self.walk_params, wo, mi.Bool(active)))
 
     def to_string(self):
         return (f"NormalMapMicrofacet[model={self.model}, tangent_facet={self.tangent_facet}, "

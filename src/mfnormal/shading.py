@@ -7,51 +7,10 @@ and the nested BSDF evaluated or sampled in a facet's frame.
 
 from __future__ import annotations
 
-import struct
-
 import drjit as dr
 import mitsuba as mi
 
 from . import microsurface as ms
-
-ONE_MINUS_EPS = 0.99999994  # largest float32 below 1
-
-
-def bits(x):
-    """The IEEE bits of a float32 (Dr.Jit array or, in scalar variants, a Python float)."""
-    if isinstance(x, float):
-        return struct.unpack("<I", struct.pack("<f", x))[0]
-    return dr.reinterpret_array(mi.UInt32, mi.Float32(x))
-
-
-MASK32 = 0xFFFFFFFF
-
-
-def _mul32(a, b):
-    """32-bit wrapping product (Dr.Jit UInt32 wraps; Python ints of scalar variants need the mask)."""
-    return (a * b) & MASK32 if isinstance(a, int) else a * b
-
-
-def mix32(h):
-    """MurmurHash3's 32-bit finaliser: a cheap, well-mixed bijection of UInt32."""
-    h = _mul32(h ^ (h >> 16), 0x85EBCA6B)
-    h = _mul32(h ^ (h >> 13), 0xC2B2AE35)
-    return h ^ (h >> 16)
-
-
-def hash_floats(salt, *values):
-    """A well-mixed 32-bit seed from float inputs (their bits, combined and mixed)."""
-    h = mi.UInt32(salt)
-    for v in values:
-        h = mix32(h ^ _mul32(bits(v) ^ 0x9E3779B9, 0x01000193))
-    return h
-
-
-def uniform(seed, counter):
-    """The counter-th uniform number of the stream ``seed`` (stateless, deterministic)."""
-    h = mix32(seed ^ _mul32(mi.UInt32(counter) + 1, 0x9E3779B9))
-    return dr.minimum(mi.Float(h >> 8) * (1.0 / 16777216.0), ONE_MINUS_EPS)
-
 
 def from_tangent_frame(wp, frame, tangent, sign):
     """ω_p decoded in a vertex tangent frame, re-expressed in ``frame`` (the base shading frame).
@@ -92,6 +51,7 @@ class ShadingPoint:
         self.wp = dr.select(self.sin_p > 0, wp, mi.Vector3f(0.0, 0.0, 1.0))
         self.frame_p = ms.facet_frame(self.wp)
         self.frame_t = ms.facet_frame(self.wt)
+        self.cot_p = ms.cot_p(self.wp, self.sin_p)
 
     # Masking and intersection probabilities at this point
     def lambda_p(self, w):
@@ -114,6 +74,10 @@ class ShadingPoint:
 
     def flip_t(self, w):
         return ms.flip_t(w, self.wt)
+
+    def crest_map(self, on_p, d):
+        """(τ, κ) of a ray leaving facet p (``on_p``) or t along d (microsurface.crest_map)."""
+        return ms.crest_map(on_p, d, self.wt, self.cot_p)
 
     # The nested BSDF on a facet
     def facet_si(self, frame, wi):

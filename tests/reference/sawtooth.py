@@ -1,4 +1,4 @@
-"""Brute-force ray tracer of the periodic sawtooth microsurface (MODEL.md §2.2, §3.1).
+"""Brute-force ray tracer of the periodic sawtooth microsurface (docs/model.md §2.2).
 
 An independent numpy reference for the tests: it shares no code with ``mfnormal``
 and uses none of the closed-form λ / G1 / κ formulas. Everything it reports comes

@@ -7,11 +7,11 @@ reflectance of the microgeometry is measured by shooting rays at an actual mesh
 with ``scene.ray_intersect`` and scattering them with the facets' own Mitsuba
 BSDFs (``si.bsdf().sample``) until they escape.
 
-Geometry (MODEL.md §2.2, §3.1)
+Geometry (docs/model.md §2.2)
 ------------------------------
 All directions are in the *tilt frame*: ω_g = +z and ω_p leans toward +x,
 ω_p = (sinθ_p, 0, cosθ_p). The tangent facet normal is ω_t = normalize(−p_x, −p_y, 0)
-= (−1, 0, 0). The cross-section basis of ``tests/sawtooth.py`` is
+= (−1, 0, 0). The cross-section basis of ``sawtooth.py`` is
 
     e_X = ω_t,  e_Y = ω_g × ω_t = (0, −1, 0),  e_Z = ω_g,
 

@@ -1,10 +1,10 @@
 """Exit-direction histograms of the random-walk models next to the brute-force sawtooth tracer.
 
 Shared by ``tests/test_nonseparable_vs_sawtooth.py`` and by anything that wants to
-plot the comparison (add ``tests/`` to ``sys.path`` and call :func:`case_histograms`).
+plot the comparison (``from reference import sawtooth_compare``, with ``tests/`` on the path).
 Needs ``llvm_ad_rgb`` active and ``mfnormal.register()`` called for the model parts.
 
-Cases (MODEL.md §3.3/§3.7): white Lambertian p facets, a mirror or white Lambertian
+Cases (docs/model.md §4, §7): white Lambertian p facets, a mirror or white Lambertian
 tangent facet, θ_p ∈ {30°, 60°}, θ_i ∈ {20°, 70°}, ω_i on the side ω_p leans to
 ("toward", λ_p = 1) or on the tangent-wall side ("away"). The tilt azimuth is 40°
 and ω_i's azimuth is 15° off the tilt plane, so no direction lies on a frame axis
@@ -26,7 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import stats
 
-import sawtooth as sw
+from . import sawtooth as sw
 
 PHI_P_DEG = 40.0       # azimuth of the tilt of ω_p
 PHI_I_OFFSET_DEG = 15.0  # ω_i's azimuth off the tilt plane

@@ -1,0 +1,163 @@
+"""What the tests share: directions, normal-map texels, the plugin on a texel row, queries, tiny scenes.
+
+Per-query normals come from an N×1 float32 bitmap with nearest filtering: a query
+whose ``si.uv`` points at the centre of texel k sees the normal of texel k, so
+one BSDF answers a batch of queries with different ω_p. ``si.p`` feeds the random
+walks' eval hash, so queries that should be independent get distinct positions.
+Everything here runs in the variant that is active when it is called.
+"""
+
+from __future__ import annotations
+
+import math
+
+import mfnormal  # noqa: F401  (first: selects a working libLLVM)
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+WHITE = {"type": "diffuse", "reflectance": {"type": "rgb", "value": [1.0, 1.0, 1.0]}}
+
+
+# -- Directions and texels (numpy, float64) ------------------------------------------------
+
+
+def sph(theta_deg, phi=0.0):
+    """Unit vector(s) at polar angle θ (degrees) and azimuth φ (radians)."""
+    t = np.radians(np.asarray(theta_deg, np.float64))
+    phi = np.asarray(phi, np.float64)
+    return np.stack(np.broadcast_arrays(np.sin(t) * np.cos(phi), np.sin(t) * np.sin(phi), np.cos(t)), -1)
+
+
+def random_hemisphere(rng, n, z_min=0.0):
+    """Uniform directions on the upper hemisphere (z > z_min)."""
+    z = rng.uniform(z_min, 1.0, n)
+    phi = rng.uniform(0.0, 2.0 * np.pi, n)
+    r = np.sqrt(np.maximum(0.0, 1.0 - z * z))
+    return np.stack([r * np.cos(phi), r * np.sin(phi), z], -1)
+
+
+def encode(wp):
+    """Raw float32 texels whose decode 2·rgb − 1 is ω_p."""
+    return (np.asarray(wp, np.float64) * 0.5 + 0.5).astype(np.float32)
+
+
+def decode_ref(texels):
+    """float64 normalize(2·rgb − 1) of float32 texels: the ω_p the plugin should see."""
+    n = 2.0 * np.asarray(texels, np.float64) - 1.0
+    return n / np.linalg.norm(n, axis=-1, keepdims=True)
+
+
+def p_two_sided(z):
+    """Two-sided normal p-value of z-scores."""
+    return np.array([math.erfc(abs(x) / math.sqrt(2.0)) for x in np.ravel(z)]).reshape(np.shape(z))
+
+
+# -- Dr.Jit <-> numpy ------------------------------------------------------------------------
+
+
+def vec3(a):
+    """mi.Vector3f from (n, 3) or (3,) values (as float32)."""
+    a = np.asarray(a, np.float32).reshape(-1, 3)
+    return mi.Vector3f(a[:, 0], a[:, 1], a[:, 2])
+
+
+def np3(v, n=None):
+    """(n, 3) float64 array from a Dr.Jit 3-vector or colour (width-1 literals broadcast to n)."""
+    a = np.array(v, dtype=np.float64).reshape(3, -1).T
+    return a if n is None else np.broadcast_to(a, (n, 3)).copy()
+
+
+def np1(v, n=None):
+    """(n,) float64 array from a Dr.Jit float (width-1 literals broadcast to n)."""
+    a = np.array(v, dtype=np.float64).reshape(-1)
+    return a if n is None else np.broadcast_to(a, (n,)).copy()
+
+
+# -- The plugin and its queries ------------------------------------------------------------
+
+
+def normalmap(texels):
+    """A 1×N raw bitmap texture of the texels, nearest filtering."""
+    tex = np.array(texels, np.float32).reshape(1, -1, 3).copy()
+    return {"type": "bitmap", "bitmap": mi.Bitmap(tex), "raw": True, "filter_type": "nearest"}
+
+
+def make_bsdf(nested, texels, model=None, tangent_facet=None, **params):
+    """``normalmap_microfacet`` around ``nested`` on the texel row (model and tangent facet
+    left to the plugin's defaults where None)."""
+    d = {"type": "normalmap_microfacet", "normalmap": normalmap(texels), "bsdf": nested, **params}
+    if model is not None:
+        d["model"] = model
+    if tangent_facet is not None:
+        d["tangent_facet"] = tangent_facet
+    return mi.load_dict(d)
+
+
+def make_si(wi, n_texels=1, texel_index=None, p_index=None):
+    """Interactions with wi (n×3) in the flat frame, uv on texel ``texel_index`` (default:
+    query k on texel k mod n_texels) and si.p = (k mod 2²², k div 2²², 0) for the query
+    numbers k = ``p_index`` (default: all at the origin)."""
+    wi = np.asarray(wi, np.float64).reshape(-1, 3)
+    n = wi.shape[0]
+    if texel_index is None:
+        texel_index = np.arange(n) % n_texels
+    si = dr.zeros(mi.SurfaceInteraction3f, n)
+    si.wi = vec3(wi)
+    u = (np.broadcast_to(np.asarray(texel_index, np.float64), (n,)) + 0.5) / n_texels
+    si.uv = mi.Point2f(u.astype(np.float32), np.full(n, 0.5, np.float32))
+    if p_index is not None:
+        k = np.broadcast_to(np.asarray(p_index, np.int64), (n,))
+        si.p = mi.Point3f((k % (1 << 22)).astype(np.float32), (k // (1 << 22)).astype(np.float32),
+                          np.zeros(n, np.float32))
+    si.sh_frame = mi.Frame3f(mi.Vector3f(1, 0, 0), mi.Vector3f(0, 1, 0), mi.Vector3f(0, 0, 1))
+    si.n = mi.Normal3f(0, 0, 1)
+    return si
+
+
+# -- Tiny scenes ----------------------------------------------------------------------------
+
+
+def bumps_normalmap(size=64, cells=4, radius=0.4):
+    """Periodic grid of hemispherical bumps, OpenGL convention, as raw rgb in [0, 1]."""
+    c = (np.arange(size) + 0.5) / size * cells
+    x, y = np.meshgrid(c, c)
+    dx, dy = x - np.floor(x) - 0.5, y - np.floor(y) - 0.5
+    r2 = dx * dx + dy * dy
+    inside = r2 < radius * radius
+    h = np.sqrt(np.maximum(radius * radius - r2, 0.0))
+    n = np.stack([np.where(inside, dx, 0.0), np.where(inside, -dy, 0.0),
+                  np.where(inside, h, radius)], axis=-1)
+    n /= np.linalg.norm(n, axis=-1, keepdims=True)
+    return (n * 0.5 + 0.5).astype(np.float32)
+
+
+def small_scene(normalmap_texels, spp=8, width=48, height=36):
+    """A normal-mapped gold sphere on a normal-mapped diffuse ground, sky and sun (a dict)."""
+    def material(nested):
+        return {"type": "normalmap_microfacet",
+                "normalmap": {"type": "bitmap", "bitmap": mi.Bitmap(normalmap_texels), "raw": True},
+                "bsdf": nested}
+
+    return {
+        "type": "scene",
+        "integrator": {"type": "path", "max_depth": 6},
+        "sensor": {
+            "type": "perspective", "fov": 45,
+            "to_world": mi.ScalarTransform4f().look_at(origin=[0, 1.2, 4.5], target=[0, 0.6, 0],
+                                                       up=[0, 1, 0]),
+            "sampler": {"type": "independent", "sample_count": spp},
+            "film": {"type": "hdrfilm", "width": width, "height": height,
+                     "rfilter": {"type": "box"}},
+        },
+        "sky": {"type": "constant", "radiance": {"type": "rgb", "value": 0.6}},
+        "sun": {"type": "directional", "direction": [0.5, -0.6, -0.6],
+                "irradiance": {"type": "rgb", "value": 3.0}},
+        "sphere": {"type": "sphere", "center": [0, 1, 0], "radius": 1.0,
+                   "bsdf": material({"type": "roughconductor", "material": "Au", "alpha": 0.2})},
+        "ground": {"type": "rectangle",
+                   "to_world": mi.ScalarTransform4f().rotate([1, 0, 0], -90).scale(10),
+                   "bsdf": material({"type": "diffuse",
+                                     "reflectance": {"type": "rgb", "value": 0.5}})},
+    }

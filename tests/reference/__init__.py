@@ -1,0 +1,14 @@
+"""Independent references for the tests and for ``validation/run.py``.
+
+Each one is written from the geometry of the microsurface, not from the model
+code it checks (docs/model.md §7):
+
+- ``sawtooth``: a numpy brute-force ray tracer of the periodic sawtooth cross-section;
+- ``microgeometry``: Mitsuba's own ray tracer on a real triangle mesh of that sawtooth;
+- ``sawtooth_compare``: exit-direction histograms of the models next to ``sawtooth``;
+- ``naive_walk``: the non-separable evaluation with one sampled height and binary
+  shadow tests, the estimator the supplemental's interval tracking improves on.
+
+The package imports nothing from the test modules, so ``validation/run.py`` can
+import it with only ``tests/`` on its path.
+"""
