@@ -23,8 +23,14 @@ VARIANT = "llvm_ad_rgb"
 mi.set_variant(VARIANT)
 mfnormal.register()
 
-from helpers import (WHITE, decode_ref, encode, make_bsdf, make_si, normalmap, np1, np3,  # noqa: E402
+import helpers  # noqa: E402
+from helpers import (WHITE, decode_ref, encode, make_si, normalmap, np1, np3,  # noqa: E402
                      random_hemisphere, sph, vec3)
+
+
+def make_bsdf(nested, texels, **params):
+    """The plugin with model="analytic" (the default model is another one)."""
+    return helpers.make_bsdf(nested, texels, **{"model": "analytic", **params})
 
 # The nested BSDFs required by the acceptance criteria.
 NESTED = {
@@ -165,8 +171,8 @@ def test_sampler_matches_pdf_chi2(nested):
     for seed, (tilt, theta_i, phi) in enumerate(chi2_cases()):
         t = np.radians(theta_i)
         wi = mi.Vector3f(float(np.sin(t) * np.cos(phi)), float(np.sin(t) * np.sin(phi)), float(np.cos(t)))
-        spec = {"type": "normalmap_microfacet", "normalmap": normalmap(encode(sph(tilt))),
-                "bsdf": NESTED[nested]}
+        spec = {"type": "normalmap_microfacet", "model": "analytic",
+                "normalmap": normalmap(encode(sph(tilt))), "bsdf": NESTED[nested]}
         sample_func, pdf_func = BSDFAdapter("normalmap_microfacet", spec, wi=wi)
         test = ChiSquareTest(domain=SphericalDomain(), sample_func=finite_zero_weight_directions(sample_func),
                              pdf_func=pdf_func, sample_dim=3, sample_count=500_000, res=128, ires=32, seed=seed)
@@ -636,8 +642,8 @@ def test_invalid_parameters_raise_clear_errors(override, word):
     normalmap_microfacet", which names the plugin anyway) must name the parameter.
     Mitsuba re-raises the ValueError as a RuntimeError carrying its text.
     (model='separable' is no longer invalid: the random-walk models exist now.)"""
-    spec = {"type": "normalmap_microfacet", "normalmap": normalmap(encode(sph([30.0]))),
-            "bsdf": NESTED["diffuse"]}
+    spec = {"type": "normalmap_microfacet", "model": "analytic",
+            "normalmap": normalmap(encode(sph([30.0]))), "bsdf": NESTED["diffuse"]}
     spec.update(override)
     spec = {k: v for k, v in spec.items() if v is not None}
     with pytest.raises((ValueError, RuntimeError), match=rf"normalmap_microfacet: [^\n]*\b{word}\b"):
@@ -666,7 +672,7 @@ SCALAR_SCRIPT = textwrap.dedent("""
     out = []
     for k in range(len(q["wi"])):
         tex = np.asarray(q["texels"][k], np.float32).reshape(1, 1, 3)
-        b = mi.load_dict({"type": "normalmap_microfacet", "bsdf": nested,
+        b = mi.load_dict({"type": "normalmap_microfacet", "model": "analytic", "bsdf": nested,
                           "normalmap": {"type": "bitmap", "bitmap": mi.Bitmap(tex), "raw": True,
                                         "filter_type": "nearest"}})
         si = mi.SurfaceInteraction3f()
@@ -720,7 +726,8 @@ def test_works_inside_twosided(nested):
     texels = encode(random_tilts(rng, n, 70.0))
     inner = make_bsdf(NESTED[nested], texels)
     twosided = mi.load_dict({"type": "twosided", "bsdf": {
-        "type": "normalmap_microfacet", "normalmap": normalmap(texels), "bsdf": NESTED[nested]}})
+        "type": "normalmap_microfacet", "model": "analytic", "normalmap": normalmap(texels),
+        "bsdf": NESTED[nested]}})
     mirror = np.array([1.0, 1.0, -1.0])
     wi, wo = random_hemisphere(rng, n), random_hemisphere(rng, n)
     s1, s2 = rng.random(n), rng.random((n, 2))
