@@ -25,13 +25,18 @@ import numpy as np
 
 from .images import atomic_write
 
-__all__ = ["MODEL_XML", "torus_knot_mesh", "write_ply", "make_domes_normalmap",
-           "make_roughness_map", "generate_model_assets", "model_parameters"]
+__all__ = ["MODEL_XML", "EGGCRATE_XML", "torus_knot_mesh", "write_ply", "make_domes_normalmap",
+           "make_roughness_map", "generate_model_assets", "model_parameters",
+           "make_eggcrate_normalmap", "generate_eggcrate_assets", "eggcrate_parameters"]
 
 #: Scene (b): the model scene (single source of truth).
 MODEL_XML = Path(__file__).resolve().parent / "scenes" / "model.xml"
 
+#: Scene (c): the egg crate at grazing view.
+EGGCRATE_XML = Path(__file__).resolve().parent / "scenes" / "eggcrate.xml"
+
 MESH_NAME = "knot.ply"
+EGGCRATE_NAME = "eggcrate.png"
 NORMALMAP_NAME = "domes.png"
 ROUGHNESS_NAME = "roughness.exr"
 ENVMAP_NAME = "envmap.exr"
@@ -233,6 +238,45 @@ def model_parameters(assets: dict) -> dict:
     params = {k: str(Path(assets[k]).resolve()) for k in ("mesh", "normalmap", "roughness", "envmap")}
     params["roughness_scale"] = repr(1.0 / float(assets["u_max"]))
     return params
+
+
+# ---------------------------------------------------------------------------
+# Scene (c): the egg crate
+# ---------------------------------------------------------------------------
+
+def make_eggcrate_normalmap(size: int = 256, cells: int = 4, max_tilt_deg: float = 70.0) -> np.ndarray:
+    """Unit normals (``size`` x ``size`` x 3, OpenGL convention) of the egg crate
+    h = A·sin(2πk x)·sin(2πk y), k = ``cells``, whose steepest slope is ``max_tilt_deg``.
+    Periodic: it tiles."""
+    c = (np.arange(size) + 0.5) / size
+    x, y = np.meshgrid(c, 1.0 - c)                     # image row 0 is the top (v = 0), +y up
+    w = 2.0 * np.pi * cells
+    amp = np.tan(np.radians(max_tilt_deg)) / w         # max |∇h| = A·w (at sin·cos = 1 on an axis)
+    hx = amp * w * np.cos(w * x) * np.sin(w * y)
+    hy = amp * w * np.sin(w * x) * np.cos(w * y)
+    n = np.stack([-hx, -hy, np.ones_like(hx)], axis=-1)
+    return (n / np.linalg.norm(n, axis=-1, keepdims=True)).astype(np.float32)
+
+
+def generate_eggcrate_assets(assets_dir) -> dict:
+    """Write the textures of scene (c) into ``assets_dir``; returns ``{'normalmap', 'envmap'}``."""
+    import mitsuba as mi
+
+    from .demo import encode_normalmap, make_envmap
+
+    assets_dir = Path(assets_dir)
+    paths = {"normalmap": assets_dir / EGGCRATE_NAME, "envmap": assets_dir / ENVMAP_NAME}
+    normals = mi.Bitmap(encode_normalmap(make_eggcrate_normalmap()))
+    # The sun 20° up, ahead of the camera and to its left: glints off slopes facing back.
+    sky = mi.Bitmap(make_envmap(sun_direction=(-0.5, 0.34, -0.8)), mi.Bitmap.PixelFormat.RGB)
+    atomic_write(paths["normalmap"], lambda p: normals.write(str(p), mi.Bitmap.FileFormat.PNG))
+    atomic_write(paths["envmap"], lambda p: sky.write(str(p), mi.Bitmap.FileFormat.OpenEXR))
+    return paths
+
+
+def eggcrate_parameters(assets: dict) -> dict:
+    """The ``$name`` substitutions of :data:`EGGCRATE_XML` for generated ``assets``."""
+    return {k: str(Path(assets[k]).resolve()) for k in ("normalmap", "envmap")}
 
 
 def default_assets_dir() -> Path:

@@ -47,7 +47,7 @@ __all__ = ["Method", "METHODS", "SceneError", "SceneSource", "scene_source", "re
            "compare"]
 
 PLUGIN = "normalmap_microfacet"
-BUNDLED = ("demo", "model")
+BUNDLED = ("demo", "model", "eggcrate")
 
 #: relMSE = mean((x − ref)² / (ref² + REL_MSE_EPS))
 REL_MSE_EPS = 1e-2
@@ -83,6 +83,9 @@ METHODS = (
     Method("classic_fixed", "normalmap + fixes", "classic", fixes=True,
            about="Mitsuba's normalmap with flip_invalid_normals and use_shadowing_function "
                  "on (its defaults)"),
+    Method("faithful", "faithful (default)", "microfacet", "faithful",
+           about="normalmap_microfacet, model=faithful (the default): the texel among neighbours "
+                 "of the map's own rms slope, energy kept, light tracing sees its adjoint"),
     Method("analytic", "analytic", "microfacet", "analytic", "specular",
            about="normalmap_microfacet, model=analytic (≤ 2 facet bounces, mirror tangent facet)"),
     Method("separable_specular", "separable / specular", "microfacet", "separable", "specular",
@@ -127,6 +130,12 @@ def scene_source(scene: str, assets_root, params: dict | None = None) -> SceneSo
         return SceneSource("model", model_assets.MODEL_XML,
                            {**model_assets.model_parameters(assets), **params},
                            "(b) model: torus knot with textured roughness")
+    if scene == "eggcrate":
+        from . import assets as model_assets
+        assets = model_assets.generate_eggcrate_assets(Path(assets_root) / "eggcrate")
+        return SceneSource("eggcrate", model_assets.EGGCRATE_XML,
+                           {**model_assets.eggcrate_parameters(assets), **params},
+                           "(c) egg crate: glossy metal at 78° from the vertical")
     path = Path(scene)
     if not path.is_file():
         raise SceneError(f"scene file not found: {path}"
@@ -171,7 +180,7 @@ def _convert(el: ET.Element, method: Method, values: dict, notes: set) -> ET.Ele
     el = copy.deepcopy(el)
     if method.kind == "microfacet":
         _set_prop(el, "string", "model", method.model)
-        if method.model == "analytic":
+        if method.model in ("analytic", "faithful"):
             _remove_props(el, {"tangent_facet"})
         else:
             _set_prop(el, "string", "tangent_facet", method.tangent_facet)
@@ -389,7 +398,7 @@ def _bsdf_dict(method: Method, theta_p: float) -> dict:
         return {"type": "normalmap", "normalmap": tex, "bsdf": nested,
                 "flip_invalid_normals": method.fixes, "use_shadowing_function": method.fixes}
     d = {"type": PLUGIN, "normalmap": tex, "bsdf": nested, "model": method.model}
-    if method.model != "analytic":
+    if method.model not in ("analytic", "faithful"):
         d["tangent_facet"] = method.tangent_facet
     return d
 

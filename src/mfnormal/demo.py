@@ -173,7 +173,7 @@ def default_assets_dir() -> Path:
 # Scene: XML file -> parameters / dict
 # ---------------------------------------------------------------------------
 
-def scene_parameters(model: str = "analytic", spp: int = DEFAULT_SPP,
+def scene_parameters(model: str = "faithful", spp: int = DEFAULT_SPP,
                      resolution=DEFAULT_RESOLUTION, assets: dict | None = None,
                      strength: float = 1.0, max_depth: int = DEFAULT_MAX_DEPTH) -> dict:
     """The ``$name`` substitutions of :data:`SCENE_XML`, as strings."""
@@ -298,7 +298,7 @@ def _normalmap_bsdfs(scene: dict):
                     yield v
 
 
-def demo_scene(model: str = "analytic", bsdf: dict | None = None, spp: int = DEFAULT_SPP,
+def demo_scene(model: str = "faithful", bsdf: dict | None = None, spp: int = DEFAULT_SPP,
                resolution=DEFAULT_RESOLUTION, assets_dir=None, strength: float = 1.0,
                max_depth: int = DEFAULT_MAX_DEPTH) -> dict:
     """The demo scene (:data:`SCENE_XML`) as a Mitsuba scene dict.
@@ -336,7 +336,7 @@ def demo_scene(model: str = "analytic", bsdf: dict | None = None, spp: int = DEF
 # Rendering and output
 # ---------------------------------------------------------------------------
 
-def load_scene(model: str = "analytic", spp: int = DEFAULT_SPP, resolution=DEFAULT_RESOLUTION,
+def load_scene(model: str = "faithful", spp: int = DEFAULT_SPP, resolution=DEFAULT_RESOLUTION,
                assets_dir=None, strength: float = 1.0,
                max_depth: int = DEFAULT_MAX_DEPTH) -> "mi.Scene":
     """Generate the textures and load the demo scene in the active variant.
@@ -394,8 +394,8 @@ def main(argv=None) -> int:
                         help=f"samples per pixel (default: {DEFAULT_SPP})")
     parser.add_argument("--resolution", type=_resolution, default=DEFAULT_RESOLUTION,
                         metavar="WxH", help="image size (default: %dx%d)" % DEFAULT_RESOLUTION)
-    parser.add_argument("--model", default="analytic",
-                        help="normalmap_microfacet model (default: analytic), or "
+    parser.add_argument("--model", default="faithful",
+                        help="normalmap_microfacet model (default: faithful), or "
                              f"'{CLASSIC}' for Mitsuba's built-in normal mapping")
     parser.add_argument("--strength", type=float, default=1.0,
                         help="normal map strength (default: 1.0)")

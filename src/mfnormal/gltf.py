@@ -503,7 +503,7 @@ def _punctual_lights(gltf, nodes):
 # The scene
 
 def load_gltf(path, *, width: int = 640, height: int = 480, spp: int = 64, max_depth: int = 8,
-              model: str = "analytic", tangents: str = "auto", normal_maps: bool = True,
+              model: str = "faithful", tangents: str = "auto", normal_maps: bool = True,
               lights: bool = True) -> dict:
     """A Mitsuba scene dict of the glTF 2.0 file ``path`` (``.gltf`` or ``.glb``).
 
