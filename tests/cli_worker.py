@@ -12,7 +12,7 @@ reported as such, so a crash of the code under test fails a test instead of
 taking pytest down.
 
 Opened files: a ``sys.addaudithook`` in the child records the path of every
-``open`` event (``open()``, ``os.open``: every file the loader reads). Native
+``open`` event for reading (``open()``, ``os.open``: every file the loader reads). Native
 reads by Mitsuba (textures of an XML scene) are not seen; the glTF loader reads
 every file in Python.
 """
@@ -37,7 +37,7 @@ class Result:
     rc: int | None               # main's return value (None: it did not return)
     stdout: str = ""
     stderr: str = ""
-    opened: list = field(default_factory=list)
+    opened: list = field(default_factory=list)   # files opened for reading
     exception: str | None = None  # the traceback of an exception that escaped main
     died: int | None = None      # the child's exit status when it died (negative: a signal)
     timed_out: bool = False
@@ -135,8 +135,12 @@ def _serve():
     recording = [False]
 
     def audit(event, args):
+        # ("open", (path, mode, flags)): record the files opened for reading.
         if recording[0] and event == "open" and args and isinstance(args[0], (str, bytes, os.PathLike)):
-            opened.append(os.fsdecode(args[0]))
+            mode = args[1] if len(args) > 1 and isinstance(args[1], str) else ""
+            flags = args[2] if len(args) > 2 and isinstance(args[2], int) else 0
+            if not (set(mode) & set("wax+")) and not flags & (os.O_WRONLY | os.O_RDWR | os.O_CREAT):
+                opened.append(os.fsdecode(args[0]))
 
     sys.addaudithook(audit)
     from mfnormal import cli   # noqa: F401  (imports Mitsuba once)

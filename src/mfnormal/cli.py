@@ -21,8 +21,8 @@ from pathlib import Path
 
 from .messages import one_line
 from .validate import (CLIError, DEFAULT_LIMITS, LIMIT_HELP, Limits, Terminated, check_int32,
-                       check_output, check_render_size, check_scene_before_render, check_seed,
-                       check_spp, check_xml_integers, parse_limits, pass_count, pass_seed, pass_spp,
+                       check_output, check_scene_before_render, check_seed, check_spp,
+                       check_xml_integers, parse_limits, pass_count, pass_seed, pass_spp,
                        raise_on_sigterm)
 
 __all__ = ["CLIError", "main", "build_parser", "load_scene", "render_scene", "setup_variant",

@@ -427,7 +427,7 @@ def check_args(args) -> None:
     if not np.isfinite(args.exposure) or abs(args.exposure) > 100:
         raise CLIError(f"--exposure {args.exposure}: expected a number of stops from -100 to 100")
     w, h = args.resolution
-    check_render_size(w, h, parse_limits(args.limit), f"--resolution {w}x{h}")
+    check_render_size(w, h, parse_limits(args.limit), "the demo image")
     check_output(args.output)
     if args.assets_dir is not None:
         check_output(Path(args.assets_dir) / NORMALMAP_NAME, "--assets-dir")

@@ -21,6 +21,12 @@ left, which is also where Mitsuba's ``bitmap`` puts v = 0, so UVs pass through
 unchanged; MikkTSpace tangents are computed for (u, 1 − v), whose +v is the
 image's up, the normal map's +Y.
 
+Hostile files: :func:`mfnormal.gltf_validate.read_model` reads and validates the
+whole file first (the node graph, every index, buffer bounds, URIs confined to
+the model's folder, sizes against :class:`mfnormal.validate.Limits`); what it
+refuses is a :class:`GLTFError`, one line naming the element. A degenerate
+transform (a zero scale) skips that mesh, light or camera with a warning.
+
 Not supported (ignored, with a warning): texture coordinate sets other than
 ``TEXCOORD_0``, ``KHR_texture_transform``, emission, occlusion, alpha
 blending and masking, skins, morph targets, animation, compressed geometry
@@ -35,7 +41,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .gltf_validate import GLTFError, read_model
+from .gltf_validate import GLTFError, decode_error, read_model
 from .messages import one_line
 from .tangents import mikktspace, split_vertices
 from .validate import DEFAULT_LIMITS, Limits
@@ -72,7 +78,7 @@ class _File:
                 warnings.simplefilter("ignore")
                 self.gltf = pygltflib.GLTF2.gltf_from_json(self.model.text)
         except Exception as exc:  # noqa: BLE001  (pygltflib raises anything on a broken file)
-            raise GLTFError(f"not a valid glTF 2.0 file ({type(exc).__name__}: {exc})") from None
+            raise decode_error(self.model.doc, exc) from None
         self.buffers = self.model.buffers
         self._images = {}
 
@@ -129,9 +135,10 @@ class _File:
 
         img = self.gltf.images[index]
         info = self.model.images[index]
+        name = "a data: URI" if (img.uri or "").startswith("data:") else (img.uri or img.mimeType)
         arr = None
         if info.fmt is None:
-            _warn(f"image {index} ({img.uri or img.mimeType}) is not a PNG or JPEG file; texture ignored")
+            _warn(f"image {index} ({name}) is not a PNG or JPEG file; texture ignored")
         else:
             try:
                 stream = mi.MemoryStream(len(info.data))
@@ -140,8 +147,7 @@ class _File:
                 fmt = mi.Bitmap.FileFormat.PNG if info.fmt == "png" else mi.Bitmap.FileFormat.JPEG
                 arr = np.array(mi.Bitmap(stream, fmt))
             except Exception as exc:  # noqa: BLE001  (an unreadable texture is skipped, not fatal)
-                _warn(f"cannot decode image {index} ({img.uri or img.mimeType}): {one_line(exc)}; "
-                      "texture ignored")
+                _warn(f"cannot decode image {index} ({name}): {one_line(exc)}; texture ignored")
                 arr = None
         if arr is not None:
             if arr.ndim == 2:
@@ -592,7 +598,7 @@ def load_gltf(path, *, width: int = 640, height: int = 480, spp: int = 64, max_d
                             ("max_depth", max_depth, -1)):
         if isinstance(value, bool) or not isinstance(value, int) or not lo <= value < 1 << 31:
             raise GLTFError(f"{name} must be an integer from {lo} to {(1 << 31) - 1}, got {value!r}")
-    _check_render_size(width, height, limits, f"a {width}x{height} render")
+    _check_render_size(width, height, limits, "the film (width, height)")
     mfnormal.register()
     path = Path(path)
     if not path.is_file():

@@ -477,6 +477,10 @@ class _Checker:
             if kind is None:
                 _fail(where, "'type' is required")
             count = self.integer(a, "count", where, lo=1, required=True)
+            for key in ("min", "max"):
+                bound = a.get(key)
+                if bound is not None and (not isinstance(bound, list) or not all(_is_num(x) for x in bound)):
+                    _fail(_at(where, key), f"expected an array of finite numbers, got {_show(bound)}")
             if self.boolean(a, "normalized", where) and component in (_FLOAT, _UINT):
                 _fail(f"{where}.normalized", "only 8- and 16-bit integer accessors can be normalized")
             elem = self.element_size(component, kind)
@@ -728,6 +732,32 @@ class _Checker:
                     _fail(f"nodes[{i}]", f"its mesh {node['mesh']} takes the scene past "
                                          f"{self.limits.vertices} vertices after instancing "
                                          f"({self.limits.hint('vertices')})")
+
+
+_CLASSES = {"accessors": "Accessor", "animations": "Animation", "buffers": "Buffer", "bufferViews": "BufferView",
+            "cameras": "Camera", "images": "Image", "materials": "Material", "meshes": "Mesh", "nodes": "Node",
+            "samplers": "Sampler", "scenes": "Scene", "skins": "Skin", "textures": "Texture"}
+
+
+def decode_error(doc: dict, exc: Exception) -> GLTFError:
+    """A :class:`GLTFError` naming the element that pygltflib failed to decode (it is strict
+    about the types of properties this module does not check, e.g. in animations)."""
+    import warnings
+
+    import pygltflib
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        for name, cls in [("asset", "Asset")] + list(_CLASSES.items()):
+            items = [(name, doc.get(name))] if name == "asset" else \
+                [(f"{name}[{i}]", item) for i, item in enumerate(doc.get(name) or [])]
+            for where, item in items:
+                try:
+                    getattr(pygltflib, cls).from_dict(item, infer_missing=True)
+                except Exception as inner:  # noqa: BLE001
+                    return GLTFError(f"{where}: cannot be read ({type(inner).__name__}: "
+                                     f"{' '.join(str(inner).split())})")
+    return GLTFError(f"not a valid glTF 2.0 file ({type(exc).__name__}: {' '.join(str(exc).split())})")
 
 
 def _required_extensions(doc):

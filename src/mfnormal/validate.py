@@ -222,6 +222,14 @@ def check_output(output, flag: str = "-o") -> tuple[Path, Path]:
     if existing.exists() and not existing.is_dir():
         raise CLIError(f"{flag} {text}: {existing} is a file, not a folder")
     try:
+        name_max = os.pathconf(existing, "PC_NAME_MAX")
+    except (OSError, ValueError, AttributeError):
+        name_max = 255
+    longest = max((len(os.fsencode(part)) for part in Path(exr).parts), default=0)
+    if longest + 16 > name_max:              # + the temporary file's prefix and suffix
+        raise CLIError(f"{flag} {text}: a file or folder name is too long for this file system "
+                       f"(at most {name_max - 16} bytes here)")
+    try:
         fd, probe = tempfile.mkstemp(prefix=".mfnormal-probe.", dir=existing)
         os.close(fd)
         os.unlink(probe)
