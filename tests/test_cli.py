@@ -277,6 +277,8 @@ REJECTED = [
     ("compare_seed_negative", ["compare", "good.xml", "--quick", "--seed", "-3"], ["--seed"]),
     ("compare_spp_2_32", ["compare", "good.xml", "--quick", "--spp", "4294967296"], ["--spp", "too large"]),
     ("compare_output_is_a_file", ["compare", "good.xml", "--quick", "-o", "good.xml"], ["good.xml", "is a file"]),
+    ("output_name_too_long", ["render", "good.xml", "-o", "x" * 300], ["too long"]),
+    ("scene_name_too_long", ["render", "y" * 300 + ".xml"], ["too long"]),
 ]
 
 
@@ -497,3 +499,41 @@ def test_a_signal_while_writing_leaves_the_previous_pair(hard, tmp_path, sig):
     assert proc.returncode == (143 if sig == signal.SIGTERM else 130), (proc.returncode, err)
     assert err.strip().splitlines()[-1] in ("mfnormal: terminated", "mfnormal: interrupted"), err
     assert_previous_pair_intact(tmp_path, before)
+
+
+def test_passes_bound_the_paths_per_pass_and_keep_the_seeds():
+    """A render's passes: their sample counts sum to the total; none traces more than
+    MAX_PASS_LANES paths unless one sample per pixel already does; the default stays 8
+    passes (fewer below 8 spp); pass seeds are 32-bit, equal to seed·1000003 + i where that
+    fits (the images of small seeds did not change), and distinct for distinct seeds."""
+    from mfnormal.validate import MAX_PASS_LANES, pass_count, pass_seed, pass_spp
+
+    for total, pixels in [(1, 384), (5, 384), (64, 1920 * 1080), (1000, 1920 * 1080), (1 << 31, 16),
+                          (3, 1 << 25), (17, 1 << 24)]:
+        n = pass_count(total, pixels)
+        counts = [pass_spp(total, n, i) for i in range(min(n, 10))]
+        assert sum(pass_spp(total, n, i) for i in range(n)) == total if n < 1e6 else True
+        assert n * max(counts) >= total and min(counts) >= 1
+        assert max(counts) * pixels <= MAX_PASS_LANES or max(counts) == 1
+        if total * pixels <= MAX_PASS_LANES:
+            assert n == min(total, 8)
+    assert [pass_seed(3, i) for i in range(3)] == [3000009, 3000010, 3000011]
+    seeds = {pass_seed(s, 0) for s in range(0, (1 << 32) - 1, 104729)}
+    assert len(seeds) == len(range(0, (1 << 32) - 1, 104729)) and max(seeds) < 1 << 32
+
+
+def test_image_headers_give_the_size_without_decoding(tmp_path):
+    """gltf_validate.image_header reads a PNG's IHDR and a JPEG's frame header (after APPn
+    segments such as EXIF) as Mitsuba writes them, and refuses anything else."""
+    from mfnormal.gltf_validate import image_header
+
+    img = (np.random.default_rng(3).random((37, 53, 3)) * 255).astype(np.uint8)
+    for fmt, name in [(mi.Bitmap.FileFormat.PNG, "png"), (mi.Bitmap.FileFormat.JPEG, "jpeg")]:
+        path = tmp_path / f"x.{name}"
+        mi.Bitmap(img).write(str(path), fmt)
+        assert image_header(path.read_bytes()) == (name, 53, 37)
+    jpeg = (tmp_path / "x.jpeg").read_bytes()
+    exif = b"\xff\xe1" + (2 + 5000).to_bytes(2, "big") + b"E" * 5000      # a 5 kB APP1 segment
+    assert image_header(jpeg[:2] + exif + jpeg[2:]) == ("jpeg", 53, 37)
+    for junk in [b"", b"\x89PNG\r\n\x1a\n", jpeg[:40], b"GIF89a" + b"\0" * 20, (tmp_path / "x.png").read_bytes()[:20]]:
+        assert image_header(junk) is None

@@ -44,7 +44,7 @@ from gltf_models import base_document, glb_bytes, write_gltf
 from mfnormal.report import png_bytes
 
 LONG = os.environ.get("MFNORMAL_FUZZ_LONG", "") not in ("", "0")
-CI_INPUTS, LONG_INPUTS = 40, 1000
+CI_INPUTS, LONG_INPUTS = 400, 1000
 INPUTS = int(os.environ.get("MFNORMAL_FUZZ_INPUTS", LONG_INPUTS if LONG else CI_INPUTS))
 TIMEOUT = 120.0
 FORCED = ["--limit", "render_pixels=4096"]
@@ -92,7 +92,8 @@ XML_KEYS = ["spp", "width", "height", "mb", "model", "nm", "strength", "bogus", 
             "1x", "_", "$spp"]
 GLTF_KEYS = ["width", "height", "spp", "max_depth", "model", "tangents", "normal_maps", "lights", "bogus", "nm"]
 OUTPUTS = ["out/render", "out/", "out", "outdir", "good.xml/x", "/sys/mfnormal_fuzz/x", "out/a.png", "out/a.exr",
-           "", ".", "..", "out/é", "out/a b", "out/.hidden", "outdir/", "nested/deeper/render"]
+           "", ".", "..", "out/é", "out/a b", "out/.hidden", "outdir/", "nested/deeper/render", "o" * 300,
+           "out/" + "o" * 250]
 VARIANTS = ["llvm_ad_rgb"] * 6 + ["llvm_ad_mono", "llvm_ad_spectral", "llvm_ad_spectral_polarized",
                                   "scalar_rgb", "cuda_ad_rgb", "bogus", ""]
 LIMIT_NAMES = ["render_pixels", "image_pixels", "texture_pixels", "data_bytes", "vertices", "bogus", ""]
@@ -142,7 +143,8 @@ def common_flags(draw):
 @st.composite
 def render_args(draw):
     scene = draw(st.sampled_from(["scene.xml"] * 10 + ["model/model.gltf"] * 6 + ["model.glb", "nothere.xml",
-                                                                                   "sub", "", "gray.xml"]))
+                                                                                   "sub", "", "gray.xml",
+                                                                                   "s" * 300 + ".xml"]))
     args = ["render", scene]
     if draw(st.booleans()):
         args += ["--spp", draw(spp_values())]

@@ -62,7 +62,7 @@ from gltf_models import base_document, glb_bytes
 from mfnormal.report import png_bytes
 
 LONG = os.environ.get("MFNORMAL_FUZZ_LONG", "") not in ("", "0")
-CI_INPUTS, LONG_INPUTS = 150, 3000
+CI_INPUTS, LONG_INPUTS = 800, 3000
 INPUTS = int(os.environ.get("MFNORMAL_FUZZ_INPUTS", LONG_INPUTS if LONG else CI_INPUTS))
 TIMEOUT = 60.0
 # Small caps: a mutation that asks for more is refused quickly (and the caps are exercised).
@@ -93,7 +93,7 @@ def sandbox_uris(folder: Path):
             "zero_link", "sub", "pipe", "model.gltf", "", "nm.png%00.bin", "C:\\secret.png",
             "\\\\server\\share\\secret.png", "http://127.0.0.1:9/secret.png",
             "data:application/octet-stream;base64,AAAA", "data:image/png;base64," + base64.b64encode(nm).decode(),
-            "data:,abc", "data:image/png;base64,!!!"]
+            "data:,abc", "data:image/png;base64,!!!", "n" * 300 + ".png", "sub/" * 600 + "nm.png"]
 
 
 # -- Mutations ----------------------------------------------------------------------------------------

@@ -3,6 +3,7 @@
     mfnormal render SCENE.xml|MODEL.gltf|MODEL.glb [-o OUT] [--spp N] [--variant V] [-D key=value ...]
     mfnormal demo [-o OUT] [--spp N] [--model M]
     mfnormal compare SCENE [SCENE ...] [-o DIR] [--spp N] [--ref-spp N] [--quick]
+    (each also takes --limit NAME=N: the caps of mfnormal.validate.Limits)
 
 Every error is one line on stderr and exit code 2, reported before the render
 starts wherever it can be known then (:mod:`mfnormal.validate`); outputs are
@@ -361,7 +362,8 @@ def _one_line_warning(message, category, filename, lineno, file=None, line=None)
 
 def run_command(prog: str, command) -> int:
     """Run ``command()`` with the command line's error path: a :class:`CLIError` (or a
-    missing libLLVM) is one line ``PROG: error: ...`` and exit 2; Ctrl-C exits 130 and
+    missing libLLVM, or a path the system refuses) is one line ``PROG: error: ...`` and
+    exit 2; Ctrl-C exits 130 and
     SIGTERM 143 (temporary files removed); warnings are one line each; anything else
     is one line and exit 1 (``MFNORMAL_DEBUG=1`` re-raises it with its traceback)."""
     raise_on_sigterm()
@@ -378,6 +380,10 @@ def run_command(prog: str, command) -> int:
         except Terminated:
             print(f"{prog}: terminated", file=sys.stderr)
             return 143
+        except OSError as exc:    # a path the system refuses (too long, a loop of links, ...)
+            name = f"{exc.filename}: " if exc.filename else ""
+            print(f"{prog}: error: {name}{exc.strerror or one_line(exc)}", file=sys.stderr)
+            return 2
         except Exception as exc:  # noqa: BLE001  (a bug: still one line, unless debugging)
             if os.environ.get("MFNORMAL_DEBUG"):
                 raise

@@ -157,21 +157,26 @@ def _read_regular(path: Path, where: str, shown: str, budget: _Budget, length: i
         os.close(fd)
 
 
+def _short(text: str, n: int = 80) -> str:
+    return text if len(text) <= n else text[:n - 3] + "..."
+
+
 def _uri_path(uri: str, folder: Path, where: str) -> Path:
     """The file a relative URI names, which must lie inside ``folder`` (links resolved)."""
+    shown = _short(uri)
     scheme = re.match(r"^([A-Za-z][A-Za-z0-9+.-]*):", uri)
     if scheme:
-        _fail(where, f"'{uri}': {scheme.group(1)}: URIs are not read; a glTF file may only refer "
+        _fail(where, f"'{shown}': {scheme.group(1)}: URIs are not read; a glTF file may only refer "
                      "to files in its own folder (relative paths) and to data: URIs")
     rel = unquote(uri)
     if not rel or "\x00" in rel:
-        _fail(where, f"'{uri}' is not a file name")
+        _fail(where, f"'{shown}' is not a file name")
     if rel.startswith(("/", "\\")) or os.path.isabs(rel) or PureWindowsPath(rel).drive:
-        _fail(where, f"'{uri}' is an absolute path; a glTF file may only refer to files in its own folder")
+        _fail(where, f"'{shown}' is an absolute path; a glTF file may only refer to files in its own folder")
     base = os.path.realpath(folder)
     target = os.path.realpath(os.path.join(base, rel))
     if os.path.commonpath([base, target]) != base:
-        _fail(where, f"'{uri}' is outside the model's folder; a glTF file may only refer to files "
+        _fail(where, f"'{shown}' is outside the model's folder; a glTF file may only refer to files "
                      "in its own folder")
     return Path(target)
 
@@ -198,7 +203,7 @@ def _uri_bytes(uri, folder: Path, where: str, budget: _Budget, length: int | Non
                 _fail(where, f"the data: URI holds {len(data)} bytes, less than the byteLength {length}")
             data = data[:length]
         return data
-    return _read_regular(_uri_path(uri, folder, where), where, uri, budget, length)
+    return _read_regular(_uri_path(uri, folder, where), where, _short(uri), budget, length)
 
 
 def _read_container(path: Path, budget: _Budget) -> tuple[str, bytes | None]:

@@ -201,11 +201,22 @@ def check_xml_integers(path, params: dict) -> None:
 def check_output(output, flag: str = "-o") -> tuple[Path, Path]:
     """The (EXR, PNG) paths of ``output`` after checking that it is a file name (not a
     folder) and that its folder exists and is writable, or can be created."""
+    try:
+        return _check_output(output, flag)
+    except OSError as exc:       # e.g. a name too long to stat, a loop of symbolic links
+        raise CLIError(f"{flag} {output}: {exc.strerror or type(exc).__name__}; choose another "
+                       "output name") from None
+
+
+def _check_output(output, flag):
     from .images import output_paths
 
     text = str(output)
     if not text.strip():
         raise CLIError(f"{flag}: the output name is empty")
+    if max((len(os.fsencode(part)) for part in Path(text).parts), default=0) + 16 > 255:
+        raise CLIError(f"{flag} {text}: a file or folder name is too long (at most 239 bytes; "
+                       "the temporary files add 16)")
     if text.endswith(("/", os.sep)) or Path(text).is_dir():
         raise CLIError(f"{flag} {text} names a folder; give a file name without extension, "
                        f"e.g. {os.path.join(text.rstrip('/' + os.sep) or '.', 'render')}")
@@ -213,22 +224,13 @@ def check_output(output, flag: str = "-o") -> tuple[Path, Path]:
     for p in (exr, png):
         if p.is_dir():
             raise CLIError(f"{flag} {text}: {p} is a folder; choose another output name")
-    folder = exr.parent
-    existing = folder
+    existing = exr.parent
     while not existing.exists():
         if existing.parent == existing:
             break
         existing = existing.parent
     if existing.exists() and not existing.is_dir():
         raise CLIError(f"{flag} {text}: {existing} is a file, not a folder")
-    try:
-        name_max = os.pathconf(existing, "PC_NAME_MAX")
-    except (OSError, ValueError, AttributeError):
-        name_max = 255
-    longest = max((len(os.fsencode(part)) for part in Path(exr).parts), default=0)
-    if longest + 16 > name_max:              # + the temporary file's prefix and suffix
-        raise CLIError(f"{flag} {text}: a file or folder name is too long for this file system "
-                       f"(at most {name_max - 16} bytes here)")
     try:
         fd, probe = tempfile.mkstemp(prefix=".mfnormal-probe.", dir=existing)
         os.close(fd)
@@ -275,8 +277,8 @@ def pass_count(total: int, pixels: int, passes: int | None = None) -> int:
     < 8 spp), more where a pass would trace more than :data:`MAX_PASS_LANES` paths.
     Pass ``i`` takes :func:`pass_spp` samples per pixel."""
     passes = max(1, min(total, passes or (8 if total >= 8 else total)))
-    needed = -(-total * max(1, pixels) // MAX_PASS_LANES)
-    return max(passes, min(total, needed))
+    per_pass = max(1, MAX_PASS_LANES // max(1, pixels))      # samples per pixel a pass may take
+    return max(passes, min(total, -(-total // per_pass)))
 
 
 def pass_spp(total: int, passes: int, i: int) -> int:
