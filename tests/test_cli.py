@@ -363,27 +363,40 @@ def test_warnings_are_one_line_each(worker, hard, tmp_path):
     assert len(lines) == 2 and all(ln.startswith("mfnormal: warning: glTF: ") for ln in lines), result.stderr
 
 
+INNERMOST = """
+import sys
+import mfnormal
+import mitsuba as mi
+import numpy as np
+from mfnormal.messages import one_line
+mi.set_variant("llvm_ad_rgb")
+mfnormal.register()
+scene = mi.load_dict({
+    "type": "scene", "integrator": {"type": "path", "max_depth": 3},
+    "sensor": {"type": "perspective", "to_world": mi.ScalarTransform4f().look_at([0, 0, 3], [0, 0, 0], [0, 1, 0]),
+               "film": {"type": "hdrfilm", "width": 4, "height": 4}},
+    "sky": {"type": "constant"},
+    "quad": {"type": "rectangle", "bsdf": {
+        "type": "normalmap_microfacet", "model": "separable", "max_bounces": 1 << 32,
+        "normalmap": {"type": "bitmap", "raw": True, "bitmap": mi.Bitmap(np.full((2, 2, 3), 0.5, np.float32))},
+        "bsdf": {"type": "diffuse"}}}})
+try:
+    mi.render(scene, spp=1)
+except Exception as exc:
+    print("outer:", " ".join(str(exc).split()))
+    print("one_line:", one_line(exc))
+"""
+
+
 def test_the_innermost_cause_of_a_drjit_error_is_reported():
     """Dr.Jit wraps an error in a kernel ('drjit.custom(...) ... (see above)'); one_line
-    reports the innermost cause. Here: max_bounces = 2^32 given to the plugin directly."""
-    from mfnormal.messages import one_line
-
-    import mfnormal
-    mfnormal.register()
-    scene = mi.load_dict({
-        "type": "scene", "integrator": {"type": "path", "max_depth": 3},
-        "sensor": {"type": "perspective", "to_world": mi.ScalarTransform4f().look_at([0, 0, 3], [0, 0, 0], [0, 1, 0]),
-                   "film": {"type": "hdrfilm", "width": 4, "height": 4}},
-        "sky": {"type": "constant"},
-        "quad": {"type": "rectangle", "bsdf": {
-            "type": "normalmap_microfacet", "model": "separable", "max_bounces": 1 << 32,
-            "normalmap": {"type": "bitmap", "raw": True, "bitmap": mi.Bitmap(np.full((2, 2, 3), 0.5, np.float32))},
-            "bsdf": {"type": "diffuse"}}}})
-    with pytest.raises(Exception) as info:
-        mi.render(scene, spp=1)
-    assert "see above" in str(info.value)
-    msg = one_line(info.value)
-    assert "see above" not in msg and "Could not initialize element" in msg, msg
+    reports the innermost cause. Here: max_bounces = 2^32 given to the plugin directly (in a
+    process of its own: a failed kernel trace leaves Dr.Jit unusable for the next ones)."""
+    proc = subprocess.run([sys.executable, "-c", INNERMOST], env=dict(os.environ, PYTHONPATH=str(ROOT / "src")),
+                          capture_output=True, text=True, timeout=300)
+    lines = dict(ln.split(": ", 1) for ln in proc.stdout.splitlines() if ln.startswith(("outer:", "one_line:")))
+    assert "see above" in lines["outer"], proc.stdout + proc.stderr
+    assert "see above" not in lines["one_line"] and "Could not initialize element" in lines["one_line"], lines
 
 
 def test_compare_accepts_width_and_height_defines(worker, hard, tmp_path):
