@@ -551,3 +551,54 @@ def test_two_million_triangles_and_8k_normal_map_at_1080p(scenes, tmp_path, mode
     img = assert_renders_finite(proc, tmp_path / "scale.exr")
     assert img.shape[:2] == (1080, 1920)
     assert peak < 16.0, f"peak RSS {peak:.1f} GiB"
+
+
+# -- strength: huge values, and mi.traverse updates ----------------------------------------------
+
+
+def strength_keys(params):
+    keys = [k for k in params.keys() if k.endswith("strength")]
+    assert len(keys) == 2                  # the plane's and the ball's plugin
+    return keys
+
+
+@pytest.mark.parametrize("bad", [float("nan"), float("inf"), -1.0])
+def test_traverse_rejects_what_the_constructor_rejects(bad):
+    """An mi.traverse update of strength to NaN, inf or a negative value raises (like the
+    constructor) and keeps the previous strength; a later valid update still applies."""
+    params = mi.traverse(small_scene(bumps_texels(16), "analytic"))
+    key = strength_keys(params)[0]
+    params[key] = 2.5
+    params.update()
+    params[key] = bad
+    with pytest.raises(ValueError, match="strength must be a finite number >= 0"):
+        params.update()
+    assert np.array(params[key]).tolist() == [2.5]
+    params[key] = 0.5
+    params.update()
+    assert np.array(params[key]).tolist() == [0.5]
+
+
+def test_huge_strength_tilts_the_map_instead_of_overflowing_to_flat():
+    """strength = 1e30 used to overflow (|n|² = inf) and decode every texel as flat. It now acts
+    as STRENGTH_MAX = 1e6 (constructor and traverse alike): the image equals the 1e6 one
+    and differs from the flat (strength 0) one. Box filter, 1 thread: bit-identical renders."""
+    def render_with(strength):
+        scene = small_scene(bumps_texels(16), "analytic", rfilter="box")
+        params = mi.traverse(scene)
+        for key in strength_keys(params):
+            params[key] = strength
+        params.update()
+        return render_with_threads(scene, 1, seed=5, spp=2), np.array(params[strength_keys(params)[0]]).tolist()
+
+    flat, _ = render_with(0.0)
+    huge, huge_value = render_with(1e30)
+    assert np.abs(huge - flat).mean() > 0.01 * flat.mean(), "strength 1e30 renders flat"
+
+    from mfnormal.plugin import STRENGTH_MAX
+    capped, value = render_with(STRENGTH_MAX)
+    assert value == [STRENGTH_MAX] and huge_value == [STRENGTH_MAX]
+    assert np.array_equal(huge, capped)
+    plugin = mi.load_dict({"type": "normalmap_microfacet", "strength": 1e30, "bsdf": {"type": "diffuse"},
+                           "normalmap": {"type": "bitmap", "raw": True, "bitmap": mi.Bitmap(bumps_texels(4))}})
+    assert np.array(mi.traverse(plugin)["strength"]).tolist() == [STRENGTH_MAX]

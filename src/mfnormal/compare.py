@@ -25,8 +25,10 @@ Bundled scenes: ``demo`` (scene (a), :mod:`mfnormal.demo`) and ``model``
 from __future__ import annotations
 
 import copy
+import dataclasses
 import re
 import time
+from contextlib import contextmanager
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -240,6 +242,13 @@ def rewrite(root: ET.Element, method: Method, values: dict | None = None,
     return root
 
 
+def film_size_parameters(root: ET.Element) -> set:
+    """The ``$`` parameters that the films' width and height refer to."""
+    return {name for film in root.iter("film") for c in film
+            if c.tag == "integer" and c.get("name") in ("width", "height")
+            for name in re.findall(r"\$(\w+)", c.get("value", ""))}
+
+
 def set_film_width(root: ET.Element, values: dict, width: int | None) -> tuple:
     """Scale the film down to ``width`` pixels (keeping its aspect ratio); returns (w, h)."""
     sizes = []
@@ -292,7 +301,7 @@ def render_image(scene, spp: int, seed: int, pass_spp: int = 16) -> np.ndarray:
     acc, done, i = None, 0, 0
     while done < spp:
         n = min(pass_spp, spp - done)
-        img = np.array(mi.render(scene, spp=n, seed=seed + i), dtype=np.float64)[..., :3]
+        img = np.array(mi.render(scene, spp=n, seed=(seed + i) % (1 << 32)), dtype=np.float64)[..., :3]
         acc = img * n if acc is None else acc + img * n
         done, i = done + n, i + 1
     return acc / spp
@@ -487,18 +496,46 @@ class Settings:
 QUICK = Settings(spp=2, ref_spp=4, width=64, crops=2, check_samples=1 << 10, check_repeats=64)
 
 
-def compare_scene(src: SceneSource, out_dir, settings: Settings, methods=METHODS, log=print) -> dict:
+@contextmanager
+def scene_folder(path: Path):
+    """Mitsuba's file resolver searches ``path``'s folder first while the block runs, and
+    is restored afterwards (so the next scene never finds its files in this one's folder)."""
+    thread = mi.Thread.thread()
+    saved = mi.FileResolver(thread.file_resolver())
+    resolver = mi.FileResolver(saved)
+    resolver.prepend(str(Path(path).resolve().parent))
+    thread.set_file_resolver(resolver)
+    try:
+        yield
+    finally:
+        thread.set_file_resolver(saved)
+
+
+def compare_scene(src: SceneSource, out_dir, settings: Settings, methods=METHODS, log=print,
+                  limits=None) -> dict:
     """Render ``src`` with each method; write EXR/PNG per method into ``out_dir``.
 
     Returns the data of one report section (see :func:`mfnormal.report.write_report`).
     """
+    with scene_folder(src.path):
+        return _compare_scene(src, out_dir, settings, methods, log, limits)
+
+
+def _compare_scene(src: SceneSource, out_dir, settings: Settings, methods, log, limits) -> dict:
+    from .validate import DEFAULT_LIMITS, check_render_size
+
     out_dir = Path(out_dir)
     root, values = parse_scene(src)
+    film_params = film_size_parameters(root)
     width, height = set_film_width(root, values, settings.width)
+    # The film's $width / $height are substituted now: those -D values are used up.
+    text = ET.tostring(root, encoding="unicode")
+    src = dataclasses.replace(src, params={k: v for k, v in src.params.items()
+                                           if k not in film_params or re.search(rf"\${k}\b", text)})
+    check_render_size(width, height, limits or DEFAULT_LIMITS, f"{src.path.name}: the film")
     notes: set = set()
 
     # Which pixels show normal-mapped shapes, and where they are seen at grazing angles.
-    mi.file_resolver().prepend(str(src.path.resolve().parent))
     probe = load_method_scene(src, root, values, METHOD_BY_KEY["analytic"], notes)
     coverage_by_shape, mean_cos = surface_maps(probe)
     del probe
@@ -548,7 +585,7 @@ def compare_scene(src: SceneSource, out_dir, settings: Settings, methods=METHODS
 
 
 def compare(scenes, out_dir, settings: Settings = Settings(), methods=METHODS, validation=None,
-            params: dict | None = None, log=print, command: str = "") -> Path:
+            params: dict | None = None, log=print, command: str = "", limits=None) -> Path:
     """Compare ``methods`` on each scene (bundled name or XML path); write
     ``out_dir/report.html`` and the renders (``out_dir/<scene>/<method>.exr|png``)."""
     from . import report
@@ -563,7 +600,7 @@ def compare(scenes, out_dir, settings: Settings = Settings(), methods=METHODS, v
         while any(s["name"] == src.name for s in sections):
             src.name += "_"
         log(f"scene {src.name} ({src.path})")
-        sections.append(compare_scene(src, out_dir / src.name, settings, methods, log))
+        sections.append(compare_scene(src, out_dir / src.name, settings, methods, log, limits))
     log("BSDF checks (white furnace, reciprocity)")
     checks = []
     for method in methods:

@@ -24,7 +24,6 @@ import os
 import re
 import sys
 import time
-import warnings
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
@@ -33,7 +32,7 @@ import numpy as np
 import mfnormal  # before mitsuba: selects a working libLLVM for Dr.Jit
 import mitsuba as mi
 
-from .images import atomic_write, output_paths, sanitize, save_render
+from .images import atomic_write, output_paths
 
 __all__ = ["SCENE_XML", "generate_assets", "make_normalmap", "make_envmap", "demo_scene",
            "xml_to_dict", "load_scene", "render_scene", "render", "main"]
@@ -381,8 +380,10 @@ def _positive_int(text: str) -> int:
     return v
 
 
-def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(
+def build_parser(parser_class=argparse.ArgumentParser) -> argparse.ArgumentParser:
+    from .validate import LIMIT_HELP
+
+    parser = parser_class(
         prog="mfnormal-demo",
         description="Render the mfnormal demo scene (scenes/demo.xml): a normal-mapped "
                     "sphere and ground plane under a procedural sky. Writes a linear EXR "
@@ -403,11 +404,43 @@ def main(argv=None) -> int:
                         help=f"path integrator max_depth (default: {DEFAULT_MAX_DEPTH})")
     parser.add_argument("--exposure", type=float, default=0.0,
                         help="exposure of the PNG in stops (default: 0)")
-    parser.add_argument("--seed", type=int, default=0, help="sampler seed (default: 0)")
+    parser.add_argument("--seed", type=int, default=0, help="sampler seed, 0 to 4294967295 (default: 0)")
     parser.add_argument("--assets-dir", default=None,
                         help="where to generate the textures (default: <output dir>/demo_assets)")
-    args = parser.parse_args(argv)
+    parser.add_argument("--limit", action="append", metavar="NAME=N", help=LIMIT_HELP)
+    return parser
 
+
+def check_args(args) -> None:
+    """Every argument of :func:`run`, before anything is written; raises CLIError."""
+    from .plugin import MODELS
+    from .validate import (CLIError, check_int32, check_output, check_render_size, check_seed,
+                           check_spp, parse_limits)
+
+    if args.model not in MODELS + (CLASSIC,):
+        raise CLIError(f"--model {args.model}: unknown model; choose one of {', '.join(MODELS + (CLASSIC,))}")
+    check_spp(args.spp, "--spp")
+    check_seed(args.seed)
+    check_int32(args.max_depth, "--max-depth", lo=-1)
+    if not (0.0 <= args.strength < float("inf")):
+        raise CLIError(f"--strength {args.strength}: the strength must be a finite number >= 0")
+    if not np.isfinite(args.exposure) or abs(args.exposure) > 100:
+        raise CLIError(f"--exposure {args.exposure}: expected a number of stops from -100 to 100")
+    w, h = args.resolution
+    check_render_size(w, h, parse_limits(args.limit), "the demo image")
+    check_output(args.output)
+    if args.assets_dir is not None:
+        check_output(Path(args.assets_dir) / NORMALMAP_NAME, "--assets-dir")
+
+
+def run(args) -> int:
+    """Render the demo with parsed ``args`` (:func:`build_parser`); raises CLIError (one
+    line) on bad arguments, before anything is written, and on a failed load or render."""
+    from .cli import render_scene as cli_render_scene, write_render
+    from .messages import one_line
+    from .validate import MAX_PASS_LANES, CLIError
+
+    check_args(args)
     exr_path, png_path = output_paths(args.output)
     assets_dir = Path(args.assets_dir) if args.assets_dir else exr_path.parent / "demo_assets"
 
@@ -420,22 +453,33 @@ def main(argv=None) -> int:
     sys.stdout.flush()
 
     t0 = time.perf_counter()
-    scene = load_scene(model=args.model, spp=args.spp, resolution=args.resolution,
-                       assets_dir=assets_dir, strength=args.strength, max_depth=args.max_depth)
+    try:
+        scene = load_scene(model=args.model, spp=args.spp, resolution=args.resolution,
+                           assets_dir=assets_dir, strength=args.strength, max_depth=args.max_depth)
+    except Exception as exc:
+        raise CLIError(f"cannot load the demo scene: {one_line(exc)}") from None
     t1 = time.perf_counter()
-    rgb = render_scene(scene, seed=args.seed)
+    try:
+        if args.spp * args.resolution[0] * args.resolution[1] <= MAX_PASS_LANES:
+            rgb = render_scene(scene, seed=args.seed)
+        else:   # in passes of bounded size
+            rgb = cli_render_scene(mi, scene, args.spp, seed=args.seed)
+    except Exception as exc:
+        raise CLIError(f"render failed: {one_line(exc)}") from None
     t2 = time.perf_counter()
-
-    rgb, bad = sanitize(rgb)
-    if bad:
-        warnings.warn(f"{bad} pixel(s) had NaN/Inf values and were written as 0",
-                      RuntimeWarning, stacklevel=2)
-    exr_path, png_path = save_render(rgb, args.output, exposure=args.exposure)
+    _, exr_path, png_path = write_render(mi, scene, rgb, args.output, exposure=args.exposure)
     print(f"load    : {t1 - t0:.1f} s (texture generation and scene loading)")
     print(f"render  : {t2 - t1:.1f} s (JIT compilation and rendering)")
     print(f"wrote   : {exr_path}")
     print(f"wrote   : {png_path}")
     return 0
+
+
+def main(argv=None) -> int:
+    """``mfnormal-demo``: :func:`run` with the command line's one-line error path."""
+    from .cli import _Parser, run_command
+
+    return run_command("mfnormal-demo", lambda: run(build_parser(_Parser).parse_args(argv)))
 
 
 if __name__ == "__main__":

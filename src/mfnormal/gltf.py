@@ -21,6 +21,12 @@ left, which is also where Mitsuba's ``bitmap`` puts v = 0, so UVs pass through
 unchanged; MikkTSpace tangents are computed for (u, 1 − v), whose +v is the
 image's up, the normal map's +Y.
 
+Hostile files: :func:`mfnormal.gltf_validate.read_model` reads and validates the
+whole file first (the node graph, every index, buffer bounds, URIs confined to
+the model's folder, sizes against :class:`mfnormal.validate.Limits`); what it
+refuses is a :class:`GLTFError`, one line naming the element. A degenerate
+transform (a zero scale) skips that mesh, light or camera with a warning.
+
 Not supported (ignored, with a warning): texture coordinate sets other than
 ``TEXCOORD_0``, ``KHR_texture_transform``, emission, occlusion, alpha
 blending and masking, skins, morph targets, animation, compressed geometry
@@ -29,17 +35,18 @@ blending and masking, skins, morph targets, animation, compressed geometry
 
 from __future__ import annotations
 
-import base64
 import math
 import warnings
 from pathlib import Path
-from urllib.parse import unquote
 
 import numpy as np
 
+from .gltf_validate import GLTFError, decode_error, read_model
+from .messages import one_line
 from .tangents import mikktspace, split_vertices
+from .validate import DEFAULT_LIMITS, Limits
 
-__all__ = ["load_gltf", "sky_envmap", "GLTF_SUFFIXES", "TANGENT_MODES"]
+__all__ = ["load_gltf", "sky_envmap", "GLTF_SUFFIXES", "TANGENT_MODES", "GLTFError"]
 
 GLTF_SUFFIXES = (".gltf", ".glb")
 TANGENT_MODES = ("auto", "mikktspace", "mitsuba")
@@ -58,34 +65,22 @@ def _warn(msg):
 
 
 class _File:
-    """A parsed glTF file: its JSON (pygltflib), buffers and decoded images."""
+    """A parsed glTF file: its JSON (pygltflib), buffers and decoded images, read through
+    :func:`mfnormal.gltf_validate.read_model` (which validates everything first)."""
 
-    def __init__(self, path: Path):
+    def __init__(self, path: Path, limits: Limits = DEFAULT_LIMITS):
         import pygltflib
 
         self.path = path
+        self.model = read_model(path, limits)
         try:
-            self.gltf = pygltflib.GLTF2().load(str(path))
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                self.gltf = pygltflib.GLTF2.gltf_from_json(self.model.text)
         except Exception as exc:  # noqa: BLE001  (pygltflib raises anything on a broken file)
-            raise ValueError(f"not a valid glTF 2.0 file ({type(exc).__name__}: {exc})") from None
-        if self.gltf is None:
-            raise ValueError("not a glTF 2.0 file")
-        unsupported = {"KHR_draco_mesh_compression", "EXT_meshopt_compression",
-                       "KHR_mesh_quantization"} & set(self.gltf.extensionsRequired or [])
-        if unsupported:
-            raise ValueError(f"needs {', '.join(sorted(unsupported))}, which is not supported")
-        self.buffers = [self._buffer(b) for b in self.gltf.buffers]
+            raise decode_error(self.model.doc, exc) from None
+        self.buffers = self.model.buffers
         self._images = {}
-
-    def _uri(self, uri: str) -> bytes:
-        if uri.startswith("data:"):
-            return base64.b64decode(uri.split(",", 1)[1])
-        return (self.path.parent / unquote(uri)).read_bytes()
-
-    def _buffer(self, buffer) -> bytes:
-        if buffer.uri is None:
-            return self.gltf.binary_blob() or b""
-        return self._uri(buffer.uri)
 
     def accessor(self, index: int) -> np.ndarray:
         """Accessor ``index`` as an (count, width) array; normalized integers become floats."""
@@ -95,11 +90,16 @@ class _File:
         if acc.bufferView is None:
             data = np.zeros((acc.count, width), dtype)
         else:
-            data = self._view(acc.bufferView, acc.byteOffset or 0, dtype, width, acc.count)
+            view = self.gltf.bufferViews[acc.bufferView]
+            data = self._view(acc.bufferView, acc.byteOffset or 0, dtype, width, acc.count,
+                              view.byteStride)
         if acc.sparse is not None:
             s = acc.sparse
             idx = self._view(s.indices.bufferView, s.indices.byteOffset or 0,
                              np.dtype(_COMPONENT[s.indices.componentType]), 1, s.count)[:, 0]
+            if idx.max() >= acc.count:
+                raise GLTFError(f"accessors[{index}].sparse.indices: index {int(idx.max())} is out of "
+                                f"range (the accessor has {acc.count} elements)")
             val = self._view(s.values.bufferView, s.values.byteOffset or 0, dtype, width, s.count)
             data = data.copy()
             data[idx.astype(np.int64)] = val
@@ -107,16 +107,24 @@ class _File:
             data = np.maximum(data / np.float32(np.iinfo(dtype).max), -1.0).astype(np.float32)
         return data
 
-    def _view(self, view_index, offset, dtype, width, count) -> np.ndarray:
+    def _view(self, view_index, offset, dtype, width, count, stride=None) -> np.ndarray:
+        """``count`` elements of ``width`` × ``dtype`` from bufferView ``view_index`` at
+        ``offset``, ``stride`` bytes apart (None: tightly packed). The validation made
+        sure they lie inside the view; this checks it again before any strided read."""
         view = self.gltf.bufferViews[view_index]
         buf = self.buffers[view.buffer]
-        start = (view.byteOffset or 0) + offset
         elem = dtype.itemsize * width
-        stride = view.byteStride or elem
+        stride = stride or elem
         if count == 0:
             return np.zeros((0, width), dtype)
-        raw = np.frombuffer(buf, np.uint8, stride * (count - 1) + elem, start)
-        rows = np.lib.stride_tricks.as_strided(raw, (count, elem), (stride, 1))
+        start = (view.byteOffset or 0) + offset
+        end = start + stride * (count - 1) + elem
+        if not (stride >= elem > 0 and offset >= 0 and end - (view.byteOffset or 0) <= view.byteLength
+                and end <= len(buf)):
+            raise GLTFError(f"bufferViews[{view_index}]: a read of {count} x {elem} bytes at {offset} "
+                            "is out of bounds")
+        raw = np.frombuffer(buf, np.uint8, end - start, start)
+        rows = np.lib.stride_tricks.as_strided(raw, (count, elem), (stride, 1), writeable=False)
         return np.ascontiguousarray(rows).view(dtype).reshape(count, width)
 
     def image(self, index: int) -> np.ndarray | None:
@@ -126,28 +134,31 @@ class _File:
         import mitsuba as mi
 
         img = self.gltf.images[index]
-        try:
-            if img.bufferView is not None:
-                view = self.gltf.bufferViews[img.bufferView]
-                start = view.byteOffset or 0
-                data = self.buffers[view.buffer][start:start + view.byteLength]
-            elif img.uri is not None:
-                data = self._uri(img.uri)
-            else:
-                raise ValueError("no data")
-            stream = mi.MemoryStream(len(data))
-            stream.write(data)
-            stream.seek(0)
-            arr = np.array(mi.Bitmap(stream))
-        except Exception as exc:  # noqa: BLE001  (an unreadable texture is skipped, not fatal)
-            _warn(f"cannot decode image {index} ({img.uri or img.mimeType}): {exc}; texture ignored")
-            arr = None
+        info = self.model.images[index]
+        name = "a data: URI" if (img.uri or "").startswith("data:") else (img.uri or img.mimeType)
+        arr = None
+        if info.fmt is None:
+            _warn(f"image {index} ({name}) is not a PNG or JPEG file; texture ignored")
+        else:
+            try:
+                stream = mi.MemoryStream(len(info.data))
+                stream.write(info.data)
+                stream.seek(0)
+                fmt = mi.Bitmap.FileFormat.PNG if info.fmt == "png" else mi.Bitmap.FileFormat.JPEG
+                arr = np.array(mi.Bitmap(stream, fmt))
+            except Exception as exc:  # noqa: BLE001  (an unreadable texture is skipped, not fatal)
+                _warn(f"cannot decode image {index} ({name}): {one_line(exc)}; texture ignored")
+                arr = None
         if arr is not None:
             if arr.ndim == 2:
                 arr = arr[:, :, None]
             if arr.dtype.kind in "iu":
                 arr = arr.astype(np.float32) / np.float32(np.iinfo(arr.dtype).max)
             arr = arr.astype(np.float32)
+            if arr.shape[0] * arr.shape[1] != info.width * info.height:
+                _warn(f"image {index} decoded to {arr.shape[1]}x{arr.shape[0]} pixels, not the "
+                      f"{info.width}x{info.height} of its header; texture ignored")
+                arr = None
         self._images[index] = arr
         return arr
 
@@ -158,7 +169,8 @@ def _node_matrix(node) -> np.ndarray:
     if node.matrix is not None:
         return np.array(node.matrix, dtype=np.float64).reshape(4, 4).T    # column-major
     t = np.array(node.translation or [0, 0, 0], dtype=np.float64)
-    x, y, z, w = node.rotation or [0, 0, 0, 1]
+    q = np.array(node.rotation or [0, 0, 0, 1], dtype=np.float64)
+    x, y, z, w = q / np.linalg.norm(q)          # validated non-zero; exporters round unit ones
     r = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
                   [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
                   [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
@@ -169,19 +181,16 @@ def _node_matrix(node) -> np.ndarray:
     return m
 
 
-def _walk_nodes(gltf):
-    """(node, world matrix) for every node of the default scene, parents first."""
-    if gltf.scenes:
-        roots = gltf.scenes[gltf.scene or 0].nodes or []
-    else:
-        children = {c for n in gltf.nodes for c in (n.children or [])}
-        roots = [i for i in range(len(gltf.nodes)) if i not in children]
+def _walk_nodes(gltf, roots):
+    """(index, node, world matrix) for every node of the default scene (``roots`` and their
+    descendants: a tree, validated), parents first."""
     stack = [(i, np.eye(4)) for i in reversed(roots)]
     while stack:
         i, parent = stack.pop()
         node = gltf.nodes[i]
-        world = parent @ _node_matrix(node)
-        yield node, world
+        with np.errstate(over="ignore", invalid="ignore"):
+            world = parent @ _node_matrix(node)
+        yield i, node, world
         stack.extend((c, world) for c in reversed(node.children or []))
 
 
@@ -249,8 +258,14 @@ class _Materials:
         if arr.shape[2] < 3:
             self._warn_once(("nchan", id(mat)), "a normalTexture with fewer than 3 channels is ignored")
             return None, None
-        scale = mat.normalTexture.scale
-        return self._bitmap(arr[:, :, :3], settings), 1.0 if scale is None else float(scale)
+        scale = 1.0 if mat.normalTexture.scale is None else float(mat.normalTexture.scale)
+        rgb = arr[:, :, :3]
+        if scale < 0:
+            # A negative scale flips the map's x and y: 2(1 − c) − 1 = −(2c − 1).
+            rgb = rgb.copy()
+            rgb[:, :, :2] = 1.0 - rgb[:, :, :2]
+            scale = -scale
+        return self._bitmap(rgb, settings), scale
 
     def principled(self, mat) -> dict:
         pbr = mat.pbrMetallicRoughness if mat is not None else None
@@ -302,6 +317,8 @@ class _Materials:
 # Meshes
 
 def _triangles(indices, mode):
+    if mode != _TRIANGLES and len(indices) < 3:
+        return np.zeros((0, 3), np.int64)
     if mode == _TRIANGLES:
         return indices[: len(indices) // 3 * 3].reshape(-1, 3)
     k = np.arange(max(len(indices) - 2, 0))
@@ -313,21 +330,32 @@ def _triangles(indices, mode):
     return np.stack([np.full_like(k, indices[0]), indices[k + 1], indices[k + 2]], axis=-1)
 
 
-def _primitive_arrays(f: _File, prim, want_tangents: bool, tangents_mode: str):
+def _finite_attribute(f: _File, index: int, where: str, name: str) -> np.ndarray:
+    """A float attribute's values, which must be finite."""
+    data = f.accessor(index).astype(np.float32)
+    if not np.all(np.isfinite(data)):
+        bad = int(np.argmax(~np.isfinite(data).all(axis=1)))
+        raise GLTFError(f"{where}.attributes.{name}: accessors[{index}] element {bad} is not finite")
+    return data
+
+
+def _primitive_arrays(f: _File, prim, want_tangents: bool, tangents_mode: str, where: str = "a primitive"):
     """Object-space (positions, normals, uvs | None, tangents4 | None, faces) of a primitive."""
     attrs = prim.attributes
-    positions = f.accessor(attrs.POSITION).astype(np.float32)
+    positions = _finite_attribute(f, attrs.POSITION, where, "POSITION")
     count = len(positions)
     indices = (f.accessor(prim.indices)[:, 0].astype(np.int64) if prim.indices is not None
                else np.arange(count))
     faces = _triangles(indices, prim.mode if prim.mode is not None else _TRIANGLES)
-    if len(faces) and (faces.max() >= count or faces.min() < 0):
-        raise ValueError("a primitive's indices are out of range")
-    uvs = f.accessor(attrs.TEXCOORD_0)[:, :2].astype(np.float32) if attrs.TEXCOORD_0 is not None else None
-    tangents = (f.accessor(attrs.TANGENT).astype(np.float32)
+    if len(faces) and faces.max() >= count:
+        raise GLTFError(f"{where}.indices: index {int(faces.max())} is out of range "
+                        f"(POSITION has {count} vertices)")
+    uvs = (_finite_attribute(f, attrs.TEXCOORD_0, where, "TEXCOORD_0")[:, :2]
+           if attrs.TEXCOORD_0 is not None else None)
+    tangents = (_finite_attribute(f, attrs.TANGENT, where, "TANGENT")
                 if attrs.TANGENT is not None and tangents_mode == "auto" else None)
     if attrs.NORMAL is not None:
-        normals = f.accessor(attrs.NORMAL).astype(np.float32)
+        normals = _finite_attribute(f, attrs.NORMAL, where, "NORMAL")
         length = np.linalg.norm(normals, axis=1, keepdims=True)
         normals = np.where(length > 0, normals / np.where(length > 0, length, 1), normals)
     else:
@@ -373,13 +401,36 @@ def _mitsuba_mesh(name, bsdf, positions, normals, uvs, tangents, faces):
     return mesh
 
 
-def _to_world(m, positions, normals, tangents, faces):
-    """World-space arrays under the node matrix ``m`` (winding flipped for mirroring matrices)."""
+def _cofactor(lin):
+    """The cofactor matrix det(L)·L^−T (columns: the cross products of L's columns), which
+    maps normals like the inverse transpose and exists for singular L too."""
+    a, b, c = lin[:, 0], lin[:, 1], lin[:, 2]
+    return np.stack([np.cross(b, c), np.cross(c, a), np.cross(a, b)], axis=1)
+
+
+def _to_world(m, positions, normals, tangents, faces, where="a node"):
+    """World-space arrays under the node matrix ``m`` (winding flipped for mirroring matrices),
+    or None where ``m`` flattens the mesh to a line or a point (a zero scale)."""
     lin = m[:3, :3]
+    if not np.all(np.isfinite(m)):
+        raise GLTFError(f"{where}: its world transform is not finite (its matrix or scale, times "
+                        "its parents', overflows)")
     det = np.linalg.det(lin)
-    positions = positions @ lin.T + m[:3, 3]
-    normals = normals @ np.linalg.inv(lin)        # the inverse transpose, applied to rows
-    normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-30)
+    cof = _cofactor(lin) * (np.sign(det) if det != 0 else 1.0)
+    if not np.any(np.abs(cof) > 1e-300):
+        _warn(f"{where}: its transform has a zero scale, so its mesh has no area; not rendered")
+        return None
+    with np.errstate(over="ignore", invalid="ignore"):
+        positions = positions @ lin.T + m[:3, 3]
+    if not np.all(np.isfinite(positions)):
+        raise GLTFError(f"{where}: its world transform takes the vertices past the float range")
+    normals = normals @ cof.T                     # ∝ the inverse transpose, applied to rows
+    length = np.linalg.norm(normals, axis=1, keepdims=True)
+    normals = normals / np.maximum(length, 1e-300)
+    if det == 0:
+        # A flat scale (rank 2) maps normals in the plane to 0: they get the plane's normal.
+        plane = cof[:, np.argmax(np.linalg.norm(cof, axis=0))]
+        normals = np.where(length > 0, normals, plane / np.linalg.norm(plane))
     if tangents is not None:
         t = tangents[:, :3] @ lin.T
         t /= np.maximum(np.linalg.norm(t, axis=1, keepdims=True), 1e-30)
@@ -398,22 +449,36 @@ def _look_at(origin, target, up):
                                           target=[float(x) for x in target], up=[float(x) for x in up])
 
 
+def _axis(world, v):
+    """The unit world-space direction of the node-space vector ``v``, or None if degenerate."""
+    d = world[:3, :3] @ np.asarray(v, dtype=np.float64)
+    n = float(np.linalg.norm(d))
+    return d / n if np.isfinite(n) and n > 1e-12 * max(1.0, float(np.abs(world[:3, :3]).max())) else None
+
+
 def _gltf_camera(cam, world):
-    """A Mitsuba sensor (without sampler and film) from a glTF camera at ``world``."""
+    """A Mitsuba sensor (without sampler and film) from a glTF camera at ``world``, or None
+    where the node's transform is degenerate (a zero scale, an overflow)."""
     import mitsuba as mi
 
     # glTF cameras look down −Z with +X right; Mitsuba's look down +Z with +X left.
     flip = np.diag([-1.0, 1.0, -1.0, 1.0])
+    if not np.all(np.isfinite(world)) or any(_axis(world, e) is None for e in np.eye(3)):
+        return None
     rot = world.copy()
     rot[:3, :3] /= np.linalg.norm(rot[:3, :3], axis=0, keepdims=True)   # drop scale
+    if abs(np.linalg.det(rot[:3, :3])) < 1e-6:
+        return None
     to_world = mi.ScalarTransform4f((rot @ flip).tolist())
-    if cam.type == "orthographic" and cam.orthographic is not None:
+    if cam.type == "orthographic":
         o = cam.orthographic
         return {"type": "orthographic",
                 "to_world": to_world @ mi.ScalarTransform4f().scale([o.xmag, o.ymag, 1.0])}
     p = cam.perspective
-    return {"type": "perspective", "fov_axis": "y", "fov": math.degrees(p.yfov),
-            "near_clip": float(p.znear or 1e-2), "to_world": to_world}
+    near = float(p.znear)
+    return {"type": "perspective", "fov_axis": "y",
+            "fov": min(max(math.degrees(p.yfov), 1e-4), 179.9),    # validated in (0°, 180°)
+            "near_clip": near, "far_clip": max(1e4, 1e3 * near), "to_world": to_world}
 
 
 def _framing_camera(lo, hi, aspect, fov=35.0, elevation=20.0, azimuth=20.0, margin=1.1):
@@ -470,21 +535,25 @@ def sky_envmap(width: int = 256, sun_elevation: float = 40.0, sun_azimuth: float
 
 
 def _punctual_lights(gltf, nodes):
-    """Mitsuba emitters for the KHR_lights_punctual lights of the scene's nodes."""
+    """Mitsuba emitters for the KHR_lights_punctual lights of the scene's nodes (validated:
+    known types, indices in range, colours and intensities >= 0, cone angles in order)."""
     ext = (gltf.extensions or {}).get("KHR_lights_punctual", {})
     lights = ext.get("lights", [])
     emitters = {}
-    for node, world in nodes:
+    for i, node, world in nodes:
         ref = (node.extensions or {}).get("KHR_lights_punctual")
-        if ref is None or ref.get("light") is None or ref["light"] >= len(lights):
+        if ref is None:
             continue
         light = lights[ref["light"]]
         colour = np.array(light.get("color", [1, 1, 1]), dtype=np.float64) * light.get("intensity", 1.0)
         rgb = {"type": "rgb", "value": colour.tolist()}
         position = world[:3, 3]
-        direction = world[:3, :3] @ np.array([0.0, 0.0, -1.0])
-        direction /= max(np.linalg.norm(direction), 1e-30)
+        direction, up = _axis(world, [0.0, 0.0, -1.0]), _axis(world, [0.0, 1.0, 0.0])
         kind = light.get("type")
+        if not np.all(np.isfinite(position)) or (kind != "point" and (direction is None or up is None)):
+            _warn(f"nodes[{i}]: the transform of its light is degenerate (a zero scale or an "
+                  "overflow); the light is skipped")
+            continue
         name = f"light_{len(emitters)}"
         if kind == "directional":
             emitters[name] = {"type": "directional", "direction": direction.tolist(), "irradiance": rgb}
@@ -495,8 +564,7 @@ def _punctual_lights(gltf, nodes):
             emitters[name] = {"type": "spot", "intensity": rgb,
                               "cutoff_angle": math.degrees(spot.get("outerConeAngle", math.pi / 4)),
                               "beam_width": math.degrees(spot.get("innerConeAngle", 0.0)),
-                              "to_world": _look_at(position, position + direction,
-                                                   world[:3, :3] @ np.array([0.0, 1.0, 0.0]))}
+                              "to_world": _look_at(position, position + direction, up)}
     return emitters
 
 
@@ -504,7 +572,7 @@ def _punctual_lights(gltf, nodes):
 
 def load_gltf(path, *, width: int = 640, height: int = 480, spp: int = 64, max_depth: int = 8,
               model: str = "faithful", tangents: str = "auto", normal_maps: bool = True,
-              lights: bool = True) -> dict:
+              lights: bool = True, limits: Limits = DEFAULT_LIMITS) -> dict:
     """A Mitsuba scene dict of the glTF 2.0 file ``path`` (``.gltf`` or ``.glb``).
 
     Needs an active Mitsuba variant (the meshes are built in it). Options:
@@ -513,7 +581,12 @@ def load_gltf(path, *, width: int = 640, height: int = 480, spp: int = 64, max_d
     ``TANGENT``, else MikkTSpace), ``mikktspace`` (always computed) or
     ``mitsuba`` (Mitsuba's per-triangle frame, for comparison);
     ``normal_maps=False`` drops the normal maps; ``lights=False`` ignores the
-    file's lights for the generated sky.
+    file's lights for the generated sky; ``limits``: the caps on what the file
+    may make the loader allocate (:class:`mfnormal.validate.Limits`).
+
+    The file is validated first (:mod:`mfnormal.gltf_validate`); anything the
+    loader cannot use safely raises :class:`GLTFError`, one line naming the
+    element. Files are read only from the model's own folder.
     """
     import mitsuba as mi
 
@@ -521,20 +594,25 @@ def load_gltf(path, *, width: int = 640, height: int = 480, spp: int = 64, max_d
 
     if tangents not in TANGENT_MODES:
         raise ValueError(f"tangents must be one of {', '.join(TANGENT_MODES)}, got '{tangents}'")
+    for name, value, lo in (("width", width, 1), ("height", height, 1), ("spp", spp, 1),
+                            ("max_depth", max_depth, -1)):
+        if isinstance(value, bool) or not isinstance(value, int) or not lo <= value < 1 << 31:
+            raise GLTFError(f"{name} must be an integer from {lo} to {(1 << 31) - 1}, got {value!r}")
+    _check_render_size(width, height, limits, "the film (width, height)")
     mfnormal.register()
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"glTF file not found: {path}")
-    f = _File(path)
+    f = _File(path, limits)
     gltf = f.gltf
     materials = _Materials(f, model, tangents, normal_maps)
-    nodes = list(_walk_nodes(gltf))
+    nodes = list(_walk_nodes(gltf, f.model.scene_roots))
     scene = {"type": "scene", "integrator": {"type": "path", "max_depth": int(max_depth)}}
 
     # Meshes, in world space; one BSDF per (material, uv, tangents) shared by its meshes.
     bsdfs = {}
     lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
-    for node, world in nodes:
+    for i, node, world in nodes:
         if node.skin is not None:
             materials._warn_once("skin", "skins are ignored (meshes are rendered in bind pose)")
         if node.mesh is None:
@@ -550,10 +628,14 @@ def load_gltf(path, *, width: int = 640, height: int = 480, spp: int = 64, max_d
             if prim.targets:
                 materials._warn_once("morph", "morph targets are ignored")
             want = materials.wants_tangents(prim.material)
-            positions, normals, uvs, tan, faces = _primitive_arrays(f, prim, want, tangents)
+            where = f"meshes[{node.mesh}].primitives[{k}]"
+            positions, normals, uvs, tan, faces = _primitive_arrays(f, prim, want, tangents, where)
             if len(faces) == 0:
                 continue
-            positions, normals, tan, faces = _to_world(world, positions, normals, tan, faces)
+            placed = _to_world(world, positions, normals, tan, faces, f"nodes[{i}]")
+            if placed is None:
+                continue
+            positions, normals, tan, faces = placed
             key = (prim.material, uvs is not None, tan is not None)
             if key not in bsdfs:
                 bsdfs[key] = mi.load_dict(materials.bsdf(prim.material, uvs is not None, tan is not None))
@@ -563,16 +645,26 @@ def load_gltf(path, *, width: int = 640, height: int = 480, spp: int = 64, max_d
             lo = np.minimum(lo, positions.min(axis=0))
             hi = np.maximum(hi, positions.max(axis=0))
     if not np.all(np.isfinite(lo)):
-        raise ValueError("the default scene has no triangle meshes")
+        raise GLTFError("the default scene has no triangle meshes")
+    with np.errstate(over="ignore", invalid="ignore"):
+        if not np.all(np.isfinite(hi - lo)) or not np.isfinite(np.linalg.norm(hi - lo)):
+            raise GLTFError("the model's extent overflows the float range")
 
     # Camera: the file's first, else one that frames the model.
     sensor = None
-    for node, world in nodes:
+    for i, node, world in nodes:
         if node.camera is not None:
-            sensor = _gltf_camera(gltf.cameras[node.camera], world)
-            aspect = getattr(gltf.cameras[node.camera].perspective, "aspectRatio", None)
+            cam = gltf.cameras[node.camera]
+            sensor = _gltf_camera(cam, world)
+            if sensor is None:
+                _warn(f"nodes[{i}]: the transform of its camera is degenerate (a zero scale or an "
+                      "overflow); using a camera that frames the model")
+                break
+            aspect = cam.perspective.aspectRatio if cam.type == "perspective" else None
             if aspect:
                 width = max(1, int(round(height * aspect)))
+                _check_render_size(width, height, limits, f"cameras[{node.camera}].perspective.aspectRatio "
+                                                          f"{aspect:g} at height {height}")
             break
     if sensor is None:
         sensor = _framing_camera(lo, hi, width / height)
@@ -587,3 +679,9 @@ def load_gltf(path, *, width: int = 640, height: int = 480, spp: int = 64, max_d
         emitters = {"sky": {"type": "envmap", "bitmap": mi.Bitmap(sky_envmap())}}
     scene.update(emitters)
     return scene
+
+
+def _check_render_size(width, height, limits, source):
+    if width * height > limits.render_pixels:
+        raise GLTFError(f"{source}: a {width}x{height} image has {width * height} pixels, more than a "
+                        f"render may have ({limits.hint('render_pixels')})")

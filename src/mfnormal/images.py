@@ -1,16 +1,90 @@
-"""Writing renders: NaN/Inf accounting, tonemapping and atomic EXR/PNG output."""
+"""Writing renders: NaN/Inf and negative-pixel accounting, tonemapping, atomic EXR/PNG pairs.
+
+A render is an (H, W, C) float array whose channels are named as the film names
+them (:func:`film_channel_names`): ``Y`` (mono variants, a ``luminance`` film),
+``Y A``, ``R G B``, ``R G B A``, or those followed by AOVs (the ``aov``
+integrator: ``dd.y``, ``nn.X`` ...). The EXR keeps every channel under its
+name; the PNG is the tonemapped colour (grey for ``Y`` films).
+
+:func:`save_render` writes the two files as a pair: both go to temporary files in
+the output folder first, and only when both are complete are they renamed
+(with SIGINT and SIGTERM held back between the two renames), so a failure (a
+full disk, a signal) leaves the previous pair, never a new EXR next to an old
+PNG, and no temporary file.
+"""
 
 from __future__ import annotations
 
 import os
+import signal
 import tempfile
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
 
+_STANDARD = {("Y",): "Y", ("Y", "A"): "YA", ("R", "G", "B"): "RGB", ("R", "G", "B", "A"): "RGBA"}
+
+
+def default_channel_names(n: int) -> list[str]:
+    """Channel names of an n-channel image without a film to ask."""
+    return {1: ["Y"], 2: ["Y", "A"], 3: ["R", "G", "B"], 4: ["R", "G", "B", "A"]}.get(
+        n, ["R", "G", "B"] + [f"C{i}" for i in range(3, n)])
+
+
+def film_channel_names(film, n: int) -> list[str]:
+    """The names of the ``n`` channels that ``mi.render`` returned for ``film`` (after a
+    render): its base channels (``Y``, ``Y A``, ``R G B`` or ``R G B A``) and AOVs."""
+    try:
+        bitmap = film.bitmap(raw=False)
+        names = [bitmap.struct_()[i].name for i in range(bitmap.channel_count())]
+        base = int(film.base_channels_count())
+    except Exception:  # noqa: BLE001  (a film without a developed bitmap)
+        return default_channel_names(n)
+    if len(names) == n:
+        return names
+    # mi.render leaves out the channels a nested integrator records for itself
+    # (the aov integrator's '<id>.R' ...): keep the base channels and the last AOVs.
+    if base <= n <= len(names) and len(names) - (n - base) >= base:
+        return names[:base] + names[len(names) - (n - base):]
+    return default_channel_names(n)
+
+
+def colour_channels(names) -> list[int]:
+    """Indices of the colour channels (R, G, B or Y) among the base channels."""
+    names = list(names)
+    if names[:3] == ["R", "G", "B"]:
+        return [0, 1, 2]
+    if names[:1] == ["Y"]:
+        return [0]
+    return [0]
+
+
+def sanitize_counts(img: np.ndarray, names=None) -> tuple[np.ndarray, int, int]:
+    """(image, pixels with a NaN/Inf value, pixels with a negative colour value).
+
+    NaN/Inf in any channel and negative colour values are written as 0; alpha and
+    AOV channels keep their negative values (a normal or position AOV has them)."""
+    img = np.array(img, dtype=np.float32, copy=True)
+    if img.ndim == 2:
+        img = img[..., None]
+    names = names or default_channel_names(img.shape[-1])
+    finite = np.isfinite(img)
+    nonfinite = int((~finite.all(axis=-1)).sum())
+    img[~finite] = 0.0
+    colour = img[..., colour_channels(names)]
+    negative_px = (colour < 0).any(axis=-1)
+    negative = int(negative_px.sum())
+    if negative:
+        idx = colour_channels(names)
+        img[..., idx] = np.maximum(img[..., idx], 0.0)
+    return img, nonfinite, negative
+
 
 def sanitize(rgb: np.ndarray) -> tuple[np.ndarray, int]:
-    """Replace NaN/Inf (and negative) pixels by 0; return the image and how many pixels were bad."""
+    """Replace NaN/Inf (and negative) values by 0; return the image and how many pixels had NaN/Inf.
+
+    (Kept for :mod:`mfnormal.compare`; :func:`sanitize_counts` also counts the negative pixels.)"""
     rgb = np.asarray(rgb, dtype=np.float32)
     bad = ~np.isfinite(rgb).all(axis=-1)
     out = np.where(np.isfinite(rgb), np.maximum(rgb, 0.0), 0.0).astype(np.float32)
@@ -24,23 +98,74 @@ def tonemap(rgb: np.ndarray, exposure: float = 0.0) -> np.ndarray:
     return np.round(srgb * 255.0).astype(np.uint8)
 
 
-def atomic_write(path, write) -> Path:
-    """Call ``write(tmp_path)`` then rename onto ``path``: no half-written file on error."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
+def _temp_path(path: Path) -> str:
     fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix, dir=path.parent)
     os.close(fd)
+    return tmp
+
+
+def _umask() -> int:
     umask = os.umask(0)
     os.umask(umask)
+    return umask
+
+
+@contextmanager
+def _signals_held():
+    """SIGINT and SIGTERM wait until the block is done (where the platform allows it)."""
+    sigs = {s for s in (getattr(signal, "SIGINT", None), getattr(signal, "SIGTERM", None)) if s}
+    can = hasattr(signal, "pthread_sigmask")
+    if can:
+        old = signal.pthread_sigmask(signal.SIG_BLOCK, sigs)
     try:
-        write(tmp)
-        os.chmod(tmp, 0o666 & ~umask)   # mkstemp makes it private; give it the usual mode
-        os.replace(tmp, path)
+        yield
+    finally:
+        if can:
+            signal.pthread_sigmask(signal.SIG_SETMASK, old)
+
+
+def atomic_write_all(items) -> list[Path]:
+    """Write several files as one: ``items`` is a list of (path, write) where ``write(tmp)``
+    writes the file's content to the temporary path ``tmp``. Every file is written to
+    a temporary file next to its target first; then all are renamed, with SIGINT and
+    SIGTERM held back between the renames. On any error (or signal) before the renames,
+    the temporary files are removed and the targets are untouched."""
+    items = [(Path(p), w) for p, w in items]
+    umask = _umask()
+    temps = []
+    try:
+        for path, write in items:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            with _signals_held():            # created and registered for removal as one step
+                temps.append(_temp_path(path))
+            write(temps[-1])
+            os.chmod(temps[-1], 0o666 & ~umask)   # mkstemp makes it private; give it the usual mode
+        with _signals_held():
+            done = []
+            try:
+                for (path, _), tmp in zip(items, temps):
+                    os.replace(tmp, path)
+                    done.append(path)
+            except BaseException:
+                for path in done:          # a half-renamed pair: remove its new half
+                    try:
+                        os.unlink(path)
+                    except OSError:
+                        pass
+                raise
     except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
+        for tmp in temps:
+            try:
+                os.unlink(tmp)
+            except OSError:
+                pass
         raise
-    return path
+    return [p for p, _ in items]
+
+
+def atomic_write(path, write) -> Path:
+    """Call ``write(tmp_path)`` then rename onto ``path``: no half-written file on error."""
+    return atomic_write_all([(path, write)])[0]
 
 
 def output_paths(output) -> tuple[Path, Path]:
@@ -50,13 +175,45 @@ def output_paths(output) -> tuple[Path, Path]:
     return stem.with_suffix(".exr"), stem.with_suffix(".png")
 
 
-def save_render(rgb: np.ndarray, output, exposure: float = 0.0) -> tuple[Path, Path]:
-    """Write a linear EXR and a tonemapped PNG next to each other, atomically."""
+def save_render(img: np.ndarray, output, exposure: float = 0.0, names=None) -> tuple[Path, Path]:
+    """Write a linear EXR (every channel, named ``names``) and a tonemapped PNG (the colour)
+    next to each other, as a pair (see :func:`atomic_write_all`)."""
     import mitsuba as mi
 
     exr, png = output_paths(output)
-    linear = np.ascontiguousarray(rgb, dtype=np.float32)
-    atomic_write(exr, lambda p: mi.Bitmap(linear, mi.Bitmap.PixelFormat.RGB).write(p))
-    atomic_write(png, lambda p: mi.Bitmap(tonemap(linear, exposure), mi.Bitmap.PixelFormat.RGB)
-                 .write(p, mi.Bitmap.FileFormat.PNG))
+    linear = np.ascontiguousarray(img, dtype=np.float32)
+    if linear.ndim == 2:
+        linear = linear[..., None]
+    names = list(names or default_channel_names(linear.shape[-1]))
+    if len(names) != linear.shape[-1]:
+        raise ValueError(f"{len(names)} channel names for {linear.shape[-1]} channels")
+    fmt = _STANDARD.get(tuple(names))
+    if fmt is not None:
+        exr_bitmap = mi.Bitmap(linear, getattr(mi.Bitmap.PixelFormat, fmt))
+    else:
+        exr_bitmap = mi.Bitmap(linear, mi.Bitmap.PixelFormat.MultiChannel, names)
+    idx = colour_channels(names)
+    colour = np.ascontiguousarray(tonemap(linear[..., idx], exposure))
+    png_bitmap = mi.Bitmap(colour, mi.Bitmap.PixelFormat.RGB if len(idx) == 3 else mi.Bitmap.PixelFormat.Y)
+    exr_data = encode(exr_bitmap, mi.Bitmap.FileFormat.OpenEXR)
+    png_data = encode(png_bitmap, mi.Bitmap.FileFormat.PNG)
+    atomic_write_all([(exr, lambda p: write_bytes(p, exr_data)), (png, lambda p: write_bytes(p, png_data))])
     return exr, png
+
+
+def encode(bitmap, file_format) -> bytes:
+    """``bitmap`` encoded as ``file_format``, in memory."""
+    import mitsuba as mi
+
+    stream = mi.MemoryStream()
+    bitmap.write(stream, file_format)
+    return stream.raw_buffer()
+
+
+def write_bytes(path, data: bytes) -> None:
+    """Write ``data`` to ``path`` and make it durable: a full disk raises OSError here
+    (Mitsuba's own file streams can lose a failed final flush)."""
+    with open(path, "wb") as f:
+        f.write(data)
+        f.flush()
+        os.fsync(f.fileno())

@@ -55,8 +55,13 @@ Microfacet-based normal mapping (:monosp:`normalmap_microfacet`)
  * - strength
    - |float|
    - Scales the tangent-space x and y before normalising (glTF's
-     ``normalTexture.scale``); 0 gives the flat surface. Default: 1.
-     (Exposed, |exposed|)
+     ``normalTexture.scale``); 0 gives the flat surface. Default: 1. A finite
+     number ≥ 0, in the constructor and in ``mi.traverse`` updates alike (an
+     update to NaN, ±inf or a negative value raises and keeps the previous
+     strength); values above ``STRENGTH_MAX`` = 1e6 act as 1e6, which tilts
+     every texel that is not exactly flat to the steepest facet already for
+     8- and 16-bit maps, and keeps the decoding from overflowing to the flat
+     normal. (Exposed, |exposed|)
  * - tangents
    - |string|
    - The tangent frame the map is decoded in. ``mitsuba`` (default): the
@@ -153,8 +158,22 @@ CONVENTIONS = ("opengl", "directx")
 MITSUBA_TANGENTS = "mitsuba"
 
 
+STRENGTH_MAX = 1e6
+
+
 def _fail(msg: str):
     raise ValueError(f"normalmap_microfacet: {msg}")
+
+
+def _checked_strength(values) -> list:
+    """``strength`` values as floats, each finite and ≥ 0 (else ValueError), capped at STRENGTH_MAX."""
+    import numpy as np
+
+    values = np.array(values, dtype=np.float64).ravel().tolist()
+    bad = [v for v in values if not (0.0 <= v < float("inf"))]
+    if bad or not values:
+        _fail(f"strength must be a finite number >= 0, got {bad[0] if bad else 'no value'}")
+    return [min(v, STRENGTH_MAX) for v in values]
 
 
 class NormalMapMicrofacet:
@@ -206,10 +225,9 @@ class NormalMapMicrofacet:
         if convention not in CONVENTIONS:
             _fail(f"unknown normalmap_convention '{convention}'; use 'opengl' or 'directx'")
         self.directx = convention == "directx"
-        strength = float(props.get("strength", 1.0))
-        if not (0.0 <= strength < float("inf")):
-            _fail(f"strength must be a finite number >= 0, got {strength}")
+        strength = _checked_strength(float(props.get("strength", 1.0)))[0]
         self.strength = mi.Float(strength)
+        self._strength_ok = strength
         dr.make_opaque(self.strength)
         tangents = props.get("tangents", MITSUBA_TANGENTS)
         if tangents != MITSUBA_TANGENTS and not tangents.startswith("vertex_"):
@@ -241,6 +259,16 @@ class NormalMapMicrofacet:
 
     def parameters_changed(self, keys):
         if "strength" in keys:
+            # In place: a ParameterTree from mi.traverse keeps referring to this array.
+            try:
+                values = _checked_strength(self.strength)
+            except ValueError:
+                mi.set_property(self.strength, mi.Float(self._strength_ok))   # the update is refused
+                dr.make_opaque(self.strength)
+                raise
+            if max(values) >= STRENGTH_MAX:
+                mi.set_property(self.strength, mi.Float(values))
+            self._strength_ok = values
             dr.make_opaque(self.strength)
         if self.faithful is not None and (not keys or any(k == "strength" or k.startswith("normalmap")
                                                           for k in keys)):

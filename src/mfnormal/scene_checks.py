@@ -59,6 +59,18 @@ def _channels(bsdf):
     return (shape[-1] if len(shape) == 3 else 1), (match.group(1) if match else "")
 
 
+def _evaluates_rgb(tex) -> bool:
+    """Whether the texture ``tex`` (None: not the plugin's) can be evaluated as RGB."""
+    if tex is None:
+        return True
+    import drjit as dr
+    try:
+        tex.eval_3(dr.zeros(mi.SurfaceInteraction3f))
+    except Exception:  # noqa: BLE001  (Mitsuba: "Texture::eval_3(): not implemented!")
+        return False
+    return True
+
+
 def check_scene(scene) -> None:
     """Raise ``ValueError`` (one line) for the first normal-mapped shape that cannot work:
     a mesh without UVs, or a normal map that does not have 3 channels."""
@@ -69,6 +81,11 @@ def check_scene(scene) -> None:
             raise ValueError(f"shape {_shape_name(shape)} has no texture coordinates (UVs), "
                              f"which its {kind} BSDF needs for the normal map and tangent frame")
         channels, name = _channels(bsdf)
+        if channels is None and not _evaluates_rgb(_normalmap_texture(bsdf)):
+            tex = _normalmap_texture(bsdf)
+            raise ValueError(f"the normal map of shape {_shape_name(shape)} is a "
+                             f"'{tex.class_name()}' texture, which has no RGB evaluation (eval_3); "
+                             "a tangent-space normal map needs an RGB texture such as a bitmap")
         if channels is not None and channels != 3:
             what = f"'{name}'" if name else "of shape " + _shape_name(shape)
             raise ValueError(f"normal map {what} has {channels} channel{'s' if channels != 1 else ''}; "

@@ -1,0 +1,274 @@
+"""Fuzzing the command line: random arguments and ``-D`` values for render, demo and compare.
+
+Each Hypothesis example builds an argument list for ``mfnormal render`` (an XML
+scene with ``$spp``, ``$width``, ``$height``, ``$mb`` (max_bounces),
+``$model``, ``$nm``, ``$strength`` parameters, a glTF model, or a missing or
+odd scene name), ``mfnormal demo`` or ``mfnormal compare --quick``: flags
+(``--spp``, ``--seed``, ``--variant``, ``-o``, ``--limit``, ``--model``,
+``--width``, ``--methods``) with boundary integers (0, −1, 2^31, 2^32, 2^63),
+junk (``''``, ``1.5``, ``nan``, ``0x10``) and hostile names (a folder, a path
+under a file, a read-only place, ``..``, ``/dev/zero``), and ``-D key=value``
+pairs with known and unknown keys and values of every kind (numbers, NaN,
+±inf, 2^32, XML metacharacters, ``$`` references, paths). It runs in the worker
+process (``tests/cli_worker.py``) and must end with either exit 0 and the
+outputs written, or exactly one ``mfnormal: error:`` line (after at most some
+``mfnormal: warning:`` lines), exit 2 and nothing written — never a traceback,
+a signal, a timeout or the memory cap.
+
+The fuzzer does not ask for long renders: sample counts above 16 are drawn
+only where they are invalid (≥ 2^31), and ``--limit render_pixels=4096`` is
+always passed last (a larger film is a one-line error). ``CI_INPUTS`` inputs
+derandomised; ``MFNORMAL_FUZZ_LONG=1`` runs ``LONG_INPUTS`` random ones
+(``MFNORMAL_FUZZ_INPUTS=N`` sets the count); ``pytest -s`` prints the
+throughput; ``MFNORMAL_FUZZ_LOG=FILE`` appends each input's exit code, last
+stderr line and arguments to FILE.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import tempfile
+import time
+from pathlib import Path
+
+import mfnormal  # noqa: F401  (first: selects a working libLLVM)
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, Phase, given, settings
+from hypothesis import strategies as st
+
+from cli_worker import Worker
+from gltf_models import base_document, glb_bytes, write_gltf
+from mfnormal.report import png_bytes
+
+LONG = os.environ.get("MFNORMAL_FUZZ_LONG", "") not in ("", "0")
+CI_INPUTS, LONG_INPUTS = 400, 1000
+INPUTS = int(os.environ.get("MFNORMAL_FUZZ_INPUTS", LONG_INPUTS if LONG else CI_INPUTS))
+TIMEOUT = 120.0
+FORCED = ["--limit", "render_pixels=4096"]
+
+SCENE = """<scene version="3.0.0">
+    <default name="spp" value="1"/>
+    <default name="width" value="24"/>
+    <default name="height" value="16"/>
+    <default name="mb" value="64"/>
+    <default name="model" value="separable"/>
+    <default name="nm" value="normalmap.png"/>
+    <default name="strength" value="1"/>
+    <integrator type="path"><integer name="max_depth" value="3"/></integrator>
+    <sensor type="perspective">
+        <transform name="to_world"><lookat origin="0, 2, 4" target="0, 0, 0" up="0, 1, 0"/></transform>
+        <sampler type="independent"><integer name="sample_count" value="$spp"/></sampler>
+        <film type="hdrfilm"><integer name="width" value="$width"/><integer name="height" value="$height"/></film>
+    </sensor>
+    <emitter type="constant"/>
+    <shape type="rectangle">
+        <transform name="to_world"><rotate x="1" angle="-90"/></transform>
+        <bsdf type="normalmap_microfacet">
+            <string name="model" value="$model"/>
+            <integer name="max_bounces" value="$mb"/>
+            <float name="strength" value="$strength"/>
+            <texture type="bitmap" name="normalmap">
+                <string name="filename" value="$nm"/>
+                <boolean name="raw" value="true"/>
+            </texture>
+            <bsdf type="diffuse"/>
+        </bsdf>
+    </shape>
+</scene>
+"""
+
+BIG_INTS = ["2147483648", "4294967295", "4294967296", "9223372036854775808", "-2147483649", "1" + "0" * 40]
+SMALL_INTS = ["-5", "-1", "0", "1", "2", "3", "8", "16"]
+JUNK = ["", " ", "1.5", "nan", "inf", "-inf", "0x10", "1e3", "abc", "--", "-", "１", "1_000"]
+VALUES = (SMALL_INTS + BIG_INTS + JUNK
+          + ["0.5", "1e30", "-1e30", "1e-45", "analytic", "separable", "nonseparable", "fancy", "classic",
+             "normalmap.png", "gray.png", "missing.png", "../secret.png", "/dev/zero", "/etc/passwd", "sub",
+             "<", "&", '"', "'", "]]>", "$spp", "${spp}", "$", "true", "false", "mikktspace", "mitsuba",
+             "auto", "a b", "\x7f", "é"])
+XML_KEYS = ["spp", "width", "height", "mb", "model", "nm", "strength", "bogus", "max_depth", "Spp", "sp p", "",
+            "1x", "_", "$spp"]
+GLTF_KEYS = ["width", "height", "spp", "max_depth", "model", "tangents", "normal_maps", "lights", "bogus", "nm"]
+OUTPUTS = ["out/render", "out/", "out", "outdir", "good.xml/x", "/sys/mfnormal_fuzz/x", "out/a.png", "out/a.exr",
+           "", ".", "..", "out/é", "out/a b", "out/.hidden", "outdir/", "nested/deeper/render", "o" * 300,
+           "out/" + "o" * 250]
+VARIANTS = ["llvm_ad_rgb"] * 6 + ["llvm_ad_mono", "llvm_ad_spectral", "llvm_ad_spectral_polarized",
+                                  "scalar_rgb", "cuda_ad_rgb", "bogus", ""]
+LIMIT_NAMES = ["render_pixels", "image_pixels", "texture_pixels", "data_bytes", "vertices", "bogus", ""]
+
+
+# Valid values per -D key (so that many inputs get as far as a render).
+VALID = {"spp": ["1", "2", "4"], "width": ["8", "24", "40", "64"], "height": ["8", "16", "30", "64"],
+         "mb": ["1", "3", "64", "1000000", "2147483647"], "model": ["analytic", "separable", "nonseparable"],
+         "nm": ["normalmap.png"], "strength": ["0", "0.5", "1", "3", "1e30", "1e6"],
+         "max_depth": ["-1", "1", "2", "5"], "tangents": ["auto", "mikktspace", "mitsuba"],
+         "normal_maps": ["true", "false", "0", "yes"], "lights": ["true", "false", "off"]}
+
+
+def spp_values():
+    """Small valid counts or invalid ones; never a long render."""
+    return st.one_of(st.sampled_from(["1", "2", "4"]), st.sampled_from(SMALL_INTS + BIG_INTS + JUNK))
+
+
+@st.composite
+def defines(draw, keys):
+    out = []
+    for _ in range(draw(st.integers(0, 4))):
+        key = draw(st.sampled_from(keys))
+        if key in VALID and draw(st.integers(0, 9)) < 7:
+            value = draw(st.sampled_from(VALID[key]))
+        else:
+            value = draw(st.sampled_from(VALUES))
+        if key in ("spp",) and value.lstrip("-").isdigit() and 16 < int(value) < (1 << 31):
+            value = "4"
+        form = draw(st.sampled_from(["{k}={v}"] * 16 + ["{k}", "={v}", "{k}=={v}", " {k} ={v}"]))
+        out += ["-D", form.format(k=key, v=value)]
+    return out
+
+
+@st.composite
+def common_flags(draw):
+    args = []
+    if draw(st.booleans()):
+        args += ["--seed", draw(st.one_of(st.sampled_from(["0", "7", "5000", "4294967295"]),
+                                          st.sampled_from(SMALL_INTS + BIG_INTS + JUNK)))]
+    if draw(st.integers(0, 5)) == 0:
+        name = draw(st.sampled_from(LIMIT_NAMES))
+        args += ["--limit", f"{name}={draw(st.sampled_from(SMALL_INTS + BIG_INTS + JUNK + ['2**40', '1e9']))}"]
+    return args
+
+
+@st.composite
+def render_args(draw):
+    scene = draw(st.sampled_from(["scene.xml"] * 10 + ["model/model.gltf"] * 6 + ["model.glb", "nothere.xml",
+                                                                                   "sub", "", "gray.xml",
+                                                                                   "s" * 300 + ".xml"]))
+    args = ["render", scene]
+    if draw(st.booleans()):
+        args += ["--spp", draw(spp_values())]
+    if draw(st.integers(0, 3)) == 0:
+        args += ["--variant", draw(st.sampled_from(VARIANTS))]
+    args += draw(common_flags())
+    if "model" in scene:
+        args += ["-D", "width=18", "-D", "height=12"]     # (a later -D overrides these)
+    args += draw(defines(GLTF_KEYS if "model" in scene else XML_KEYS))
+    if draw(st.integers(0, 2)):
+        args += ["-o", draw(st.one_of(st.just("out/render"), st.sampled_from(OUTPUTS)))]
+    return args
+
+
+@st.composite
+def demo_args(draw):
+    args = ["demo"]
+    if draw(st.booleans()):
+        args += ["--model", draw(st.sampled_from(["analytic", "classic", "fancy", "", "nonseparable", "a b"]))]
+    if draw(st.booleans()):
+        args += ["--spp", draw(spp_values())]
+    for item in draw(common_flags()):
+        if item.startswith("--seed"):
+            break
+        args.append(item)
+    args += ["-o", draw(st.sampled_from(OUTPUTS))] if draw(st.booleans()) else []
+    return args
+
+
+@st.composite
+def compare_args(draw):
+    args = ["compare", draw(st.sampled_from(["scene.xml"] * 4 + ["nothere.xml", "gray.xml", "model/model.gltf"])),
+            "--quick", "--methods", draw(st.sampled_from(["flat,analytic", "flat", "analytic,fancy", "", ","]))]
+    if draw(st.booleans()):
+        args += ["--spp", draw(spp_values())]
+    if draw(st.integers(0, 2)) == 0:
+        args += ["--width", draw(st.sampled_from(["8", "7", "0", "-3", "64", "abc"] + BIG_INTS[:2]))]
+    args += draw(common_flags())
+    args += draw(defines(XML_KEYS))
+    args += ["-o", draw(st.sampled_from(OUTPUTS + ["cmp"]))] if draw(st.booleans()) else []
+    return args
+
+
+def make_sandbox(root: Path) -> Path:
+    bumps = np.zeros((8, 8, 3), np.uint8)
+    bumps[...] = (128, 128, 255)
+    bumps[2:6, 2:6] = (200, 128, 220)
+    (root / "normalmap.png").write_bytes(png_bytes(bumps))
+    (root / "gray.png").write_bytes(png_bytes(np.full((8, 8), 128, np.uint8)))
+    (root / "scene.xml").write_text(SCENE)
+    (root / "gray.xml").write_text(SCENE.replace('value="normalmap.png"', 'value="gray.png"'))
+    (root / "good.xml").write_text(SCENE)
+    (root / "outdir").mkdir()
+    (root / "sub").mkdir()
+    doc, blobs = base_document()
+    write_gltf(root / "model", doc, blobs)
+    (root / "model.glb").write_bytes(glb_bytes(doc, blobs))
+    return root
+
+
+def snapshot(root: Path) -> set:
+    return {str(p.relative_to(root)) for p in root.rglob("*")}
+
+
+def check_outcome(result, root: Path, before: set):
+    assert not result.timed_out, f"no answer within {TIMEOUT:.0f} s"
+    assert result.died is None, result.describe()
+    assert result.exception is None, result.describe()
+    lines = [ln for ln in result.stderr.strip().splitlines() if ln.strip()]
+    written = snapshot(root) - before
+    if result.rc == 0:
+        assert all(ln.startswith("mfnormal: warning: ") for ln in lines), result.stderr
+        assert any(w.endswith((".exr", ".html")) for w in written), (written, result.stdout)
+        return "render"
+    assert result.rc == 2, result.describe()
+    assert lines and lines[-1].startswith("mfnormal: error: "), result.stderr
+    assert all(ln.startswith("mfnormal: warning: ") for ln in lines[:-1]), result.stderr
+    assert not written, f"written despite the error: {sorted(written)}"
+    return "error"
+
+
+@pytest.fixture(scope="module")
+def worker():
+    w = Worker()
+    yield w
+    w.close()
+
+
+STATS = {"inputs": 0, "render": 0, "error": 0, "seconds": 0.0}
+LOG = os.environ.get("MFNORMAL_FUZZ_LOG")      # a file: each input's exit code, last stderr line, arguments
+
+
+@pytest.fixture(scope="module", autouse=True)
+def report_throughput():
+    yield
+    if STATS["inputs"]:
+        print(f"\nCLI fuzzer: {STATS['inputs']} inputs ({STATS['render']} rendered, {STATS['error']} one-line "
+              f"errors) in {STATS['seconds']:.1f} s: {STATS['inputs'] / STATS['seconds']:.2f} inputs/s")
+
+
+FUZZ_SETTINGS = settings(max_examples=INPUTS, derandomize=not LONG, database=None, deadline=None,
+                         print_blob=LONG, phases=(Phase.explicit, Phase.generate, Phase.shrink),
+                         suppress_health_check=list(HealthCheck))
+
+
+@FUZZ_SETTINGS
+@given(data=st.data())
+def test_random_command_lines_render_or_fail_in_one_line(worker, data):
+    start = time.perf_counter()
+    root = Path(tempfile.mkdtemp(prefix="mfnormal-clifuzz."))
+    try:
+        make_sandbox(root)
+        kind = data.draw(st.sampled_from(["render"] * 7 + ["demo", "compare"]), label="command")
+        args = data.draw({"render": render_args(), "demo": demo_args(), "compare": compare_args()}[kind],
+                         label="args")
+        before = snapshot(root)
+        result = worker.run(args + FORCED, cwd=root, timeout=TIMEOUT)
+        if LOG:
+            lines = result.stderr.strip().splitlines()
+            with open(LOG, "a") as f:
+                f.write(f"{result.rc}\t{lines[-1] if lines else ''}\t{args}\n")
+        outcome = check_outcome(result, root, before)
+        STATS["inputs"] += 1
+        STATS[outcome] += 1
+    finally:
+        shutil.rmtree(root, ignore_errors=True)
+        STATS["seconds"] += time.perf_counter() - start
