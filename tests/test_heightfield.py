@@ -310,3 +310,13 @@ def test_render_cell_end_to_end_reports_a_missing_model():
     # Fixed seeds: the same cell renders the same numbers.
     again = H.render_cell(cell, methods[:1], res=16, spp=4, ref_factor=2)
     assert again["metrics"]["classic"]["rel_mse"] == out["metrics"]["classic"]["rel_mse"]
+
+
+def test_truth_scene_reuse_swaps_the_material_exactly():
+    """render_cell keeps the last truth scene and swaps its mesh's BSDF for the next material:
+    the same pixels as a freshly loaded scene."""
+    for mat in ("diffuse", "gold", "plastic"):
+        cell = H.Cell("bumps", "steep", mat, "sky_sun", "frontal", "magnified")
+        reused = H.render(H._truth_scene(cell, 16, 4, 8), 4, 1)
+        fresh = H.render(cell.truth_scene(16, 4, 8), 4, 1)
+        np.testing.assert_array_equal(reused, fresh)
