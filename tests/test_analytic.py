@@ -636,6 +636,9 @@ def test_traverse_exposes_parameters_and_strength_updates_eval():
     ({"strength": -1.0}, "strength"),
     ({"normalmap": None}, "normalmap"),
     ({"bsdf": None}, "nested BSDF"),
+    ({"model": "separable", "max_bounces": 2 ** 32}, "max_bounces"),    # 32-bit walk counters
+    ({"model": "nonseparable", "rr_depth": 2 ** 31}, "rr_depth"),
+    ({"model": "faithful", "tangent_facet": "same"}, "tangent_facet"),
 ])
 def test_invalid_parameters_raise_clear_errors(override, word):
     """The plugin's own message (not just Mitsuba's "failed to instantiate

@@ -104,6 +104,13 @@ def blocked_table(sigma: float, cos_min: float) -> np.ndarray:
     return np.clip(table, 0.0, 1.0).astype(np.float32)
 
 
+def _gather(table, index):
+    """table[index]: a Dr.Jit gather in JIT variants, numpy indexing in scalar ones."""
+    if dr.is_jit_v(mi.Float):
+        return dr.gather(mi.Float, table, index)
+    return float(table[int(index)])
+
+
 def lookup(table, cos_min, cos_p, g):
     """Bilinear lookup of B(cosθ_p, G1 = g) in the table stored flat in a Dr.Jit Float."""
     x = dr.clip((cos_p - cos_min) / (1.0 - cos_min), 0.0, 1.0) * (TABLE_COS - 1)
@@ -112,10 +119,10 @@ def lookup(table, cos_min, cos_p, g):
     y0 = dr.minimum(mi.UInt32(y), TABLE_G - 2)
     fx, fy = x - mi.Float(x0), y - mi.Float(y0)
     i00 = x0 * TABLE_G + y0
-    v00 = dr.gather(mi.Float, table, i00)
-    v01 = dr.gather(mi.Float, table, i00 + 1)
-    v10 = dr.gather(mi.Float, table, i00 + TABLE_G)
-    v11 = dr.gather(mi.Float, table, i00 + TABLE_G + 1)
+    v00 = _gather(table, i00)
+    v01 = _gather(table, i00 + 1)
+    v10 = _gather(table, i00 + TABLE_G)
+    v11 = _gather(table, i00 + TABLE_G + 1)
     return dr.lerp(dr.lerp(v00, v01, fy), dr.lerp(v10, v11, fy), fx)
 
 
@@ -237,9 +244,12 @@ class Model:
         """(Re)build what depends on the map's rms slope σ (opaque: no recompile per value)."""
         self.sigma_value = float(sigma)
         self.sigma = mi.Float(self.sigma_value)
-        dr.make_opaque(self.sigma)
-        self.table = mi.Float(blocked_table(self.sigma_value, self.cos_min).ravel())
-        dr.make_opaque(self.table)
+        table = blocked_table(self.sigma_value, self.cos_min).ravel()
+        if dr.is_jit_v(mi.Float):
+            self.table = mi.Float(table)
+            dr.make_opaque(self.sigma, self.table)
+        else:
+            self.table = table
 
     def texel(self, sp, wi):
         return Texel(sp, self, wi)

@@ -153,6 +153,7 @@ from .shading import ShadingPoint, from_tangent_frame
 
 MODELS = ("faithful", "analytic", "separable", "nonseparable")
 DEFAULT_MODEL = "faithful"
+INT32_MAX = 2 ** 31 - 1          # walk counters are 32-bit
 TANGENT_FACETS = ("specular", "same")
 CONVENTIONS = ("opengl", "directx")
 MITSUBA_TANGENTS = "mitsuba"
@@ -213,11 +214,12 @@ class NormalMapMicrofacet:
             _fail(f"tangent_facet 'same' needs model='separable' or 'nonseparable'; the {self.model} "
                   "model has no tangent facet of the nested material")
         self.max_bounces = int(props.get("max_bounces", walk.MAX_BOUNCES))
-        if self.max_bounces < 1:
-            _fail(f"max_bounces must be >= 1, got {self.max_bounces}")
+        if not (1 <= self.max_bounces <= INT32_MAX):
+            _fail(f"max_bounces must be between 1 and {INT32_MAX}, got {self.max_bounces}")
         self.rr_depth = int(props.get("rr_depth", walk.RR_DEPTH))
-        if self.rr_depth < 0:
-            _fail(f"rr_depth must be >= 0 (0 turns Russian roulette off), got {self.rr_depth}")
+        if not (0 <= self.rr_depth <= INT32_MAX):
+            _fail(f"rr_depth must be between 0 (0 turns Russian roulette off) and {INT32_MAX}, "
+                  f"got {self.rr_depth}")
         self.mis_boost_max = float(props.get("mis_boost_max", walk.MIS_BOOST_MAX))
         if not (1.0 <= self.mis_boost_max < float("inf")):
             _fail(f"mis_boost_max must be a finite number >= 1 (1 turns the boost off), got {self.mis_boost_max}")
@@ -284,16 +286,16 @@ class NormalMapMicrofacet:
             res = min(res, max(shape[0], shape[1]))
         u = (np.arange(res) + 0.5) / res
         uu, vv = np.meshgrid(u, u, indexing="ij")
-        si = dr.zeros(mi.SurfaceInteraction3f, res * res)
-        si.uv = mi.Point2f(mi.Float(uu.ravel()), mi.Float(vv.ravel()))
         if dr.is_jit_v(mi.Float):
+            si = dr.zeros(mi.SurfaceInteraction3f, res * res)
+            si.uv = mi.Point2f(mi.Float(uu.ravel()), mi.Float(vv.ravel()))
             wp = decode_normal(self.normalmap.eval_3(si), self.strength, self.directx)
             normals = np.stack([np.array(wp.x), np.array(wp.y), np.array(wp.z)], -1)
         else:
             normals = []
             for x, y in zip(uu.ravel(), vv.ravel()):
                 s1 = mi.SurfaceInteraction3f()
-                s1.uv = mi.Point2f(x, y)
+                s1.uv = mi.Point2f(float(x), float(y))
                 n = decode_normal(self.normalmap.eval_3(s1), self.strength, self.directx)
                 normals.append([n.x, n.y, n.z])
         return faithful.rms_slope(np.array(normals))
