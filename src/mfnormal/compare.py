@@ -85,7 +85,7 @@ METHODS = (
     Method("classic_fixed", "normalmap + fixes", "classic", fixes=True,
            about="Mitsuba's normalmap with flip_invalid_normals and use_shadowing_function "
                  "on (its defaults)"),
-    Method("faithful", "faithful (default)", "microfacet", "faithful",
+    Method("faithful", "faithful (default)", "microfacet", "faithful", "specular",
            about="normalmap_microfacet, model=faithful (the default): the texel among neighbours "
                  "of the map's own rms slope, energy kept, light tracing sees its adjoint"),
     Method("analytic", "analytic", "microfacet", "analytic", "specular",

@@ -16,7 +16,13 @@ Microfacet-based normal mapping (:monosp:`normalmap_microfacet`)
    - The material of the microfacets: any Mitsuba BSDF (its reflection part).
  * - model
    - |string|
-   - ``analytic`` (default): the paper's default model, paths of up to two
+   - ``faithful`` (default): the texel as the true geometry around it shows
+     it (docs/faithful.md): the nested BSDF on the facet, masked and shadowed
+     by neighbours with the map's own rms slope, the neighbours where the
+     texel is hidden, and the light they block re-emitted, so white facets
+     stay white and energy never exceeds the nested albedo; deterministic
+     ``eval``, exact ``pdf``; not reciprocal (light tracing gets its adjoint).
+     ``analytic``: the paper's default model, paths of up to two
      facet bounces with a mirror tangent facet, deterministic ``eval`` and the
      exact ``pdf`` of its sampler. ``separable``: the main paper's random walk
      over all bounce orders (separable masking-shadowing). ``nonseparable``:
@@ -26,7 +32,7 @@ Microfacet-based normal mapping (:monosp:`normalmap_microfacet`)
    - |string|
    - Random-walk models only: ``specular`` (default; the tangent facet is a
      perfect mirror) or ``same`` (the nested BSDF on both facets). ``analytic``
-     always uses a mirror and rejects ``same``.
+     always uses a mirror and, like ``faithful``, rejects ``same``.
  * - max_bounces
    - |int|
    - Random-walk models only: bounce cap of the walk (default 1024). Paths
@@ -76,22 +82,27 @@ Microfacet-based normal mapping (:monosp:`normalmap_microfacet`)
 
 Robust normal mapping after Schüßler, Heitz, Hanika and Dachsbacher,
 *Microfacet-based Normal Mapping for Robust Monte Carlo Path Tracing*
-(SIGGRAPH Asia 2017). Each shading point is a microsurface of two facets: the
-perturbed facet :math:`\omega_p` (the normal map's normal, made of the nested
-material) and a tangent facet :math:`\omega_t` (a vertical mirror wall). Light
-reflects off them with masking and shadowing, so the BSDF is reciprocal,
-never gains energy, and has no black fringes or light leaks at grazing angles
-where classic normal mapping breaks.
+(SIGGRAPH Asia 2017). In the paper's models each shading point is a microsurface
+of two facets: the perturbed facet :math:`\omega_p` (the normal map's normal,
+made of the nested material) and a tangent facet :math:`\omega_t` (a vertical
+mirror wall). Light reflects off them with masking and shadowing, so the BSDF is
+reciprocal, never gains energy, and has no black fringes or light leaks at grazing
+angles where classic normal mapping breaks; but the mirror wall cancels the map's
+relief. The default ``faithful`` model keeps the robustness except reciprocity
+(which, with a white furnace, rules out relief: docs/faithful.md §2) and looks
+like the true geometry the map was baked from.
 
 Contracts (each one is tested):
 
 - ``eval`` returns :math:`f\cdot\langle\omega_o,\omega_g\rangle` in the base
   shading frame (:math:`\omega_g` = +z of ``si.sh_frame``), zero below it;
 - ``eval_pdf`` equals ``(eval, pdf)``; ``pdf`` is a deterministic function of
-  (wi, wo): for ``analytic`` the exact density of ``sample``, for the random
-  walks a function for MIS (below);
-- a sample's weight is ``eval / pdf`` (``analytic``; for delta nested lobes the
-  unbiased path weight), or the walk's throughput, an unbiased estimate of it;
+  (wi, wo): for ``faithful`` and ``analytic`` the exact density of ``sample``, for
+  the random walks a function for MIS (below);
+- a sample's weight is ``eval / pdf`` (``faithful``, ``analytic``; for delta nested
+  lobes the unbiased path weight), or the walk's throughput, an unbiased estimate of it;
+- ``faithful`` in ``TransportMode.Importance`` (light tracing) returns its adjoint,
+  eval*(a, b) = eval(b, a)·⟨b,ω_g⟩/⟨a,ω_g⟩; the other models are reciprocal;
 - normals that are NaN, infinite, zero, or point below the horizon never
   produce NaN: they decode to the flat normal, or are clamped to
   :math:`\cos\theta_p \ge 0.02`. A flat map reproduces the nested BSDF.
@@ -106,9 +117,12 @@ low-order density plus a cosine lobe for the longer walks, whose share is
 boosted where ``eval`` is noisy (see ``mis_boost_max``). MIS stays unbiased
 with any such function.
 
-Which model? ``analytic`` is the default: no extra variance, about 3 nested
-evaluations per query, exactly reciprocal, but it drops paths with three or
-more facet bounces (it darkens steep normals). ``separable`` and
+Which model? ``faithful`` is the default: no extra variance, 3-5 nested
+evaluations per query, as close to the true geometry as classic normal mapping
+on mild maps and robust on steep ones. ``analytic``, the paper's default: no
+extra variance, about 3 nested evaluations per query, exactly reciprocal, but it
+drops paths with three or more facet bounces (it darkens steep normals) and its
+mirror paths cancel the relief. ``separable`` and
 ``nonseparable`` conserve energy (a white nested BSDF stays white) at the cost
 of a stochastic ``eval`` and a walk of a few bounces per query (more for steep
 normals); ``nonseparable`` is the physically exact one (height-correlated),
@@ -116,7 +130,9 @@ normals); ``nonseparable`` is the physically exact one (height-correlated),
 the look closest to classic normal mapping; ``same`` spreads the material over
 both facets.
 
-Costs per query: ``analytic`` 3 nested ``eval_pdf`` per ``eval``/``pdf``, and
+Costs per query: ``faithful`` 3 nested ``eval_pdf`` per ``eval``/``pdf`` (5 for a
+nested BSDF with both diffuse and other components), 1 nested ``sample`` more per
+``sample``. ``analytic`` 3 nested ``eval_pdf`` per ``eval``/``pdf``, and
 1 nested ``sample`` + 3 nested ``eval_pdf`` per ``sample``. Random walks: per
 bounce 1 nested ``sample`` and (``eval`` only) 1 nested ``eval``, 2 with a mirror
 tangent facet, plus 1 (2 with a mirror) for the first vertex's other start facet;
