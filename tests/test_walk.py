@@ -1085,5 +1085,5 @@ def test_russian_roulette_is_unbiased_and_active(model, tangent_facet):
 
 
 def test_bad_rr_depth_is_rejected_in_one_line():
-    with pytest.raises((ValueError, RuntimeError), match=r"rr_depth must be >= 0"):
+    with pytest.raises((ValueError, RuntimeError), match=r"rr_depth must be between 0"):
         make_bsdf(WHITE, encode(sph([30.0])), "separable", "specular", rr_depth=-1)

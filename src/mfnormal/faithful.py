@@ -39,6 +39,7 @@ import mitsuba as mi
 import numpy as np
 
 from .microsurface import negate
+from .shading import to_tangent_frame
 from .rng import ONE_MINUS_EPS, SALT_FAITHFUL_SAMPLE, SLOT_FAITHFUL_BLOCKED, hash_floats, uniform
 
 INV_PI = 1.0 / math.pi
@@ -47,33 +48,57 @@ SQRT_PI = math.sqrt(math.pi)
 A_UNMASKED = 4.0
 
 
-# -- Smith masking by the neighbourhood (Beckmann slopes, rms slope σ per axis) --------------
+# -- Smith masking by the neighbourhood -----------------------------------------------------------
+#
+# The neighbours' slopes are Beckmann-distributed with the map's own second moments about the
+# macro normal, Σ = E[s sᵀ] of the slopes s = (−n_x/n_z, −n_y/n_z) in the map's tangent frame:
+# principal rms slopes σ1 ≥ σ2 along the eigenvectors of Σ (at angle φ_e). A ribbed map is
+# rough across its ribs and smooth along them; a constant tilt masks only along the tilt.
 
-def smith_lambda(cos_theta, sigma):
-    """Beckmann Λ(ω) for neighbours of rms slope ``sigma`` per axis; 0 where unmasked."""
-    c = dr.clip(cos_theta, 1e-7, 1.0)
-    tan = dr.safe_sqrt(1.0 - c * c) / c
-    a = dr.rcp(dr.maximum(math.sqrt(2.0) * sigma * tan, 1e-30))
+def smith_lambda(w, sigma1, sigma2):
+    """Beckmann Λ(ω) for ``w`` given in the principal frame of the slopes (σ1 along x, σ2 along
+    y); 0 where unmasked: a = ω_z / (√2 (σ1² ω_x² + σ2² ω_y²)^½)."""
+    spread = dr.sqrt(dr.fma(sigma1 * sigma1, w.x * w.x, sigma2 * sigma2 * w.y * w.y))
+    a = dr.maximum(w.z, 0.0) / dr.maximum(math.sqrt(2.0) * spread, 1e-30)
+    a = dr.maximum(a, 1e-7)
     lam = 0.5 * (dr.exp(-a * a) / (a * SQRT_PI) - (1.0 - dr.erf(a)))
     return dr.select(a < A_UNMASKED, dr.maximum(lam, 0.0), 0.0)
 
 
-def smith_lambda_np(cos_theta, sigma):
-    """numpy twin of :func:`smith_lambda` (for the tables)."""
-    from math import erf
-    c = np.clip(cos_theta, 1e-7, 1.0)
-    tan = np.sqrt(np.maximum(1.0 - c * c, 0.0)) / c
-    a = 1.0 / np.maximum(math.sqrt(2.0) * sigma * tan, 1e-30)
-    erf_a = np.vectorize(erf)(np.minimum(a, 10.0))
-    lam = 0.5 * (np.exp(-a * a) / (a * SQRT_PI) - (1.0 - erf_a))
+def _erf_np(x):
+    """erf for x ≥ 0 (Abramowitz & Stegun 7.1.26, |error| ≤ 1.5e-7), vectorised."""
+    t = 1.0 / (1.0 + 0.3275911 * x)
+    poly = t * (0.254829592 + t * (-0.284496736 + t * (1.421413741 + t * (-1.453152027 + t * 1.061405429))))
+    return 1.0 - poly * np.exp(-x * x)
+
+
+def smith_lambda_np(w, sigma1, sigma2):
+    """numpy twin of :func:`smith_lambda` (for the tables); ``w``: (..., 3)."""
+    spread = np.sqrt(sigma1 ** 2 * w[..., 0] ** 2 + sigma2 ** 2 * w[..., 1] ** 2)
+    a = np.maximum(w[..., 2], 0.0) / np.maximum(math.sqrt(2.0) * spread, 1e-30)
+    a = np.clip(a, 1e-7, 1e6)
+    lam = 0.5 * (np.exp(-a * a) / (a * SQRT_PI) - (1.0 - _erf_np(a)))
     return np.where(a < A_UNMASKED, np.maximum(lam, 0.0), 0.0)
 
 
-# -- The blocked share of a Lambertian facet's light: B(cosθ_p, G1(ω_i)) ------------------------
+def principal_slopes(normals: np.ndarray):
+    """(σ1, σ2, φ_e): the principal rms slopes of unit normals (N×3) about the macro normal
+    (σ1 ≥ σ2) and the angle of σ1's axis from the tangent frame's x axis."""
+    n = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
+    z = np.maximum(n[:, 2], 1e-3)
+    sx, sy = -n[:, 0] / z, -n[:, 1] / z
+    cov = np.array([[np.mean(sx * sx), np.mean(sx * sy)], [np.mean(sx * sy), np.mean(sy * sy)]])
+    values, vectors = np.linalg.eigh(cov)                       # ascending
+    s1, s2 = math.sqrt(max(values[1], 0.0)), math.sqrt(max(values[0], 0.0))
+    return s1, s2, math.atan2(vectors[1, 1], vectors[0, 1])
 
-TABLE_COS = 48      # cosθ_p from COS_P_MIN to 1
+
+# -- The blocked share of a Lambertian facet's light: B(cosθ_p, φ_p, G1(ω_i)) -------------------
+
+TABLE_COS = 32      # cosθ_p from COS_P_MIN to 1
+TABLE_PHI = 9       # the facet's azimuth in the slopes' principal frame, folded into [0, π/2]
 TABLE_G = 32        # √G1(ω_i), G1 = 1/(1 + Λ(ω_i)), from 0 to 1 (B is close to linear in √G1)
-_QUAD = 48          # quadrature: _QUAD² stratified cosine-weighted directions on the facet
+_QUAD = 32          # quadrature: _QUAD² stratified cosine-weighted directions on the facet
 
 
 def _quadrature():
@@ -84,23 +109,25 @@ def _quadrature():
     return np.stack([r * np.cos(phi), r * np.sin(phi), np.sqrt(np.maximum(1.0 - r * r, 0.0))], -1)
 
 
-def blocked_table(sigma: float, cos_min: float) -> np.ndarray:
-    """B[i, j]: 1 − ∫ (1/π)⟨ω,ω_p⟩ S(ω|ω_i) dω for a white Lambertian facet, at cosθ_p = cos_i
-    (TABLE_COS steps from ``cos_min`` to 1) and G1(ω_i) = g_j² (g_j: TABLE_G steps from 0 to 1)."""
+def blocked_table(sigma1: float, sigma2: float, cos_min: float) -> np.ndarray:
+    """B[i, j, k]: 1 − ∫ (1/π)⟨ω,ω_p⟩ S(ω|ω_i) dω for a white Lambertian facet at cosθ_p = c_i
+    (TABLE_COS steps from ``cos_min`` to 1), azimuth φ_j (TABLE_PHI steps over [0, π/2]) in the
+    slopes' principal frame, and G1(ω_i) = g_k² (g_k: TABLE_G steps from 0 to 1)."""
     local = _quadrature()
-    cos_p = np.linspace(cos_min, 1.0, TABLE_COS)
     g = np.linspace(0.0, 1.0, TABLE_G) ** 2
-    table = np.zeros((TABLE_COS, TABLE_G))
-    for a, c in enumerate(cos_p):
+    lam_i = np.where(g > 0, 1.0 / np.maximum(g, 1e-30) - 1.0, 1e30)[:, None]
+    table = np.zeros((TABLE_COS, TABLE_PHI, TABLE_G))
+    for i, c in enumerate(np.linspace(cos_min, 1.0, TABLE_COS)):
         s = math.sqrt(max(1.0 - c * c, 0.0))
-        # Directions on a facet tilted by θ_p about y: their macro cosine.
-        dz = -s * local[:, 0] + c * local[:, 2]
-        lam_d = smith_lambda_np(dz, sigma) if sigma > 0 else np.zeros_like(dz)
-        up = dz > 0
-        for b, gi in enumerate(g):
-            lam_i = (1.0 / gi - 1.0) if gi > 0 else 1e30
-            seen = np.where(up, (1.0 + lam_i) / (1.0 + lam_i + lam_d), 0.0)
-            table[a, b] = 1.0 - seen.mean()
+        for j, phi in enumerate(np.linspace(0.0, 0.5 * math.pi, TABLE_PHI)):
+            # The facet's frame: n = ω_p, t1 = the up-slope direction in its plane, t2 = n × t1.
+            wp = np.array([s * math.cos(phi), s * math.sin(phi), c])
+            t1 = np.array([-c * math.cos(phi), -c * math.sin(phi), s]) if s > 1e-9 else np.array([1.0, 0, 0])
+            t2 = np.cross(wp, t1)
+            d = local[:, :1] * t1 + local[:, 1:2] * t2 + local[:, 2:3] * wp
+            lam_d = smith_lambda_np(d, sigma1, sigma2)[None, :]
+            seen = np.where(d[None, :, 2] > 0, (1.0 + lam_i) / (1.0 + lam_i + lam_d), 0.0)
+            table[i, j] = 1.0 - seen.mean(axis=1)
     return np.clip(table, 0.0, 1.0).astype(np.float32)
 
 
@@ -111,19 +138,22 @@ def _gather(table, index):
     return float(table[int(index)])
 
 
-def lookup(table, cos_min, cos_p, g):
-    """Bilinear lookup of B(cosθ_p, G1 = g) in the table stored flat in a Dr.Jit Float."""
-    x = dr.clip((cos_p - cos_min) / (1.0 - cos_min), 0.0, 1.0) * (TABLE_COS - 1)
-    y = dr.sqrt(dr.clip(g, 0.0, 1.0)) * (TABLE_G - 1)
-    x0 = dr.minimum(mi.UInt32(x), TABLE_COS - 2)
-    y0 = dr.minimum(mi.UInt32(y), TABLE_G - 2)
-    fx, fy = x - mi.Float(x0), y - mi.Float(y0)
-    i00 = x0 * TABLE_G + y0
-    v00 = _gather(table, i00)
-    v01 = _gather(table, i00 + 1)
-    v10 = _gather(table, i00 + TABLE_G)
-    v11 = _gather(table, i00 + TABLE_G + 1)
-    return dr.lerp(dr.lerp(v00, v01, fy), dr.lerp(v10, v11, fy), fx)
+def lookup(table, cos_min, cos_p, phi, g):
+    """Trilinear lookup of B(cosθ_p, φ ∈ [0, π/2], G1 = g) in the table (flat, G innermost)."""
+    def axis(x, n):
+        x = dr.clip(x, 0.0, 1.0) * (n - 1)
+        x0 = dr.minimum(mi.UInt32(x), n - 2)
+        return x0, x - mi.Float(x0)
+    xc, fc = axis((cos_p - cos_min) / (1.0 - cos_min), TABLE_COS)
+    xp, fp = axis(phi * (2.0 / math.pi), TABLE_PHI)
+    xg, fg = axis(dr.sqrt(dr.clip(g, 0.0, 1.0)), TABLE_G)
+    acc = mi.Float(0.0)
+    for dc, wc in ((0, 1.0 - fc), (1, fc)):
+        for dp, wph in ((0, 1.0 - fp), (1, fp)):
+            base = ((xc + dc) * TABLE_PHI + (xp + dp)) * TABLE_G + xg
+            v0, v1 = _gather(table, base), _gather(table, base + 1)
+            acc += (wc * wph) * dr.lerp(v0, v1, fg)
+    return acc
 
 
 # -- The model at one shading point ------------------------------------------------------------
@@ -141,7 +171,10 @@ class Lobes:
     The diffuse components' blocked light goes to the fill, the others' is bounced; that
     needs a nested BSDF that honours ``BSDFContext.type_mask`` (Mitsuba's ``principled`` does
     not: it returns its whole value under either mask). One that does not is treated as all
-    non-diffuse: everything bounced, which keeps energy exactly for any lobe.
+    diffuse: all its blocked light goes to the fill (bounced as a mirror, the diffuse part of
+    such a material would light the slopes facing away from the sun like a mirror would:
+    measured on the ribs of Khronos' ClearCoatTest, relMSE to their geometry 0.017 against 0.0016
+    filled).
     """
 
     def __init__(self, nested):
@@ -149,11 +182,10 @@ class Lobes:
         diffuse = mi.has_flag(flags, mi.BSDFFlags.DiffuseReflection)
         glossy = mi.has_flag(flags, mi.BSDFFlags.GlossyReflection) or \
             mi.has_flag(flags, mi.BSDFFlags.DeltaReflection)
+        self.diffuse_mask, self.glossy_mask = +mi.BSDFFlags.DiffuseReflection, GLOSSY_MASK
         if diffuse and glossy and not _honours_type_mask(nested):
-            diffuse = False
-            self.glossy_mask = +mi.BSDFFlags.All
-        else:
-            self.glossy_mask = GLOSSY_MASK
+            glossy = False
+            self.diffuse_mask = +mi.BSDFFlags.All
         self.diffuse, self.glossy = diffuse, glossy
 
 
@@ -181,20 +213,32 @@ class Texel:
     """Geometry of one texel among its neighbours, seen from ω_i (all in the base frame)."""
 
     def __init__(self, sp, model, wi):
-        self.sp, self.wi, self.sigma = sp, wi, model.sigma
+        self.sp, self.wi, self.model = sp, wi, model
         wp = sp.wp
-        self.lam_i = smith_lambda(wi.z, model.sigma)
+        self.lam_i = self.smith_lambda(wi)
         g1_i = dr.rcp(1.0 + self.lam_i)
         proj = dr.maximum(dr.dot(wi, wp), 0.0) / (wp.z * dr.maximum(wi.z, 1e-30))
         self.vis = dr.minimum(1.0, proj * g1_i)
-        self.blocked = lookup(model.table, model.cos_min, wp.z, g1_i)
+        p_e = self.principal(wp)
+        phi = dr.atan2(dr.abs(p_e.y), dr.abs(p_e.x))
+        self.blocked = lookup(model.table, model.cos_min, wp.z, phi, g1_i)
         # The neighbour that blocks the texel's light: the mirror image of ω_p (a V-groove).
         self.wq = mi.Vector3f(-wp.x, -wp.y, wp.z)
+
+    def principal(self, w):
+        """``w`` (base frame) in the principal frame of the map's slopes."""
+        if self.sp.map_rotation is not None:
+            w = to_tangent_frame(w, self.sp.map_rotation)
+        c, s = self.model.cos_e, self.model.sin_e
+        return mi.Vector3f(c * w.x + s * w.y, c * w.y - s * w.x, w.z)
+
+    def smith_lambda(self, w):
+        return smith_lambda(self.principal(w), self.model.sigma1, self.model.sigma2)
 
     def seen(self, w):
         """S(ω|ω_i): a visible point of the texel sees ω past the neighbours (0 below either horizon)."""
         up = (w.z > 0) & (dr.dot(w, self.sp.wp) > 0)
-        lam = smith_lambda(w.z, self.sigma)
+        lam = self.smith_lambda(w)
         return dr.select(up, (1.0 + self.lam_i) / (1.0 + self.lam_i + lam), 0.0)
 
     def _mirror(self, w):
@@ -235,19 +279,22 @@ HORIZON_MU = 0.2
 class Model:
     """The faithful model for one plugin instance: its lobes, the map's σ and the Lambertian table."""
 
-    def __init__(self, nested, sigma: float, cos_min: float):
+    def __init__(self, nested, slopes, cos_min: float):
         self.lobes = Lobes(nested)
         self.cos_min = cos_min
-        self.set_sigma(sigma)
+        self.set_slopes(slopes)
 
-    def set_sigma(self, sigma: float):
-        """(Re)build what depends on the map's rms slope σ (opaque: no recompile per value)."""
-        self.sigma_value = float(sigma)
-        self.sigma = mi.Float(self.sigma_value)
-        table = blocked_table(self.sigma_value, self.cos_min).ravel()
+    def set_slopes(self, slopes):
+        """(Re)build what depends on the map's slopes ``(σ1, σ2, φ_e)`` (principal_slopes);
+        they enter the kernels as opaque values, so a new map compiles nothing new."""
+        s1, s2, phi_e = (float(x) for x in slopes)
+        self.slopes = (s1, s2, phi_e)
+        self.sigma1, self.sigma2 = mi.Float(s1), mi.Float(s2)
+        self.cos_e, self.sin_e = mi.Float(math.cos(phi_e)), mi.Float(math.sin(phi_e))
+        table = blocked_table(s1, s2, self.cos_min).ravel()
         if dr.is_jit_v(mi.Float):
             self.table = mi.Float(table)
-            dr.make_opaque(self.sigma, self.table)
+            dr.make_opaque(self.sigma1, self.sigma2, self.cos_e, self.sin_e, self.table)
         else:
             self.table = table
 
@@ -255,15 +302,17 @@ class Model:
         return Texel(sp, self, wi)
 
     def _fill(self, sp, tx, active):
-        """The blocked diffuse light from ω_i, B(ω_i)·ρ_b(ω_i), re-emitted as a cosine lobe about
-        ω_g. B is a Lambertian facet's blocked share; ρ_b = π·min(f_d(ω_i, ω_p), f_d(ω_i, ω_h)) of
+        """The blocked diffuse light from ω_i, re-emitted as a cosine lobe about ω_g after one
+        bounce on a neighbour of the same material: B(ω_i)·ρ_b(ω_i)·min(ρ_b(ω_i), 1). B is a
+        Lambertian facet's blocked share; ρ_b = π·min(f_d(ω_i, ω_p), f_d(ω_i, ω_h)/⟨ω_h,ω_p⟩) of
         the diffuse components, ω_h near the facet's horizon down-slope, where blocked light
         leaves: exact for Lambertian lobes, and below the blocked energy of lobes that fall off
         toward grazing (Fresnel-weighted ones, whose energy would otherwise exceed the nested
-        albedo by ~1.5 % at 20°)."""
+        albedo by ~1.5 % at 20°). White facets keep all of it (the white furnace is exact);
+        darker ones lose what the neighbour absorbs, as the true geometry does."""
         if not self.lobes.diffuse:
             return mi.Spectrum(0.0)
-        ctx = mi.BSDFContext(RADIANCE, mi.BSDFFlags.DiffuseReflection)
+        ctx = mi.BSDFContext(RADIANCE, self.lobes.diffuse_mask)
         wp = sp.wp
         down = wp.z * wp - mi.Vector3f(0.0, 0.0, 1.0)                 # −(ω_g − cosθ_p ω_p)
         n2 = dr.squared_norm(down)
@@ -271,7 +320,8 @@ class Model:
         w_h = HORIZON_MU * wp + math.sqrt(1.0 - HORIZON_MU ** 2) * down
         f_n, _ = _nested(sp, ctx, sp.frame_p, tx.wi, wp, active, want_pdf=False)
         f_h, _ = _nested(sp, ctx, sp.frame_p, tx.wi, w_h, active, want_pdf=False)
-        return tx.blocked * (math.pi * dr.minimum(f_n, f_h / HORIZON_MU))
+        rho = math.pi * dr.minimum(f_n, f_h / HORIZON_MU)
+        return tx.blocked * rho * dr.minimum(rho, 1.0)
 
     def _branches(self, tx):
         """The sampler's branch probabilities: the texel (a nested sample, bounced if blocked),
@@ -488,9 +538,6 @@ def _select_frame(mask, a, b):
 # -- The map's rms slope --------------------------------------------------------------------
 
 def rms_slope(normals: np.ndarray) -> float:
-    """σ per axis of the slopes (−n_x/n_z, −n_y/n_z) of unit normals (N×3), about 0: the
-    neighbourhood roughness of a map whose mean normal is the macro normal."""
-    n = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
-    z = np.maximum(n[:, 2], 1e-3)
-    slope2 = (n[:, 0] ** 2 + n[:, 1] ** 2) / (z * z)
-    return float(math.sqrt(max(slope2.mean(), 0.0) / 2.0))
+    """(Isotropic summary) √((σ1² + σ2²)/2) of :func:`principal_slopes`."""
+    s1, s2, _ = principal_slopes(normals)
+    return math.sqrt(0.5 * (s1 * s1 + s2 * s2))

@@ -165,7 +165,7 @@ import mitsuba as mi
 
 from . import analytic, faithful, walk
 from .microsurface import COS_P_MIN, decode_normal
-from .shading import ShadingPoint, from_tangent_frame
+from .shading import ShadingPoint, from_tangent_frame, tangent_rotation
 
 MODELS = ("faithful", "analytic", "separable", "nonseparable")
 DEFAULT_MODEL = "faithful"
@@ -255,7 +255,7 @@ class NormalMapMicrofacet:
         self.walk_params = None if self.model in ("analytic", "faithful") else walk.WalkParams(
             separable=self.model == "separable", specular_tangent=self.tangent_facet == "specular",
             max_bounces=self.max_bounces, rr_depth=self.rr_depth, mis_boost_max=self.mis_boost_max)
-        self.faithful = (faithful.Model(self.nested, self._map_rms_slope(), COS_P_MIN)
+        self.faithful = (faithful.Model(self.nested, self._map_slopes(), COS_P_MIN)
                          if self.model == "faithful" else None)
 
         # The nested BSDF's components; the microsurface only reflects.
@@ -290,10 +290,11 @@ class NormalMapMicrofacet:
             dr.make_opaque(self.strength)
         if self.faithful is not None and (not keys or any(k == "strength" or k.startswith("normalmap")
                                                           for k in keys)):
-            self.faithful.set_sigma(self._map_rms_slope())
+            self.faithful.set_slopes(self._map_slopes())
 
-    def _map_rms_slope(self) -> float:
-        """The map's rms slope per axis (about the macro normal), from its decoded texels."""
+    def _map_slopes(self):
+        """The map's principal rms slopes about the macro normal and their axis (σ1, σ2, φ_e),
+        from its decoded texels (faithful.principal_slopes)."""
         import numpy as np
         res = 256 if dr.is_jit_v(mi.Float) else 32
         params = mi.traverse(self.normalmap)
@@ -314,28 +315,33 @@ class NormalMapMicrofacet:
                 s1.uv = mi.Point2f(float(x), float(y))
                 n = decode_normal(self.normalmap.eval_3(s1), self.strength, self.directx)
                 normals.append([n.x, n.y, n.z])
-        return faithful.rms_slope(np.array(normals))
+        return faithful.principal_slopes(np.array(normals))
 
     def shading_point(self, ctx, si, active=True):
         """The microsurface at ``si``: ω_p from the normal map, in the base shading frame."""
         rgb = self.normalmap.eval_3(si, active)
         wp = decode_normal(rgb, self.strength, self.directx)
         if self.tangent_attr is not None:
-            wp = self._from_vertex_tangents(si, wp, active)
+            wp, rotation = self._from_vertex_tangents(si, wp, active)
+            sp = ShadingPoint(self.nested, ctx, si, wp)
+            sp.map_rotation = rotation
+            return sp
         return ShadingPoint(self.nested, ctx, si, wp)
 
     def _from_vertex_tangents(self, si, wp, active):
-        """ω_p decoded in the mesh's vertex tangent frame, re-expressed in ``si.sh_frame``."""
+        """(ω_p decoded in the mesh's vertex tangent frame and re-expressed in ``si.sh_frame``,
+        that frame's turn against ``si.sh_frame``: shading.tangent_rotation or None)."""
         name, shape = self.tangent_attr, si.shape
         if not dr.is_jit_v(mi.Float) and (shape is None or not shape.is_mesh()
                                           or not shape.has_attribute(name)):
-            return wp      # scalar variants: a shape without tangents
+            return wp, None      # scalar variants: a shape without tangents
         # JIT variants: a shape without the attribute evaluates to 0, i.e. no tangent.
         # (T and its sign are two attributes: Mitsuba 3.9.1's eval_attribute_x returns zeros.)
         tangent = mi.Vector3f(shape.eval_attribute_3(name, si, active))
         sign = shape.eval_attribute_1(name + "_sign", si, active) if (
             dr.is_jit_v(mi.Float) or shape.has_attribute(name + "_sign")) else 1.0
-        return from_tangent_frame(wp, si.sh_frame, tangent, sign)
+        return (from_tangent_frame(wp, si.sh_frame, tangent, sign),
+                tangent_rotation(si.sh_frame, tangent, sign))
 
     def _texel(self, sp, wi=None):
         return self.faithful.texel(sp, sp.wi if wi is None else wi)

@@ -12,6 +12,16 @@ import mitsuba as mi
 
 from . import microsurface as ms
 
+def tangent_rotation(frame, tangent, sign):
+    """(tx, ty, s, ok): the vertex tangent frame T, B = sign·(N×T), N in ``frame``'s local
+    coordinates, T = (tx, ty, 0), s = ±1; ok where T is usable (not zero, not parallel to N)."""
+    t = frame.to_local(tangent)
+    len2 = dr.fma(t.x, t.x, t.y * t.y)
+    ok = (len2 > 1e-6 * dr.squared_norm(t)) & (len2 > 0.0)
+    inv = dr.rsqrt(dr.select(ok, len2, 1.0))
+    return t.x * inv, t.y * inv, dr.select(sign < 0.0, -1.0, 1.0), ok
+
+
 def from_tangent_frame(wp, frame, tangent, sign):
     """ω_p decoded in a vertex tangent frame, re-expressed in ``frame`` (the base shading frame).
 
@@ -21,16 +31,20 @@ def from_tangent_frame(wp, frame, tangent, sign):
     for sign < 0) and ω_p's tilt is kept. Where T is missing (zero) or
     parallel to N, ω_p is returned unchanged: the map is decoded in ``frame``.
     """
-    t = frame.to_local(tangent)
-    len2 = dr.fma(t.x, t.x, t.y * t.y)
-    ok = (len2 > 1e-6 * dr.squared_norm(t)) & (len2 > 0.0)
-    inv = dr.rsqrt(dr.select(ok, len2, 1.0))
-    tx, ty = t.x * inv, t.y * inv
-    s = dr.select(sign < 0.0, -1.0, 1.0)
+    tx, ty, s, ok = tangent_rotation(frame, tangent, sign)
     # In local coordinates N = (0, 0, 1), T = (tx, ty, 0) and N×T = (−ty, tx, 0).
     x = tx * wp.x - s * ty * wp.y
     y = ty * wp.x + s * tx * wp.y
     return dr.select(ok, mi.Vector3f(x, y, wp.z), wp)
+
+
+def to_tangent_frame(w, rotation):
+    """The inverse of :func:`from_tangent_frame`'s turn: ``w`` (base frame) in the vertex
+    tangent frame's x, y (z unchanged); ``rotation`` from :func:`tangent_rotation`."""
+    tx, ty, s, ok = rotation
+    x = tx * w.x + ty * w.y
+    y = s * (tx * w.y - ty * w.x)
+    return dr.select(ok, mi.Vector3f(x, y, w.z), w)
 
 
 def select_frame(mask, a, b):
@@ -52,6 +66,8 @@ class ShadingPoint:
         self.frame_p = ms.facet_frame(self.wp)
         self.frame_t = ms.facet_frame(self.wt)
         self.cot_p = ms.cot_p(self.wp, self.sin_p)
+        # The vertex tangent frame the map was decoded in (tangent_rotation), None: this frame.
+        self.map_rotation = None
 
     # Masking and intersection probabilities at this point
     def lambda_p(self, w):
