@@ -15,7 +15,7 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 SCRIPT = ROOT / "benchmarks" / "run.py"
-METHODS = ("builtin", "analytic", "separable_specular", "separable_same",
+METHODS = ("builtin", "faithful", "analytic", "separable_specular", "separable_same",
            "nonseparable_specular", "nonseparable_same")
 
 
