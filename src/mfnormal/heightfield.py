@@ -60,7 +60,7 @@ from .compare import REL_MSE_EPS, luminance, rel_mse
 
 __all__ = [
     "Heightfield", "bumps", "egg_crate", "noise", "make_heightfield", "KINDS", "STEEPNESS",
-    "tilt_stats", "normal_map", "height_map", "texel_normals", "encode_normals",
+    "tilt_stats", "texel_centres", "normal_map", "height_map", "texel_normals", "encode_normals",
     "bitmap_texture", "displaced_arrays", "displaced_mesh", "plane_mesh",
     "View", "Lighting", "Magnification", "VIEWS", "LIGHTINGS", "MAGNIFICATIONS", "MATERIALS",
     "sky_envmap", "scene_dict", "footprint", "Method", "METHODS", "DEFAULT_METHODS",
