@@ -200,6 +200,12 @@ def test_surface_fills_the_frame(view, magnification):
         ray, _ = sensor.sample_ray(0.0, 0.5, mi.Point2f(px / res, py / res), mi.Point2f(0.5))
         si = scene.ray_intersect(ray)
         assert np.array(si.is_valid()).all(), (surface, view, magnification)
+        # Image orientation: columns run along +x; the top rows are at +y (frontal: the map's
+        # layout; grazing: the far side, camera on −y).
+        p = np.array(si.p).T.reshape(res, res, 4, 3)[..., 0, :]
+        assert p[0, 0, 0] < p[0, -1, 0] and p[0, 0, 1] > p[-1, 0, 1]
+        if view == "frontal":
+            np.testing.assert_allclose(p[:, :, 0].mean(0), (np.arange(res) + 0.0193) / res, atol=1e-5)
         if surface == "plane":
             np.testing.assert_allclose(np.array(si.p.z), hf.mean_height, atol=1e-6)
     assert abs(hf.mean_height) < 1e-9                              # sin·sin has mean 0
