@@ -45,7 +45,6 @@ import json
 import math
 import os
 import platform
-import re
 import resource
 import shlex
 import shutil
@@ -54,7 +53,6 @@ import subprocess
 import sys
 import tempfile
 import time
-import xml.etree.ElementTree as ET
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -62,18 +60,18 @@ import numpy as np
 
 HERE = Path(__file__).resolve().parent
 
-# (key, model, tangent_facet); key "builtin" is Mitsuba's normalmap.
-METHODS = (
-    ("builtin", None, None),
-    ("faithful", "faithful", None),
-    ("analytic", "analytic", None),
-    ("separable_specular", "separable", "specular"),
-    ("separable_same", "separable", "same"),
-    ("nonseparable_specular", "nonseparable", "specular"),
-    ("nonseparable_same", "nonseparable", "same"),
-)
-METHOD_KEYS = tuple(m[0] for m in METHODS)
-METHOD_BY_KEY = {m[0]: m for m in METHODS}
+# The methods measured, by their key in the catalogue mfnormal.methods (which defines them;
+# only the names here: Mitsuba is imported later, see import_mitsuba). "builtin" is Mitsuba's
+# normalmap with its default fixes on, the catalogue's classic_fixed.
+METHOD_KEYS = ("builtin", "faithful", "analytic", "separable_specular", "separable_same",
+               "nonseparable_specular", "nonseparable_same")
+
+
+def catalogue_method(key: str):
+    """The mfnormal.methods.Method measured as ``key``."""
+    from mfnormal.methods import METHOD_BY_KEY
+    return METHOD_BY_KEY["classic_fixed" if key == "builtin" else key]
+
 
 NESTED = {
     "diffuse": {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.5, 0.5, 0.5]}},
@@ -92,7 +90,6 @@ SCENE_TITLES = {"demo": "(a) demo: sphere + ground", "model": "(b) torus knot, 2
 
 VARIANT = "llvm_ad_rgb"
 MAX_DEPTH = 8
-REL_MSE_EPS = 1e-2
 
 # Targets: the method's value / the built-in's.
 TIME_TARGET = {"faithful": 1.25, "analytic": 1.25, "separable": 1.6, "nonseparable": 1.8}
@@ -211,32 +208,6 @@ def prepare_assets(root: Path, scenes) -> dict:
     return out
 
 
-def _copy_dicts(d):
-    """Copy the nested dicts of a scene dict, sharing the leaves (transforms, ...)."""
-    return {k: _copy_dicts(v) if isinstance(v, dict) else v for k, v in d.items()}
-
-
-def rewrite_plugins(scene: dict, plugin_type: str, rewrite, what: str) -> dict:
-    """Copy of ``scene`` with ``rewrite(d)`` applied to every nested dict of ``plugin_type``."""
-    count = 0
-
-    def visit(d):
-        nonlocal count
-        for v in d.values():
-            if not isinstance(v, dict):
-                continue
-            if v.get("type") == plugin_type:
-                rewrite(v)
-                count += 1
-            else:
-                visit(v)
-    scene = _copy_dicts(scene)
-    visit(scene)
-    if count == 0:
-        raise RuntimeError(f"scene has no {what} to swap")
-    return scene
-
-
 def nested_spec(nested: str, probe: str | None = None) -> dict:
     """The nested BSDF ``nested``: as is, wrapped in the call counter (``probe="counting"``)
     or replaced by the closed-form stub (``probe="stub"``), see probes.py."""
@@ -248,7 +219,8 @@ def nested_spec(nested: str, probe: str | None = None) -> dict:
 
 def swap_bsdfs(scene: dict, method: str, nested: dict) -> dict:
     """Rewrite every ``normalmap_microfacet`` in ``scene`` for ``method`` around ``nested``."""
-    key, model, tangent_facet = METHOD_BY_KEY[method]
+    from mfnormal.scene_xml import rewrite_dict
+    m = catalogue_method(method)
 
     def rewrite(v):
         for kk in [kk for kk, vv in v.items() if isinstance(vv, dict) and kk != "normalmap"]:
@@ -256,30 +228,20 @@ def swap_bsdfs(scene: dict, method: str, nested: dict) -> dict:
         v["bsdf"] = copy.deepcopy(nested)
         for p in ("model", "tangent_facet", "max_bounces"):
             v.pop(p, None)
-        if key == "builtin":
+        if m.kind == "classic":
             v["type"] = "normalmap"
             for p in ("strength", "normalmap_convention"):
                 v.pop(p, None)
+            v.update(flip_invalid_normals=m.fixes, use_shadowing_function=m.fixes)
         else:
-            v["model"] = model
-            if tangent_facet is not None:
-                v["tangent_facet"] = tangent_facet
-    return rewrite_plugins(scene, "normalmap_microfacet", rewrite, "normalmap_microfacet BSDF")
-
-
-def _resolved_xml(src: str, dst: Path, params: dict) -> Path:
-    """``src`` with every ``$name`` substituted (defaults overridden by ``params``)."""
-    text = Path(src).read_text()
-    values = {d.get("name"): d.get("value") for d in ET.fromstring(text).iter("default")}
-    values.update({k: str(v) for k, v in params.items()})
-    text = re.sub(r"\$(\w+)", lambda m: values[m.group(1)], text)
-    dst.write_text(text)
-    return dst
+            v.update(m.plugin_params())
+    return rewrite_dict(scene, "normalmap_microfacet", rewrite, "normalmap_microfacet BSDF")
 
 
 def scene_dict(name: str, assets: dict, method: str, nested: str, width: int, height: int,
                spp: int, probe: str | None = None) -> dict:
     from mfnormal import demo
+    from mfnormal.scene_xml import xml_to_dict
     if name == "demo":
         base = demo.demo_scene(model="analytic", spp=spp, resolution=(width, height),
                                assets_dir=assets["demo"]["dir"], max_depth=MAX_DEPTH)
@@ -287,10 +249,8 @@ def scene_dict(name: str, assets: dict, method: str, nested: str, width: int, he
         a = assets["model"]
         if "error" in a:
             raise RuntimeError(a["error"])
-        params = dict(a["params"], spp=spp, width=width, height=height, max_depth=MAX_DEPTH)
-        xml = _resolved_xml(a["xml"], Path(a["dir"]) / f"model_{os.getpid()}.xml", params)
-        base = demo.xml_to_dict(xml)
-        xml.unlink()
+        base = xml_to_dict(a["xml"], **a["params"], spp=spp, width=width, height=height,
+                           max_depth=MAX_DEPTH)
     elif name == "plane":
         a = assets["plane"]
         T = mi.ScalarTransform4f
@@ -328,9 +288,11 @@ def load_scene(name, assets, method, nested, width, height, spp, sunless=False, 
 
 def with_envmap(scene: dict, filename: str) -> dict:
     """``scene`` with every ``envmap`` emitter reading ``filename``."""
+    from mfnormal.scene_xml import rewrite_dict
+
     def rewrite(v):
         v["filename"] = filename
-    return rewrite_plugins(scene, "envmap", rewrite, "envmap emitter")
+    return rewrite_dict(scene, "envmap", rewrite, "envmap emitter")
 
 
 def timed_render(scene, spp: int, seed: int):
@@ -345,10 +307,6 @@ def timed_render(scene, spp: int, seed: int):
 def to_numpy(img) -> np.ndarray:
     x = np.array(img, dtype=np.float64)[..., :3]
     return np.where(np.isfinite(x), np.maximum(x, 0.0), 0.0)
-
-
-def rel_mse(x: np.ndarray, ref: np.ndarray) -> float:
-    return float(np.mean((x - ref) ** 2 / (ref ** 2 + REL_MSE_EPS)))
 
 
 # ---------------------------------------------------------------------------
@@ -475,15 +433,11 @@ def make_queries(n: int, coherent: int = 1, seed: int = 11):
 
 def make_bsdf(method: str, nested: str, texture, probe: str | None = None, **params):
     """``method`` around the nested BSDF ``nested`` (see nested_spec), with plugin ``params``."""
-    key, model, tangent_facet = METHOD_BY_KEY[method]
-    d = {"normalmap": texture, "bsdf": nested_spec(nested, probe)}
-    if key == "builtin":
-        d["type"] = "normalmap"
-    else:
-        d.update(type="normalmap_microfacet", model=model, **params)
-        if tangent_facet:
-            d["tangent_facet"] = tangent_facet
-    return mi.load_dict(d)
+    from mfnormal.methods import plugin_bsdf
+    m = catalogue_method(method)
+    if m.kind == "classic":
+        return mi.load_dict(m.bsdf(nested_spec(nested, probe), texture))
+    return mi.load_dict(plugin_bsdf(nested_spec(nested, probe), texture, **m.plugin_params(), **params))
 
 
 def time_queries(fn, reps: int):
@@ -621,8 +575,7 @@ def render_metrics(scene: str, nested: str, assets: dict, prof: Profile) -> tupl
             tb.append(timed_render(scenes["builtin"], spp, 100 + r)[0])
             tm.append(timed_render(scenes[m], spp, 100 + r)[0])
         ratios = [a / b for a, b in zip(tm, tb)]
-        model = METHOD_BY_KEY[m][1]
-        target = TIME_TARGET[model]
+        target = TIME_TARGET[catalogue_method(m).model]
         ratio = median(ratios)
         timing.append({"scene": scene, "nested": nested, "method": m, "builtin_s": median(tb),
                        "method_s": median(tm), "ratio": ratio, "ratios": ratios,
@@ -684,6 +637,7 @@ def render_metrics(scene: str, nested: str, assets: dict, prof: Profile) -> tupl
 def equal_time_noise(scene, spp: int, prof: Profile) -> dict:
     """relMSE of ``spp``-sample renders (mean of ``prof.noise_seeds``) against a high-spp
     reference of the same scene, with the reference's own noise removed."""
+    from mfnormal.metrics import rel_mse, rel_se
     acc = None
     passes = max(1, prof.ref_spp // prof.ref_pass)
     for i in range(passes):
@@ -694,7 +648,7 @@ def equal_time_noise(scene, spp: int, prof: Profile) -> dict:
     imgs = [to_numpy(timed_render(scene, spp, 20_000 + s)[1]) for s in range(prof.noise_seeds)]
     errs = [rel_mse(x, ref) for x in imgs]
     # Fireflies: the share of the squared error in the worst 0.1 % of the pixels.
-    e = ((imgs[0] - ref) ** 2 / (ref ** 2 + REL_MSE_EPS)).mean(axis=-1).ravel()
+    e = rel_se(imgs[0], ref).mean(axis=-1).ravel()
     top = float(np.sort(e)[::-1][: max(1, e.size // 1000)].sum() / max(e.sum(), 1e-30))
     # E[(x - ref)^2] = σ²/n + σ²/n_ref: remove the reference's share.
     return {"relmse": float(np.mean(errs)) / (1.0 + spp / ref_spp), "relmse_raw": float(np.mean(errs)),
@@ -758,7 +712,7 @@ def summarize(results: dict) -> list:
     t = results["render_time"]
     for model, lim in TIME_TARGET.items():
         add(f"render time at equal spp: {model} ≤ {lim}×",
-            [dict(c, _value=c["ratio"]) for c in t if METHOD_BY_KEY[c["method"]][1] == model])
+            [dict(c, _value=c["ratio"]) for c in t if catalogue_method(c["method"]).model == model])
     nz = [c for c in results["noise"] if c["method"] != "builtin"]
     for model in DETERMINISTIC:
         add(f"equal-time relMSE: {model} ≤ {NOISE_TARGET[model]}×",

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pygltflib as g
 
-from mfnormal.report import png_bytes  # noqa: F401  (re-exported for the tests)
+from mfnormal.images import png_bytes  # noqa: F401  (re-exported for the tests)
 
 
 @dataclass

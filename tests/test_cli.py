@@ -32,7 +32,7 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from mfnormal.report import png_bytes
+from mfnormal.images import png_bytes
 from cli_checks import assert_one_line_error  # noqa: E402
 from cli_worker import Worker  # noqa: E402
 from gltf_models import base_document, write_gltf  # noqa: E402
@@ -520,7 +520,7 @@ def test_passes_bound_the_paths_per_pass_and_keep_the_seeds():
     MAX_PASS_LANES paths unless one sample per pixel already does; the default stays 8
     passes (fewer below 8 spp); pass seeds are 32-bit, equal to seed·1000003 + i where that
     fits (the images of small seeds did not change), and distinct for distinct seeds."""
-    from mfnormal.validate import MAX_PASS_LANES, pass_count, pass_seed, pass_spp
+    from mfnormal.rendering import MAX_PASS_LANES, pass_count, pass_seed, pass_spp
 
     for total, pixels in [(1, 384), (5, 384), (64, 1920 * 1080), (1000, 1920 * 1080), (1 << 31, 16),
                           (3, 1 << 25), (17, 1 << 24)]:

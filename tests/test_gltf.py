@@ -31,7 +31,7 @@ mfnormal.register()
 
 from gltf_writer import Material, Primitive, png_bytes, write_glb  # noqa: E402
 
-from mfnormal import cli  # noqa: E402
+from mfnormal import cli, rendering  # noqa: E402
 from mfnormal.gltf import load_gltf  # noqa: E402
 from mfnormal.tangents import mikktspace, split_vertices  # noqa: E402
 
@@ -50,7 +50,7 @@ def blocks(img, k=4):
 
 
 def render(scene: dict, spp: int, seed: int = 0):
-    return cli.render_scene(mi, mi.load_dict(scene), spp, seed=seed, progress=False)
+    return rendering.render_scene(mi.load_dict(scene), spp, seed=seed)
 
 
 def mesh(positions, normals, uvs, faces, bsdf: dict):

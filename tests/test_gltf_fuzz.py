@@ -59,7 +59,7 @@ from hypothesis import strategies as st
 
 from cli_worker import Worker
 from gltf_models import base_document, glb_bytes
-from mfnormal.report import png_bytes
+from mfnormal.images import png_bytes
 
 LONG = os.environ.get("MFNORMAL_FUZZ_LONG", "") not in ("", "0")
 CI_INPUTS, LONG_INPUTS = 800, 3000

@@ -37,7 +37,7 @@ import pytest
 
 from cli_worker import Worker
 from gltf_models import base_document, glb_bytes, write_gltf
-from mfnormal.report import png_bytes
+from mfnormal.images import png_bytes
 
 SMALL = ["-D", "height=12", "-D", "spp=1", "-D", "max_depth=2"]
 

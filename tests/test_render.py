@@ -16,6 +16,8 @@ mfnormal.register()
 
 from helpers import bumps_normalmap, small_scene  # noqa: E402
 from mfnormal import demo  # noqa: E402
+from mfnormal.methods import PLUGIN  # noqa: E402
+from mfnormal.scene_xml import dicts_of_type  # noqa: E402
 
 
 def test_plugin_scene_renders_finite_and_lit():
@@ -36,7 +38,7 @@ def test_demo_scene_dict_matches_xml(tmp_path):
     mi.load_file() of the XML with the same parameters."""
     kw = dict(spp=2, resolution=(24, 18))
     scene_dict = demo.demo_scene(assets_dir=tmp_path, **kw)
-    assert len(list(demo._normalmap_bsdfs(scene_dict))) == 2
+    assert len(list(dicts_of_type(scene_dict, PLUGIN))) == 2
     params = demo.scene_parameters(assets={"normalmap": tmp_path / demo.NORMALMAP_NAME,
                                            "envmap": tmp_path / demo.ENVMAP_NAME}, **kw)
     from_dict = np.array(mi.render(mi.load_dict(scene_dict), seed=3))
@@ -49,7 +51,7 @@ def test_demo_scene_dict_matches_xml(tmp_path):
 def test_demo_scene_options(tmp_path):
     nested = {"type": "diffuse", "reflectance": {"type": "rgb", "value": 0.25}}
     scene = demo.demo_scene(bsdf=nested, strength=0.5, assets_dir=tmp_path)
-    mats = list(demo._normalmap_bsdfs(scene))
+    mats = list(dicts_of_type(scene, PLUGIN))
     assert len(mats) == 2
     assert all(m["bsdf"] == nested and m["strength"] == 0.5 for m in mats)
     assert mats[0]["bsdf"] is not mats[1]["bsdf"]

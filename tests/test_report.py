@@ -30,8 +30,9 @@ import mitsuba as mi
 mi.set_variant("llvm_ad_rgb")
 mfnormal.register()
 
-from mfnormal import assets, compare, demo  # noqa: E402
-from mfnormal.report import png_bytes  # noqa: E402
+from mfnormal import assets, compare, coverage, demo, metrics, scene_xml  # noqa: E402
+from mfnormal.methods import METHODS, PLUGIN  # noqa: E402
+from mfnormal.images import png_bytes  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -63,14 +64,14 @@ def test_report_embeds_every_image_and_fetches_nothing(report):
     # No URL the browser would fetch: no external scripts, styles, images or fonts.
     assert not re.search(r"""(src|href)=['"]?(https?:)?//""", text)
     assert "@import" not in text and "url(" not in text
-    for method in compare.METHODS:
+    for method in METHODS:
         assert f"img-model-{method.key}" in text
     assert "white furnace" in text.lower() and "albedo.png" in text
 
 
 def test_compare_writes_a_render_and_a_reference_per_method(report):
     out = report.parent / "model"
-    for method in compare.METHODS:
+    for method in METHODS:
         for name in (method.key, f"{method.key}_ref"):
             assert (out / f"{name}.exr").is_file() and (out / f"{name}.png").is_file()
     img = np.array(mi.Bitmap(str(out / "nonseparable_same.exr")))
@@ -181,17 +182,17 @@ def _demo_root():
 
 def test_rewrite_swaps_every_normal_mapped_bsdf():
     root = _demo_root()
-    n_plugin = sum(1 for b in root.iter("bsdf") if b.get("type") == compare.PLUGIN)
+    n_plugin = sum(1 for b in root.iter("bsdf") if b.get("type") == PLUGIN)
     assert n_plugin == 2
-    for method in compare.METHODS:
-        out = compare.rewrite(root, method, {"strength": "1.0"})
+    for method in METHODS:
+        out = scene_xml.rewrite(root, method, {"strength": "1.0"})
         bsdfs = {b.get("type") for b in out.iter("bsdf")}
         shapes = [s.find("bsdf") for s in out.iter("shape")]
         if method.kind == "flat":
-            assert compare.PLUGIN not in bsdfs and "normalmap" not in bsdfs
+            assert PLUGIN not in bsdfs and "normalmap" not in bsdfs
             assert [b.get("type") for b in shapes] == ["roughconductor", "roughplastic"]
         elif method.kind == "classic":
-            assert compare.PLUGIN not in bsdfs
+            assert PLUGIN not in bsdfs
             for b in shapes:
                 props = {c.get("name"): c.get("value") for c in b if c.tag != "bsdf"}
                 assert b.get("type") == "normalmap" and "model" not in props and "strength" not in props
@@ -200,7 +201,7 @@ def test_rewrite_swaps_every_normal_mapped_bsdf():
         else:
             for b in shapes:
                 props = {c.get("name"): c.get("value") for c in b if c.tag != "bsdf"}
-                assert b.get("type") == compare.PLUGIN and props["model"] == method.model
+                assert b.get("type") == PLUGIN and props["model"] == method.model
                 assert props.get("tangent_facet", "specular") == method.tangent_facet
 
 
@@ -209,21 +210,21 @@ def test_choose_crops_gives_every_shape_its_best_window():
     score[0, 30:38, 50:58] = 1.0      # the big grazing region of shape 0
     score[0, 2:10, 2:10] = 0.5
     score[1, 20:24, 20:24] = 1.0      # a small one of shape 1
-    crops = compare.choose_crops(score, 3, 8)
+    crops = coverage.choose_crops(score, 3, 8)
     assert len(crops) == 3
     assert crops[0] == (50, 30, 8) and crops[1][0] <= 20 <= crops[1][0] + 4
     assert crops[2] == (2, 2, 8)
-    assert compare.choose_crops(np.zeros((10, 10)), 3, 4) == []
+    assert coverage.choose_crops(np.zeros((10, 10)), 3, 4) == []
 
 
 def test_rel_mse_and_near_black_fraction():
     ref = np.full((4, 4, 3), 0.5)
-    assert compare.rel_mse(ref, ref) == 0.0
-    assert compare.rel_mse(ref * 2, ref) == pytest.approx(0.25 / 0.26)
+    assert metrics.rel_mse(ref, ref) == 0.0
+    assert metrics.rel_mse(ref * 2, ref) == pytest.approx(0.25 / 0.26)
     img = ref.copy()
     img[0, 0] = 0
     mask = np.ones((4, 4), bool)
-    assert compare.near_black_fraction(img, mask, 0.01) == pytest.approx(1 / 16)
+    assert metrics.near_black_fraction(img, mask, 0.01) == pytest.approx(1 / 16)
 
 
 # ---------------------------------------------------------------------------

@@ -292,7 +292,7 @@ def markdown(report, labels, settings, quick):
              "from +x (the image's right) + the sky at 0.1. Steepness: max tilt 28° (mild) / 65° (steep).")
     L.append("")
     L.append("**Metrics**: relMSE = mean((x − ref)²/(ref² + 1e-2)) over pixels and channels "
-             "(`mfnormal.compare.rel_mse`), after a metered exposure (both images scaled so the truth's "
+             "(`mfnormal.metrics.rel_mse`), after a metered exposure (both images scaled so the truth's "
              "mean luminance is 0.5; `rel_mse_raw` in the JSON is without it); |ln| = mean "
              "|ln((Y + f)/(Y_true + f))|, f = 1 % of the truth's median luminance; contrast = std/mean of "
              "luminance (the truth's is taken at the methods' spp, same noise); near-black = fraction of "

@@ -21,13 +21,13 @@ import warnings
 from pathlib import Path
 
 from .messages import one_line
+from .rendering import render_scene
 from .validate import (CLIError, DEFAULT_LIMITS, LIMIT_HELP, Limits, Terminated, check_int32,
                        check_output, check_scene_before_render, check_seed, check_spp,
-                       check_xml_integers, parse_limits, pass_count, pass_seed, pass_spp,
-                       raise_on_sigterm)
+                       check_xml_integers, parse_limits, raise_on_sigterm)
 
-__all__ = ["CLIError", "main", "build_parser", "load_scene", "render_scene", "setup_variant",
-           "parse_defines", "run_command"]
+__all__ = ["CLIError", "main", "build_parser", "load_scene", "setup_variant", "parse_defines",
+           "run_command"]
 
 DEFAULT_VARIANT = "llvm_ad_rgb"
 # The validation figures committed with the source tree (absent in an installed wheel).
@@ -132,44 +132,24 @@ def load_scene(mi, path, params: dict[str, str], limits: Limits = DEFAULT_LIMITS
 
 
 class Progress:
-    """A one-line progress bar with ETA on a terminal; silent when piped."""
+    """A one-line progress bar with ETA on a terminal; silent when piped.
+    ``update(done, total)`` after each of ``total`` passes."""
 
-    def __init__(self, total: int, stream=sys.stderr):
-        self.total, self.stream = total, stream
+    def __init__(self, stream=sys.stderr):
+        self.stream = stream
         self.enabled = stream.isatty()
         self.start = time.time()
 
-    def update(self, done: int):
+    def update(self, done: int, total: int):
         if not self.enabled:
             return
         elapsed = time.time() - self.start
-        eta = elapsed / done * (self.total - done) if done else 0.0
-        bar = "#" * int(30 * done / self.total)
-        self.stream.write(f"\r[{bar:<30}] {done}/{self.total} passes, {elapsed:5.1f}s, ETA {eta:5.1f}s")
-        if done == self.total:
+        eta = elapsed / done * (total - done) if done else 0.0
+        bar = "#" * int(30 * done / total)
+        self.stream.write(f"\r[{bar:<30}] {done}/{total} passes, {elapsed:5.1f}s, ETA {eta:5.1f}s")
+        if done == total:
             self.stream.write("\n")
         self.stream.flush()
-
-
-def render_scene(mi, scene, spp: int | None = None, passes: int | None = None, seed: int = 0, progress=True):
-    """Render in passes (for the progress bar, and to bound each pass's size) and average
-    them; returns the film's channels (H × W × C, float32: RGB, Y, or with AOVs)."""
-    import numpy as np
-
-    sensor = scene.sensors()[0]
-    total = int(spp or sensor.sampler().sample_count())
-    pixels = int(np.prod([int(v) for v in sensor.film().crop_size()]))
-    n_passes = pass_count(total, pixels, passes)
-    bar = Progress(n_passes) if progress else None
-    acc = None
-    for i in range(n_passes):
-        n = pass_spp(total, n_passes, i)
-        img = np.array(mi.render(scene, spp=n, seed=pass_seed(seed, i)), dtype=np.float64)
-        acc = img * n if acc is None else acc + img * n
-        if bar:
-            bar.update(i + 1)
-    out = (acc / total).astype(np.float32)
-    return out if out.ndim == 3 else out[..., None]
 
 
 def write_render(mi, scene, img, output, exposure: float = 0.0):
@@ -205,7 +185,7 @@ def cmd_render(args) -> int:
     scene = load_scene(mi, args.scene, params, limits)
     spp = check_scene_before_render(mi, scene, args.spp, limits, Path(args.scene).name)
     try:
-        img = render_scene(mi, scene, spp, seed=args.seed)
+        img = render_scene(scene, spp, seed=args.seed, progress=Progress().update)
     except Exception as exc:
         raise CLIError(f"render failed: {one_line(exc)}") from None
     img, exr, png = write_render(mi, scene, img, output)
@@ -253,6 +233,8 @@ def cmd_compare(args) -> int:
     params = parse_defines(args.define)
     setup_variant(args.variant)
     from . import compare
+    from .methods import METHOD_BY_KEY, METHODS
+    from .scene_xml import SceneError
 
     settings = compare.QUICK if args.quick else compare.Settings()
     changes = {"seed": args.seed}
@@ -263,14 +245,14 @@ def cmd_compare(args) -> int:
     if args.width:
         changes["width"] = args.width
     settings = dataclasses.replace(settings, **changes)
-    methods = compare.METHODS
+    methods = METHODS
     if args.methods:
         keys = [k.strip() for k in args.methods.split(",") if k.strip()]
-        unknown = [k for k in keys if k not in compare.METHOD_BY_KEY]
+        unknown = [k for k in keys if k not in METHOD_BY_KEY]
         if unknown or not keys:
             raise CLIError(f"unknown method(s) {', '.join(unknown) or repr(args.methods)}; choose from "
-                           f"{', '.join(compare.METHOD_BY_KEY)}")
-        methods = tuple(compare.METHOD_BY_KEY[k] for k in keys)
+                           f"{', '.join(METHOD_BY_KEY)}")
+        methods = tuple(METHOD_BY_KEY[k] for k in keys)
     if args.validation is None and not args.quick and VALIDATION_RESULTS.is_dir():
         args.validation = str(VALIDATION_RESULTS)   # figures of validation/run.py in a checkout
     if args.validation and not Path(args.validation).is_dir():
@@ -286,7 +268,7 @@ def cmd_compare(args) -> int:
                                  params=params, command=command, limits=limits)
     except CLIError:
         raise
-    except compare.SceneError as exc:
+    except SceneError as exc:
         raise CLIError(str(exc)) from None
     except Exception as exc:  # e.g. a render that fails deep inside Dr.Jit
         raise CLIError(f"compare failed: {one_line(exc)}") from None

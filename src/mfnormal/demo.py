@@ -21,10 +21,8 @@ from __future__ import annotations
 import argparse
 import copy
 import os
-import re
 import sys
 import time
-import xml.etree.ElementTree as ET
 from pathlib import Path
 
 import numpy as np
@@ -33,9 +31,11 @@ import mfnormal  # before mitsuba: selects a working libLLVM for Dr.Jit
 import mitsuba as mi
 
 from .images import atomic_write, output_paths
+from .methods import PLUGIN
+from .scene_xml import dicts_of_type, xml_to_dict
 
 __all__ = ["SCENE_XML", "generate_assets", "make_normalmap", "make_envmap", "demo_scene",
-           "xml_to_dict", "load_scene", "render_scene", "render", "main"]
+           "load_scene", "render_scene", "render", "main"]
 
 #: The demo scene (single source of truth).
 SCENE_XML = Path(__file__).resolve().parent / "scenes" / "demo.xml"
@@ -186,117 +186,6 @@ def scene_parameters(model: str = "faithful", spp: int = DEFAULT_SPP,
     return params
 
 
-def _floats(text: str) -> list:
-    return [float(v) for v in text.replace(",", " ").split()]
-
-
-def _xyz(el: ET.Element, default: float) -> list:
-    if "value" in el.attrib:
-        v = _floats(el.attrib["value"])
-        return v * 3 if len(v) == 1 else v
-    return [float(el.attrib.get(k, default)) for k in ("x", "y", "z")]
-
-
-def _transform(el: ET.Element) -> "mi.ScalarTransform4d":
-    T = mi.ScalarTransform4d()
-    for op in el:
-        if not isinstance(op.tag, str):
-            continue
-        a = op.attrib
-        if op.tag == "lookat":
-            M = mi.ScalarTransform4d().look_at(origin=_floats(a["origin"]),
-                                                target=_floats(a["target"]),
-                                                up=_floats(a.get("up", "0 1 0")))
-        elif op.tag == "rotate":
-            M = mi.ScalarTransform4d().rotate(_xyz(op, 0.0), float(a["angle"]))
-        elif op.tag == "scale":
-            M = mi.ScalarTransform4d().scale(_xyz(op, 1.0))
-        elif op.tag == "translate":
-            M = mi.ScalarTransform4d().translate(_xyz(op, 0.0))
-        else:
-            raise ValueError(f"demo.xml: unsupported transform operation <{op.tag}>")
-        T = M @ T          # XML order: later operations are applied last
-    return T
-
-
-_OBJECT_TAGS = {"scene", "integrator", "sensor", "film", "sampler", "rfilter", "emitter",
-                "shape", "bsdf", "texture", "medium", "phase", "volume"}
-
-
-def _element_to_dict(el: ET.Element, subst) -> dict:
-    if el.tag == "scene":
-        out = {"type": "scene"}
-    else:
-        out = {"type": subst(el.attrib["type"])} if "type" in el.attrib else {}
-    counter = 0
-    for child in el:
-        if not isinstance(child.tag, str) or child.tag == "default":
-            continue
-        a = {k: subst(v) for k, v in child.attrib.items()}
-        tag = child.tag
-        if tag in _OBJECT_TAGS:
-            key = a.get("name") or a.get("id")
-            if key is None:
-                key, counter = f"{tag}_{counter}", counter + 1
-            out[key] = _element_to_dict(child, subst)
-            continue
-        name = a["name"]
-        if tag == "integer":
-            out[name] = int(a["value"])
-        elif tag == "float":
-            out[name] = float(a["value"])
-        elif tag == "boolean":
-            out[name] = a["value"].strip().lower() == "true"
-        elif tag == "string":
-            out[name] = a["value"]
-        elif tag == "rgb":
-            out[name] = {"type": "rgb", "value": _floats(a["value"])}
-        elif tag == "transform":
-            out[name] = _transform(child)
-        else:
-            raise ValueError(f"demo.xml: unsupported element <{tag}>")
-    return out
-
-
-def xml_to_dict(path, **params) -> dict:
-    """Convert a (simple) Mitsuba XML scene into a scene dict, substituting
-    ``$name`` parameters like ``mi.load_file(path, **params)`` does.
-
-    Supports what :data:`SCENE_XML` uses: objects, integer/float/boolean/
-    string/rgb properties and transforms made of lookat/rotate/scale/translate.
-    Relative file names are resolved against the XML file's directory.
-    """
-    path = Path(path).resolve()
-    root = ET.parse(path).getroot()
-    values = {d.attrib["name"]: d.attrib["value"] for d in root.iter("default")}
-    unknown = set(params) - set(values)
-    if unknown:
-        raise ValueError(f"{path.name}: unknown parameter(s) {sorted(unknown)}")
-    values.update({k: str(v) for k, v in params.items()})
-
-    def subst(text: str) -> str:
-        return re.sub(r"\$(\w+)", lambda m: values.get(m.group(1), m.group(0)), text)
-
-    scene = _element_to_dict(root, subst)
-
-    def resolve_files(d):
-        for k, v in d.items():
-            if isinstance(v, dict):
-                resolve_files(v)
-            elif k == "filename" and not os.path.isabs(v):
-                d[k] = str(path.parent / v)
-    resolve_files(scene)
-    return scene
-
-
-def _normalmap_bsdfs(scene: dict):
-    for shape in scene.values():
-        if isinstance(shape, dict) and "type" in shape:
-            for v in shape.values():
-                if isinstance(v, dict) and v.get("type") == "normalmap_microfacet":
-                    yield v
-
-
 def demo_scene(model: str = "faithful", bsdf: dict | None = None, spp: int = DEFAULT_SPP,
                resolution=DEFAULT_RESOLUTION, assets_dir=None, strength: float = 1.0,
                max_depth: int = DEFAULT_MAX_DEPTH) -> dict:
@@ -321,7 +210,7 @@ def demo_scene(model: str = "faithful", bsdf: dict | None = None, spp: int = DEF
                               resolution=resolution, assets=assets, strength=strength,
                               max_depth=max_depth)
     scene = xml_to_dict(SCENE_XML, **params)
-    for nm in _normalmap_bsdfs(scene):
+    for nm in list(dicts_of_type(scene, PLUGIN)):
         if bsdf is not None:
             nm["bsdf"] = copy.deepcopy(bsdf)
         if classic:
@@ -436,9 +325,10 @@ def check_args(args) -> None:
 def run(args) -> int:
     """Render the demo with parsed ``args`` (:func:`build_parser`); raises CLIError (one
     line) on bad arguments, before anything is written, and on a failed load or render."""
-    from .cli import render_scene as cli_render_scene, write_render
+    from .cli import Progress, write_render
     from .messages import one_line
-    from .validate import MAX_PASS_LANES, CLIError
+    from .rendering import MAX_PASS_LANES, render_scene as render_in_passes
+    from .validate import CLIError
 
     check_args(args)
     exr_path, png_path = output_paths(args.output)
@@ -463,7 +353,7 @@ def run(args) -> int:
         if args.spp * args.resolution[0] * args.resolution[1] <= MAX_PASS_LANES:
             rgb = render_scene(scene, seed=args.seed)
         else:   # in passes of bounded size
-            rgb = cli_render_scene(mi, scene, args.spp, seed=args.seed)
+            rgb = render_in_passes(scene, args.spp, seed=args.seed, progress=Progress().update)
     except Exception as exc:
         raise CLIError(f"render failed: {one_line(exc)}") from None
     t2 = time.perf_counter()

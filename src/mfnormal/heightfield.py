@@ -56,7 +56,9 @@ import numpy as np
 import mfnormal  # noqa: F401  (before mitsuba: selects a working libLLVM)
 import mitsuba as mi
 
-from .compare import REL_MSE_EPS, luminance, rel_mse
+from .methods import METHODS as CATALOGUE, METHOD_BY_KEY, plugin_bsdf
+from .metrics import REL_MSE_EPS, luminance, rel_mse
+from .rendering import render_rgb
 
 __all__ = [
     "Heightfield", "bumps", "egg_crate", "noise", "make_heightfield", "KINDS", "STEEPNESS",
@@ -628,13 +630,6 @@ class Method:
         return self.wrap(nested, normalmap)
 
 
-def _classic(fixes: bool):
-    def wrap(nested, normalmap):
-        return {"type": "normalmap", "normalmap": normalmap, "bsdf": nested,
-                "flip_invalid_normals": fixes, "use_shadowing_function": fixes}
-    return wrap
-
-
 def plugin_method(model: str | None = None, tangent_facet: str | None = None, key: str | None = None,
                   label: str | None = None, **params) -> Method:
     """``normalmap_microfacet`` with ``model`` (None: the plugin's default, whatever it is),
@@ -646,7 +641,7 @@ def plugin_method(model: str | None = None, tangent_facet: str | None = None, ke
     extra.update(params)
 
     def wrap(nested, normalmap):
-        return {"type": "normalmap_microfacet", "normalmap": normalmap, "bsdf": nested, **extra}
+        return plugin_bsdf(nested, normalmap, **extra)
 
     name = model or "default"
     if tangent_facet is not None:
@@ -660,17 +655,20 @@ def _bumpmap(nested, normalmap, maps):
     return {"type": "bumpmap", "bsdf": nested, "scale": 1.0, "texture": maps["heightmap"]}
 
 
+def _catalogued(key: str, about: str, new_key: str | None = None, label: str | None = None) -> Method:
+    """A method of :mod:`mfnormal.methods` with this harness's description (and key, label)."""
+    m = METHOD_BY_KEY[key]
+    return Method(new_key or m.key, label or m.label, m.bsdf, about)
+
+
+#: The catalogue's methods (:mod:`mfnormal.methods`; its ``flat`` is ``nomap`` here, and its
+#: ``normalmap_microfacet`` methods are :func:`plugin_method`'s), and ``bumpmap``.
 METHODS = {m.key: m for m in (
-    Method("nomap", "no map", lambda nested, normalmap: nested, "the nested BSDF alone on the plane"),
-    Method("classic", "normalmap", _classic(False),
-           "Mitsuba normalmap, flip_invalid_normals / use_shadowing_function off"),
-    Method("classic_fixed", "normalmap + fixes", _classic(True),
-           "Mitsuba normalmap, flip_invalid_normals / use_shadowing_function on (its defaults)"),
-    plugin_method("analytic"),
-    plugin_method("separable", "specular"),
-    plugin_method("separable", "same"),
-    plugin_method("nonseparable", "specular"),
-    plugin_method("nonseparable", "same"),
+    _catalogued("flat", "the nested BSDF alone on the plane", "nomap", "no map"),
+    _catalogued("classic", "Mitsuba normalmap, flip_invalid_normals / use_shadowing_function off"),
+    _catalogued("classic_fixed",
+                "Mitsuba normalmap, flip_invalid_normals / use_shadowing_function on (its defaults)"),
+    *(plugin_method(**m.plugin_params()) for m in CATALOGUE if m.kind == "microfacet"),
     Method("bumpmap", "bumpmap", _bumpmap, "Mitsuba bumpmap on the baked height map (scale 1)"),
 )}
 
@@ -734,7 +732,7 @@ def metrics(img: np.ndarray, truth: np.ndarray) -> dict:
     frame: the surface fills it, so there are no masks):
 
     - ``rel_mse``: the project's relMSE, mean((x − ref)²/(ref² + 1e-2)) over pixels and
-      channels (:func:`mfnormal.compare.rel_mse`), after a metered exposure: both images times
+      channels (:func:`mfnormal.metrics.rel_mse`), after a metered exposure: both images times
       :func:`exposure_scale` (the truth's mean luminance → 0.5), so that the 1e-2 regulariser
       means the same (ref luminance ≈ 20 % of the mean) in bright and dark cells;
       ``rel_mse_raw``: the same on the unscaled renders;
@@ -817,16 +815,8 @@ class Cell:
 def render(scene, spp: int, seed: int, pass_spp: int = 64) -> np.ndarray:
     """Linear RGB (H×W×3 float64) of a scene (dict or loaded) at ``spp``, in passes of
     ≤ ``pass_spp`` (seeds ``seed``, ``seed + 1``, ...; keep seed ranges of renders that must be
-    independent apart: :func:`render_cell` uses multiples of 1000)."""
-    if isinstance(scene, dict):
-        scene = mi.load_dict(scene)
-    acc, done, i = None, 0, 0
-    while done < spp:
-        n = min(pass_spp, spp - done)
-        img = np.array(mi.render(scene, spp=n, seed=seed + i), dtype=np.float64)[..., :3]
-        acc = img * n if acc is None else acc + img * n
-        done, i = done + n, i + 1
-    out = acc / spp
+    independent apart: :func:`render_cell` uses multiples of 1000); NaN/Inf → 0."""
+    out = render_rgb(scene, spp, seed, pass_spp)
     return np.where(np.isfinite(out), out, 0.0)
 
 

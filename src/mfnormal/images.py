@@ -1,4 +1,4 @@
-"""Writing renders: NaN/Inf and negative-pixel accounting, tonemapping, atomic EXR/PNG pairs.
+"""Writing renders: NaN/Inf and negative-pixel accounting, tonemapping, atomic EXR/PNG pairs, PNG bytes.
 
 A render is an (H, W, C) float array whose channels are named as the film names
 them (:func:`film_channel_names`): ``Y`` (mono variants, a ``luminance`` film),
@@ -17,7 +17,9 @@ from __future__ import annotations
 
 import os
 import signal
+import struct
 import tempfile
+import zlib
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -217,3 +219,17 @@ def write_bytes(path, data: bytes) -> None:
         f.write(data)
         f.flush()
         os.fsync(f.fileno())
+
+
+def png_bytes(rgb8: np.ndarray) -> bytes:
+    """8-bit RGB (H x W x 3) or grey (H x W) as PNG file bytes."""
+    a = np.ascontiguousarray(rgb8, dtype=np.uint8)
+    h, w = a.shape[:2]
+    color = 2 if a.ndim == 3 else 0
+    rows = np.concatenate([np.zeros((h, 1), np.uint8), a.reshape(h, -1)], axis=1)
+
+    def chunk(tag: bytes, data: bytes) -> bytes:
+        return struct.pack(">I", len(data)) + tag + data + struct.pack(">I", zlib.crc32(tag + data))
+
+    return (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", w, h, 8, color, 0, 0, 0))
+            + chunk(b"IDAT", zlib.compress(rows.tobytes(), 6)) + chunk(b"IEND", b""))

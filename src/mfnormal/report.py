@@ -1,8 +1,9 @@
 """The comparison report: one self-contained HTML file (no network, opens offline).
 
 :func:`write_report` turns the sections of :func:`mfnormal.compare.compare_scene`
-and the BSDF checks into ``report.html``: every image is an embedded base64 PNG,
-the styles and the script are inline. Per scene it shows an interactive
+and the BSDF checks (:func:`mfnormal.bsdf_checks.bsdf_checks`) into ``report.html``;
+it measures nothing and imports none of the tools that do. Every image is an
+embedded base64 PNG, the styles and the script are inline. Per scene it shows an interactive
 comparison of any two methods (a slider, or flipping between them), all renders,
 zoomed crops of the grazing-angle regions, the supplemental's Figures 2–5
 layout (separable vs non-separable, specular vs same-material tangent facet)
@@ -15,29 +16,13 @@ import base64
 import datetime
 import html
 import json
-import struct
-import zlib
 from pathlib import Path
 
 import numpy as np
 
-from .images import atomic_write
+from .images import atomic_write, png_bytes
 
-__all__ = ["png_bytes", "data_uri", "find_figures", "write_report"]
-
-
-def png_bytes(rgb8: np.ndarray) -> bytes:
-    """8-bit RGB (H x W x 3) or grey (H x W) as PNG file bytes."""
-    a = np.ascontiguousarray(rgb8, dtype=np.uint8)
-    h, w = a.shape[:2]
-    color = 2 if a.ndim == 3 else 0
-    rows = np.concatenate([np.zeros((h, 1), np.uint8), a.reshape(h, -1)], axis=1)
-
-    def chunk(tag: bytes, data: bytes) -> bytes:
-        return struct.pack(">I", len(data)) + tag + data + struct.pack(">I", zlib.crc32(tag + data))
-
-    return (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", w, h, 8, color, 0, 0, 0))
-            + chunk(b"IDAT", zlib.compress(rows.tobytes(), 6)) + chunk(b"IEND", b""))
+__all__ = ["data_uri", "find_figures", "write_report"]
 
 
 def data_uri(png: bytes) -> str:
@@ -302,17 +287,19 @@ fully covered ones) and those seen at grazing angles (white)</figcaption></figur
 def _checks_section(checks) -> str:
     if not checks:
         return ""
-    from .compare import CHECK_THETA_I, CHECK_TILTS
+    # The tilts and incidence angles measured (mfnormal.bsdf_checks), in their order.
+    tilts = list(dict.fromkeys(tp for tp, _ in checks[0]["albedo"]))
+    thetas_i = list(dict.fromkeys(ti for _, ti in checks[0]["albedo"]))
     head = "<tr><th class=l>method</th>" + "".join(
-        f"<th>albedo θ<sub>p</sub>={tp:g}°<br>θ<sub>i</sub>={ti:g}°</th>" for tp in CHECK_TILTS for ti in CHECK_THETA_I)
-    head += "".join(f"<th>reciprocity<br>θ<sub>p</sub>={tp:g}°</th>" for tp in CHECK_TILTS) + "</tr>"
+        f"<th>albedo θ<sub>p</sub>={tp:g}°<br>θ<sub>i</sub>={ti:g}°</th>" for tp in tilts for ti in thetas_i)
+    head += "".join(f"<th>reciprocity<br>θ<sub>p</sub>={tp:g}°</th>" for tp in tilts) + "</tr>"
     rows = []
     for c in checks:
         cells = "".join(
             f"<td class={'bad' if c['albedo'][(tp, ti)] > 1.005 else ''}>{_fmt(c['albedo'][(tp, ti)], 3)}</td>"
-            for tp in CHECK_TILTS for ti in CHECK_THETA_I)
+            for tp in tilts for ti in thetas_i)
         cells += "".join(f"<td>{_fmt(c['reciprocity'][tp], 2)}{_pm(c['reciprocity_se'][tp])}</td>"
-                         for tp in CHECK_TILTS)
+                         for tp in tilts)
         rows.append(f"<tr><td class=l title='{E(c['method'].about)}'>{E(c['method'].label)}</td>{cells}</tr>")
     return f"""
 <section id=checks>

@@ -15,8 +15,6 @@ that it removes at once, and writes nothing else.
   can be created) writable;
 - :func:`check_scene_before_render`: the loaded scene's sample count, film size
   and variant;
-- :func:`pass_count`, :func:`pass_spp`, :func:`pass_seed`: how a render is split into passes of
-  bounded size, and the seed of each pass (any 32-bit seed);
 - :class:`Terminated` and :func:`raise_on_sigterm`: SIGTERM as an exception, so
   that temporary files are removed on the way out.
 """
@@ -33,16 +31,14 @@ import xml.etree.ElementTree as ET
 from dataclasses import dataclass
 from pathlib import Path
 
+from .scene_xml import PARAMETER, substitute
+
 __all__ = ["CLIError", "Limits", "DEFAULT_LIMITS", "LIMIT_HELP", "parse_limits", "check_spp",
            "check_seed", "check_int32", "check_xml_integers", "check_output", "check_render_size",
-           "check_scene_before_render", "pass_count", "pass_spp", "pass_seed", "MAX_PASS_LANES", "Terminated",
-           "raise_on_sigterm", "INT32_MAX", "UINT32_MAX"]
+           "check_scene_before_render", "Terminated", "raise_on_sigterm", "INT32_MAX", "UINT32_MAX"]
 
 INT32_MIN, INT32_MAX = -(1 << 31), (1 << 31) - 1
 UINT32_MAX = (1 << 32) - 1
-#: A render pass traces at most this many paths at once (pixels × samples per pass),
-#: which bounds its memory; more samples take more passes.
-MAX_PASS_LANES = 1 << 24
 
 
 class CLIError(Exception):
@@ -153,10 +149,6 @@ def check_int32(value: int, what: str, lo: int = INT32_MIN, hi: int = INT32_MAX)
     return value
 
 
-def _substitute(text: str, values: dict) -> str:
-    return re.sub(r"\$(\w+)", lambda m: str(values.get(m.group(1), m.group(0))), text)
-
-
 def check_xml_integers(path, params: dict) -> None:
     """Every ``<integer>`` value of the XML scene ``path`` (and its ``<include>``\\ s), after
     substituting its ``<default>``\\ s and ``params`` (``-D``), is a 32-bit integer.
@@ -179,19 +171,19 @@ def check_xml_integers(path, params: dict) -> None:
         for el in root.iter():
             if el.tag == "integer" and el.get("value") is not None:
                 raw = el.get("value")
-                text = _substitute(raw, values).strip()
+                text = substitute(raw, values).strip()
                 if not re.fullmatch(r"[+-]?\d+", text):
                     continue
                 value = int(text)
                 if INT32_MIN <= value <= INT32_MAX:
                     continue
-                names = re.findall(r"\$(\w+)", raw)
+                names = PARAMETER.findall(raw)
                 source = next((f"-D {n}={params[n]}" for n in names if n in params), None)
                 where = f'<integer name="{el.get("name")}"> in {file.name}'
                 raise CLIError(f"{source + ': ' if source else ''}{where} is {value}, outside the "
                                f"32-bit range ({INT32_MIN} to {INT32_MAX})")
             elif el.tag == "include" and el.get("filename"):
-                visit(file.parent / _substitute(el.get("filename"), values), depth + 1, values)
+                visit(file.parent / substitute(el.get("filename"), values), depth + 1, values)
 
     visit(Path(path), 0, dict(params))
 
@@ -270,22 +262,3 @@ def check_scene_before_render(mi, scene, spp, limits: Limits, source: str) -> in
             raise CLIError(f"variant {mi.variant()}: normalmap_microfacet does not support polarized "
                            "variants; use an rgb, mono or spectral one (e.g. llvm_ad_rgb)")
     return spp
-
-
-def pass_count(total: int, pixels: int, passes: int | None = None) -> int:
-    """How many passes a render of ``total`` spp takes: ``passes`` (default 8, fewer for
-    < 8 spp), more where a pass would trace more than :data:`MAX_PASS_LANES` paths.
-    Pass ``i`` takes :func:`pass_spp` samples per pixel."""
-    passes = max(1, min(total, passes or (8 if total >= 8 else total)))
-    per_pass = max(1, MAX_PASS_LANES // max(1, pixels))      # samples per pixel a pass may take
-    return max(passes, min(total, -(-total // per_pass)))
-
-
-def pass_spp(total: int, passes: int, i: int) -> int:
-    return total // passes + (1 if i < total % passes else 0)
-
-
-def pass_seed(seed: int, i: int) -> int:
-    """The seed of pass ``i`` of a render with ``seed`` (any 32-bit seed; the same as
-    ``seed · 1000003 + i`` where that fits, which is one-to-one in ``seed``)."""
-    return (seed * 1000003 + i) % (1 << 32)
