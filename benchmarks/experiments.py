@@ -240,7 +240,8 @@ def exp_mis_pdf(b: Bench, n: int = 1 << 21, bins=(32, 64)) -> list:
 def exp_control(b: Bench, assets, root: Path) -> list:
     """relMSE of scene (c) with its wave normal map against constant normal maps: noise of
     the estimator (constant map) versus sub-pixel detail of the image (wave map)."""
-    from mfnormal import demo
+    from mfnormal.assets import encode_normalmap
+    from mfnormal.metrics import rel_se
     W, H, spp, ref_passes = 192, 144, 16, 8
     rows = []
     for label, normal in (("waves", None), ("constant 40° away", (40, 90)), ("constant 40° toward", (40, -90)),
@@ -250,7 +251,7 @@ def exp_control(b: Bench, assets, root: Path) -> list:
             t, f = np.radians(normal[0]), np.radians(normal[1])
             n = np.array([np.sin(t) * np.cos(f), np.sin(t) * np.sin(f), np.cos(t)], np.float32)
             path = root / f"control_{normal[1]}.png"
-            mi.Bitmap(demo.encode_normalmap(np.tile(n, (4, 4, 1)))).write(str(path))
+            mi.Bitmap(encode_normalmap(np.tile(n, (4, 4, 1)))).write(str(path))
             a["plane"] = dict(assets["plane"], normalmap=str(path))
         for nested in ("ggx_0.05", "roughplastic"):
             for method in ("builtin", "analytic", "nonseparable_specular", "nonseparable_same"):
@@ -258,7 +259,7 @@ def exp_control(b: Bench, assets, root: Path) -> list:
                 ref = sum(bench.to_numpy(bench.timed_render(scene, 32, 10_000 + i)[1]) for i in range(ref_passes))
                 ref /= ref_passes
                 x = bench.to_numpy(bench.timed_render(scene, spp, 20_000)[1])
-                e = ((x - ref) ** 2 / (ref ** 2 + bench.REL_MSE_EPS)).mean(axis=-1).ravel()
+                e = rel_se(x, ref).mean(axis=-1).ravel()
                 top = np.sort(e)[::-1][: max(1, len(e) // 1000)].sum() / max(e.sum(), 1e-30)
                 rows.append({"map": label, "nested": nested, "method": method, "relmse": float(e.mean()),
                              "ref_mean": float(ref.mean()), "top_0.1%_share": float(top)})

@@ -184,25 +184,25 @@ def make_plane_normalmap(size: int = 256, waves: int = 7, max_tilt_deg: float = 
 
 def prepare_assets(root: Path, scenes) -> dict:
     """Generate every scene's assets under ``root``; returns what :func:`scene_dict` needs."""
-    from mfnormal import demo
+    from mfnormal import assets as bundled, sky
     out = {}
-    demo_assets = demo.generate_assets(root / "demo")
+    demo_assets = bundled.generate_demo_assets(root / "demo")
     out["demo"] = {"dir": str(root / "demo")}
     # The same sky without its sun disc (the glow stays): the control of the noise diagnosis.
     sunless = root / "sky_without_sun_disc.exr"
-    mi.Bitmap(demo.make_envmap(sun_radiance=0.0), mi.Bitmap.PixelFormat.RGB).write(str(sunless))
+    sunless_sky = sky.envmap(256, 128, sky.DEMO, sky.GlowSun(radiance=0.0))
+    mi.Bitmap(sunless_sky, mi.Bitmap.PixelFormat.RGB).write(str(sunless))
     out["sunless_envmap"] = str(sunless)
     if "plane" in scenes:
         path = root / "plane" / "waves.png"
         path.parent.mkdir(parents=True, exist_ok=True)
-        mi.Bitmap(demo.encode_normalmap(make_plane_normalmap())).write(str(path))
+        mi.Bitmap(bundled.encode_normalmap(make_plane_normalmap())).write(str(path))
         out["plane"] = {"normalmap": str(path), "envmap": str(demo_assets["envmap"])}
     if "model" in scenes:
         try:
-            from mfnormal import assets as model_assets
-            a = model_assets.generate_model_assets(root / "model")
-            out["model"] = {"xml": str(model_assets.MODEL_XML), "dir": str(root / "model"),
-                            "params": model_assets.model_parameters(a)}
+            a = bundled.generate_model_assets(root / "model")
+            out["model"] = {"xml": str(bundled.MODEL_XML), "dir": str(root / "model"),
+                            "params": bundled.model_parameters(a)}
         except Exception as exc:       # scene (b) is optional
             out["model"] = {"error": f"{type(exc).__name__}: {exc}"}
     return out

@@ -2,7 +2,8 @@
 
 Small scenes at low resolution and sample counts: they check that whole images
 come out finite and lit (not that they are converged), plus the bundled demo
-(``mfnormal.demo``): its command line, its XML scene and the dict built from it.
+(``mfnormal.demo``): its command line (``mfnormal demo``, ``mfnormal-demo``), its XML scene and
+the dict built from it.
 """
 
 import numpy as np
@@ -15,7 +16,7 @@ mi.set_variant("llvm_ad_rgb")
 mfnormal.register()
 
 from helpers import bumps_normalmap, small_scene  # noqa: E402
-from mfnormal import demo  # noqa: E402
+from mfnormal import assets, cli, demo  # noqa: E402
 from mfnormal.methods import PLUGIN  # noqa: E402
 from mfnormal.scene_xml import dicts_of_type  # noqa: E402
 
@@ -39,10 +40,10 @@ def test_demo_scene_dict_matches_xml(tmp_path):
     kw = dict(spp=2, resolution=(24, 18))
     scene_dict = demo.demo_scene(assets_dir=tmp_path, **kw)
     assert len(list(dicts_of_type(scene_dict, PLUGIN))) == 2
-    params = demo.scene_parameters(assets={"normalmap": tmp_path / demo.NORMALMAP_NAME,
-                                           "envmap": tmp_path / demo.ENVMAP_NAME}, **kw)
+    params = demo.scene_parameters(assets={"normalmap": tmp_path / assets.TILES_NAME,
+                                           "envmap": tmp_path / assets.ENVMAP_NAME}, **kw)
     from_dict = np.array(mi.render(mi.load_dict(scene_dict), seed=3))
-    from_xml = np.array(mi.render(mi.load_file(str(demo.SCENE_XML), **params), seed=3))
+    from_xml = np.array(mi.render(mi.load_file(str(assets.DEMO_XML), **params), seed=3))
     assert from_dict.shape == (18, 24, 3)
     assert np.all(np.isfinite(from_dict)) and from_dict.mean() > 0.05
     np.testing.assert_allclose(from_dict, from_xml, rtol=1e-5, atol=1e-6)
@@ -62,7 +63,7 @@ def test_demo_scene_options(tmp_path):
 
 
 def test_demo_assets(tmp_path):
-    paths = demo.generate_assets(tmp_path)
+    paths = assets.generate_demo_assets(tmp_path)
     nm = np.array(mi.Bitmap(str(paths["normalmap"])))
     assert nm.shape == (512, 512, 3) and nm.dtype == np.uint8
     n = nm.astype(np.float64) / 255.0 * 2.0 - 1.0
@@ -75,7 +76,7 @@ def test_demo_assets(tmp_path):
 
 def test_demo_main_writes_exr_and_png(tmp_path, capsys):
     out = tmp_path / "sub" / "demo.png"
-    rc = demo.main(["-o", str(out), "--spp", "2", "--resolution", "40x30"])
+    rc = cli.demo_main(["-o", str(out), "--spp", "2", "--resolution", "40x30"])
     assert rc == 0
     exr, png = tmp_path / "sub" / "demo.exr", tmp_path / "sub" / "demo.png"
     assert exr.is_file() and png.is_file()

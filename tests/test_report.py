@@ -30,7 +30,7 @@ import mitsuba as mi
 mi.set_variant("llvm_ad_rgb")
 mfnormal.register()
 
-from mfnormal import assets, compare, coverage, demo, metrics, scene_xml  # noqa: E402
+from mfnormal import assets, compare, coverage, metrics, scene_xml  # noqa: E402
 from mfnormal.methods import METHODS, PLUGIN  # noqa: E402
 from mfnormal.images import png_bytes  # noqa: E402
 
@@ -177,7 +177,7 @@ def test_report_works_in_headless_chromium(report, browser):
 # ---------------------------------------------------------------------------
 
 def _demo_root():
-    return ET.parse(demo.SCENE_XML).getroot()
+    return ET.parse(assets.DEMO_XML).getroot()
 
 
 def test_rewrite_swaps_every_normal_mapped_bsdf():

@@ -1,49 +1,158 @@
-"""Bundled scene (b): a normal-mapped torus knot with a textured GGX roughness.
+"""The bundled scenes and their procedural assets (nothing is downloaded).
 
-The counterpart of the supplemental's Figures 3 and 5 (an object with strong
-normal-mapped detail and varying roughness, seen at grazing angles), built from
-procedural assets only, so nothing is downloaded:
+:data:`BUNDLED` names the three scenes ``mfnormal compare`` knows: each is an XML
+file in ``scenes/``, a function that writes its assets into a folder and one that
+turns their paths into the scene's ``$`` parameters.
 
-- :func:`torus_knot_mesh`: a (2, 3) torus knot tube of 20,000 triangles with
-  smooth vertex normals and a seamless UV parametrisation (u along the knot, v
-  around the tube, one UV unit ≈ one tube circumference in both directions);
-- :func:`make_domes_normalmap`: a hexagonal array of spherical domes whose rims
-  tilt to 70° (a strong, seamlessly tiling tangent-space normal map);
-- :func:`make_roughness_map`: GGX α in [0.04, 0.45] in soft bands along the knot;
-- the sky of the demo scene (:func:`mfnormal.demo.make_envmap`).
+- (a) ``demo`` (:data:`DEMO_XML`, :mod:`mfnormal.demo`): a gold sphere and a tiled
+  ground plane; :func:`make_tiles_normalmap`, a strong normal map of pillowed tiles
+  with a hemispherical rivet in each;
+- (b) ``model`` (:data:`MODEL_XML`), the counterpart of the supplemental's Figures 3
+  and 5 (strong normal-mapped detail, varying roughness, grazing angles):
+  :func:`torus_knot_mesh`, a (2, 3) torus knot tube of 20,000 triangles with smooth
+  vertex normals and a seamless UV parametrisation (u along the knot, v around the
+  tube, one UV unit ≈ one tube circumference in both directions);
+  :func:`make_domes_normalmap`, a hexagonal array of spherical domes whose rims tilt
+  to 70°; :func:`make_roughness_map`, GGX α in [0.04, 0.45] in soft bands along the knot;
+- (c) ``eggcrate`` (:data:`EGGCRATE_XML`): glossy metal at grazing view;
+  :func:`make_eggcrate_normalmap`.
 
-The scene itself is ``scenes/model.xml`` (:data:`MODEL_XML`); its ``$``
-parameters name the generated files (:func:`model_parameters`).
+Every scene is lit by the sky of :mod:`mfnormal.sky` (:data:`mfnormal.sky.DEMO` with
+a sun). Normal maps are written as 8-bit PNGs (:func:`encode_normalmap`), OpenGL
+convention.
 """
 
 from __future__ import annotations
 
-import os
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 
+from . import sky
 from .images import atomic_write
 
-__all__ = ["MODEL_XML", "EGGCRATE_XML", "torus_knot_mesh", "write_ply", "make_domes_normalmap",
-           "make_roughness_map", "generate_model_assets", "model_parameters",
-           "make_eggcrate_normalmap", "generate_eggcrate_assets", "eggcrate_parameters"]
+__all__ = ["BUNDLED", "Bundled", "DEMO_XML", "MODEL_XML", "EGGCRATE_XML", "encode_normalmap",
+           "make_tiles_normalmap", "generate_demo_assets", "torus_knot_mesh", "write_ply",
+           "make_domes_normalmap", "make_roughness_map", "generate_model_assets",
+           "model_parameters", "make_eggcrate_normalmap", "generate_eggcrate_assets",
+           "file_parameters", "map_and_sky_parameters"]
 
-#: Scene (b): the model scene (single source of truth).
-MODEL_XML = Path(__file__).resolve().parent / "scenes" / "model.xml"
-
+SCENES = Path(__file__).resolve().parent / "scenes"
+#: Scene (a): the demo (single source of truth).
+DEMO_XML = SCENES / "demo.xml"
+#: Scene (b): the model scene.
+MODEL_XML = SCENES / "model.xml"
 #: Scene (c): the egg crate at grazing view.
-EGGCRATE_XML = Path(__file__).resolve().parent / "scenes" / "eggcrate.xml"
+EGGCRATE_XML = SCENES / "eggcrate.xml"
 
+TILES_NAME = "normalmap.png"
 MESH_NAME = "knot.ply"
 EGGCRATE_NAME = "eggcrate.png"
-NORMALMAP_NAME = "domes.png"
+DOMES_NAME = "domes.png"
 ROUGHNESS_NAME = "roughness.exr"
 ENVMAP_NAME = "envmap.exr"
 
 
 # ---------------------------------------------------------------------------
-# Mesh
+# Writing textures
+# ---------------------------------------------------------------------------
+
+def encode_normalmap(n: np.ndarray) -> np.ndarray:
+    """8-bit encoding rgb = n * 0.5 + 0.5."""
+    return np.clip(np.round((n * 0.5 + 0.5) * 255.0), 0, 255).astype(np.uint8)
+
+
+
+def _write_png(path, normals: np.ndarray):
+    """Unit normals as an 8-bit PNG (:func:`encode_normalmap`), atomically."""
+    import mitsuba as mi
+
+    bitmap = mi.Bitmap(encode_normalmap(normals))
+    atomic_write(path, lambda p: bitmap.write(str(p), mi.Bitmap.FileFormat.PNG))
+
+
+def _write_exr(path, pixels: np.ndarray, pixel_format: str = "RGB"):
+    import mitsuba as mi
+
+    bitmap = mi.Bitmap(pixels, getattr(mi.Bitmap.PixelFormat, pixel_format))
+    atomic_write(path, lambda p: bitmap.write(str(p), mi.Bitmap.FileFormat.OpenEXR))
+
+
+def _write_sky(path, sun: sky.GlowSun = sky.GlowSun()):
+    """The bundled scenes' sky (256 × 128) with ``sun``, as an EXR."""
+    _write_exr(path, sky.envmap(256, 128, sky.DEMO, sun))
+
+
+def file_parameters(assets: dict, names) -> dict:
+    """The ``$name`` parameters ``names`` of a scene: the absolute paths of its generated files."""
+    return {k: str(Path(assets[k]).resolve()) for k in names}
+
+
+# ---------------------------------------------------------------------------
+# Scene (a): the demo
+# ---------------------------------------------------------------------------
+
+def make_tiles_normalmap(size: int = 512, tiles: int = 4, gap: float = 0.035,
+                   bevel: float = 0.2, rivet: float = 0.2) -> np.ndarray:
+    """Unit tangent-space normals (``size`` x ``size`` x 3, float32).
+
+    A running-bond pattern of ``tiles`` x ``tiles`` square tiles separated by
+    flat grooves; each tile has a quarter-circle bevel (its normals tilt all the
+    way to the horizon at the tile border) and a hemispherical rivet in its
+    centre. The pattern is periodic, so the map tiles seamlessly. All lengths
+    are in units of one tile.
+
+    OpenGL convention: +x points right and +y *up* in the image (row 0 is the
+    top row), so a bump looks green at its top and red at its right side.
+    """
+    c = (np.arange(size, dtype=np.float64) + 0.5) * (tiles / size)
+    x, y = np.meshgrid(c, c)                     # y grows downwards (rows)
+    row = np.floor(y)
+    xs = x + 0.5 * (row % 2)                     # offset every other row
+    px = xs - np.floor(xs) - 0.5                 # position within the tile,
+    py = y - row - 0.5                           # in [-0.5, 0.5)
+    half = 0.5 - gap / 2
+
+    # Bevel: distance to the inner (flat-topped) rectangle, rounded corners.
+    mx = np.maximum(np.abs(px) - (half - bevel), 0.0)
+    my = np.maximum(np.abs(py) - (half - bevel), 0.0)
+    d = np.hypot(mx, my)
+    s = np.clip(d / bevel, 0.0, 1.0)             # sin of the tilt
+    inv_d = np.where(d > 0, 1.0 / np.maximum(d, 1e-12), 0.0)
+    nx = s * mx * inv_d * np.sign(px)
+    ny = -s * my * inv_d * np.sign(py)           # image y is down, normal y up
+    nz = np.sqrt(np.maximum(1.0 - s * s, 0.0))
+
+    in_groove = (np.abs(px) > half) | (np.abs(py) > half)
+    nx[in_groove], ny[in_groove], nz[in_groove] = 0.0, 0.0, 1.0
+
+    # Hemispherical rivet.
+    r2 = px * px + py * py
+    on_rivet = r2 < rivet * rivet
+    nx = np.where(on_rivet, px / rivet, nx)
+    ny = np.where(on_rivet, -py / rivet, ny)
+    nz = np.where(on_rivet, np.sqrt(np.maximum(rivet * rivet - r2, 0.0)) / rivet, nz)
+
+    n = np.stack([nx, ny, nz], axis=-1)
+    n /= np.linalg.norm(n, axis=-1, keepdims=True)
+    return n.astype(np.float32)
+
+
+def generate_demo_assets(assets_dir) -> dict:
+    """Write the demo's textures into ``assets_dir``; returns their paths as
+    ``{'normalmap': Path, 'envmap': Path}``. Deterministic and fast (well under a
+    second), so the files are simply rewritten every time."""
+    assets_dir = Path(assets_dir)
+    paths = {"normalmap": assets_dir / TILES_NAME, "envmap": assets_dir / ENVMAP_NAME}
+    _write_png(paths["normalmap"], make_tiles_normalmap())
+    _write_sky(paths["envmap"])
+    return paths
+
+
+# ---------------------------------------------------------------------------
+# Scene (b): the torus knot
 # ---------------------------------------------------------------------------
 
 def _knot_curve(t, p=2, q=3, R=1.0, a=0.42):
@@ -214,28 +323,21 @@ def generate_model_assets(assets_dir) -> dict:
     """Write the mesh and textures of scene (b) into ``assets_dir``; returns
     ``{'mesh', 'normalmap', 'roughness', 'envmap', 'u_max'}`` (paths and the
     knot's UV length). Deterministic; rewritten every time (≈ 0.5 s)."""
-    import mitsuba as mi
-
-    from .demo import encode_normalmap, make_envmap
-
     assets_dir = Path(assets_dir)
     P, N, UV, F = torus_knot_mesh()
-    paths = {"mesh": assets_dir / MESH_NAME, "normalmap": assets_dir / NORMALMAP_NAME,
+    paths = {"mesh": assets_dir / MESH_NAME, "normalmap": assets_dir / DOMES_NAME,
              "roughness": assets_dir / ROUGHNESS_NAME, "envmap": assets_dir / ENVMAP_NAME}
     write_ply(paths["mesh"], P, N, UV, F)
-    normals = mi.Bitmap(encode_normalmap(make_domes_normalmap()))
-    alpha = mi.Bitmap(make_roughness_map(), mi.Bitmap.PixelFormat.Y)
-    sky = mi.Bitmap(make_envmap(), mi.Bitmap.PixelFormat.RGB)
-    atomic_write(paths["normalmap"], lambda p: normals.write(str(p), mi.Bitmap.FileFormat.PNG))
-    atomic_write(paths["roughness"], lambda p: alpha.write(str(p), mi.Bitmap.FileFormat.OpenEXR))
-    atomic_write(paths["envmap"], lambda p: sky.write(str(p), mi.Bitmap.FileFormat.OpenEXR))
+    _write_png(paths["normalmap"], make_domes_normalmap())
+    _write_exr(paths["roughness"], make_roughness_map(), "Y")
+    _write_sky(paths["envmap"])
     paths["u_max"] = float(UV[:, 0].max())
     return paths
 
 
 def model_parameters(assets: dict) -> dict:
     """The ``$name`` substitutions of :data:`MODEL_XML` for generated ``assets``."""
-    params = {k: str(Path(assets[k]).resolve()) for k in ("mesh", "normalmap", "roughness", "envmap")}
+    params = file_parameters(assets, ("mesh", "normalmap", "roughness", "envmap"))
     params["roughness_scale"] = repr(1.0 / float(assets["u_max"]))
     return params
 
@@ -260,25 +362,38 @@ def make_eggcrate_normalmap(size: int = 256, cells: int = 4, max_tilt_deg: float
 
 def generate_eggcrate_assets(assets_dir) -> dict:
     """Write the textures of scene (c) into ``assets_dir``; returns ``{'normalmap', 'envmap'}``."""
-    import mitsuba as mi
-
-    from .demo import encode_normalmap, make_envmap
-
     assets_dir = Path(assets_dir)
     paths = {"normalmap": assets_dir / EGGCRATE_NAME, "envmap": assets_dir / ENVMAP_NAME}
-    normals = mi.Bitmap(encode_normalmap(make_eggcrate_normalmap()))
+    _write_png(paths["normalmap"], make_eggcrate_normalmap())
     # The sun 20° up, ahead of the camera and to its left: glints off slopes facing back.
-    sky = mi.Bitmap(make_envmap(sun_direction=(-0.5, 0.34, -0.8)), mi.Bitmap.PixelFormat.RGB)
-    atomic_write(paths["normalmap"], lambda p: normals.write(str(p), mi.Bitmap.FileFormat.PNG))
-    atomic_write(paths["envmap"], lambda p: sky.write(str(p), mi.Bitmap.FileFormat.OpenEXR))
+    _write_sky(paths["envmap"], sky.GlowSun(direction=(-0.5, 0.34, -0.8)))
     return paths
 
 
-def eggcrate_parameters(assets: dict) -> dict:
-    """The ``$name`` substitutions of :data:`EGGCRATE_XML` for generated ``assets``."""
-    return {k: str(Path(assets[k]).resolve()) for k in ("normalmap", "envmap")}
+# ---------------------------------------------------------------------------
+# The bundled scenes
+# ---------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class Bundled:
+    """A bundled scene: its XML file, title, asset generator and ``$`` parameters of the assets."""
+    name: str
+    xml: Path
+    title: str
+    generate: Callable        # generate(assets_dir) -> {name: path, ...}
+    parameters: Callable      # parameters(assets) -> {"$name": value}
 
 
-def default_assets_dir() -> Path:
-    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
-    return Path(base) / "mfnormal" / "model_assets"
+def map_and_sky_parameters(assets: dict) -> dict:
+    """The ``$normalmap`` and ``$envmap`` of scenes (a) and (c) for generated ``assets``."""
+    return file_parameters(assets, ("normalmap", "envmap"))
+
+
+BUNDLED = {b.name: b for b in (
+    Bundled("demo", DEMO_XML, "(a) demo: sphere and ground plane", generate_demo_assets,
+            map_and_sky_parameters),
+    Bundled("model", MODEL_XML, "(b) model: torus knot with textured roughness",
+            generate_model_assets, model_parameters),
+    Bundled("eggcrate", EGGCRATE_XML, "(c) egg crate: glossy metal at 78° from the vertical",
+            generate_eggcrate_assets, map_and_sky_parameters),
+)}

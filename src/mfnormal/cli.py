@@ -1,7 +1,8 @@
 """The ``mfnormal`` command line: render scenes that use the plugin, and the bundled demo.
 
     mfnormal render SCENE.xml|MODEL.gltf|MODEL.glb [-o OUT] [--spp N] [--variant V] [-D key=value ...]
-    mfnormal demo [-o OUT] [--spp N] [--model M]
+    mfnormal demo [-o OUT] [--spp N] [--resolution WxH] [--model M] [--seed N] ...
+                                           (also mfnormal-demo, python -m mfnormal.demo)
     mfnormal compare SCENE [SCENE ...] [-o DIR] [--spp N] [--ref-spp N] [--quick]
     (each also takes --limit NAME=N: the caps of mfnormal.validate.Limits)
 
@@ -13,6 +14,7 @@ written as a pair (a linear EXR and a tonemapped PNG), atomically.
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import shlex
 import sys
@@ -20,16 +22,19 @@ import time
 import warnings
 from pathlib import Path
 
+import numpy as np
+
 from .messages import one_line
 from .rendering import render_scene
 from .validate import (CLIError, DEFAULT_LIMITS, LIMIT_HELP, Limits, Terminated, check_int32,
-                       check_output, check_scene_before_render, check_seed, check_spp,
-                       check_xml_integers, parse_limits, raise_on_sigterm)
+                       check_output, check_render_size, check_scene_before_render, check_seed,
+                       check_spp, check_xml_integers, parse_limits, raise_on_sigterm)
 
-__all__ = ["CLIError", "main", "build_parser", "load_scene", "setup_variant", "parse_defines",
-           "run_command"]
+__all__ = ["CLIError", "main", "demo_main", "build_parser", "load_scene", "setup_variant",
+           "parse_defines", "run_command"]
 
 DEFAULT_VARIANT = "llvm_ad_rgb"
+DEMO_OUTPUT = os.path.join("out", "demo.png")
 # The validation figures committed with the source tree (absent in an installed wheel).
 VALIDATION_RESULTS = Path(__file__).resolve().parents[2] / "validation" / "results"
 
@@ -124,10 +129,7 @@ def load_scene(mi, path, params: dict[str, str], limits: Limits = DEFAULT_LIMITS
     except Exception as exc:
         raise CLIError(f"cannot load {path}: {one_line(exc)}") from None
     from .scene_checks import check_scene
-    try:
-        check_scene(scene)
-    except ValueError as exc:
-        raise CLIError(f"{path}: {exc}") from None
+    check_scene(scene, CLIError, str(path))
     return scene
 
 
@@ -195,17 +197,68 @@ def cmd_render(args) -> int:
     return 0
 
 
-def cmd_demo(args) -> int:
-    from . import demo
+def _check_demo(args, limits: Limits) -> None:
+    """Every argument of ``mfnormal demo``, before anything is written."""
+    from .assets import TILES_NAME
+    from .demo import CLASSIC
+    from .plugin import MODELS
 
-    argv = ["-o", str(args.output)] if args.output else []
-    if args.spp is not None:
-        argv += ["--spp", str(args.spp)]
-    if args.model:
-        argv += ["--model", args.model]
-    for item in args.limit or []:
-        argv += ["--limit", item]
-    return demo.run(demo.build_parser(parser_class=_Parser).parse_args(argv))
+    if args.model not in MODELS + (CLASSIC,):
+        raise CLIError(f"--model {args.model}: unknown model; choose one of {', '.join(MODELS + (CLASSIC,))}")
+    check_spp(args.spp, "--spp")
+    check_seed(args.seed)
+    check_int32(args.max_depth, "--max-depth", lo=-1)
+    if not (0.0 <= args.strength < float("inf")):
+        raise CLIError(f"--strength {args.strength}: the strength must be a finite number >= 0")
+    if not math.isfinite(args.exposure) or abs(args.exposure) > 100:
+        raise CLIError(f"--exposure {args.exposure}: expected a number of stops from -100 to 100")
+    w, h = args.resolution
+    check_render_size(w, h, limits, "the demo image")
+    check_output(args.output)
+    if args.assets_dir is not None:
+        check_output(Path(args.assets_dir) / TILES_NAME, "--assets-dir")
+
+
+def cmd_demo(args) -> int:
+    """Render the bundled demo scene (:mod:`mfnormal.demo`); write the EXR/PNG pair."""
+    import mfnormal
+    from . import demo
+    from .assets import DEMO_XML
+    from .images import output_paths
+    from .rendering import MAX_PASS_LANES, average_passes
+
+    _check_demo(args, parse_limits(args.limit))
+    exr_path, _ = output_paths(args.output)
+    assets_dir = Path(args.assets_dir) if args.assets_dir else exr_path.parent / "demo_assets"
+    mi = setup_variant(DEFAULT_VARIANT)
+    (w, h), spp = args.resolution, args.spp
+    print(f"variant : {mi.variant()}")
+    print(f"LLVM    : {mfnormal.LLVM_PATH}")
+    print(f"scene   : {DEMO_XML}  (model={args.model}, {w}x{h}, {spp} spp, "
+          f"max_depth={args.max_depth})")
+    sys.stdout.flush()
+
+    t0 = time.perf_counter()
+    try:
+        scene = demo.load_scene(model=args.model, spp=spp, resolution=args.resolution,
+                                assets_dir=assets_dir, strength=args.strength, max_depth=args.max_depth)
+    except Exception as exc:
+        raise CLIError(f"cannot load the demo scene: {one_line(exc)}") from None
+    t1 = time.perf_counter()
+    try:
+        if spp * w * h <= MAX_PASS_LANES:   # one pass with the demo's own seed
+            rgb = average_passes(scene, [(spp, args.seed)]).astype(np.float32)[..., :3]
+        else:
+            rgb = render_scene(scene, spp, seed=args.seed, progress=Progress().update)
+    except Exception as exc:
+        raise CLIError(f"render failed: {one_line(exc)}") from None
+    t2 = time.perf_counter()
+    _, exr_path, png_path = write_render(mi, scene, rgb, args.output, exposure=args.exposure)
+    print(f"load    : {t1 - t0:.1f} s (texture generation and scene loading)")
+    print(f"render  : {t2 - t1:.1f} s (JIT compilation and rendering)")
+    print(f"wrote   : {exr_path}")
+    print(f"wrote   : {png_path}")
+    return 0
 
 
 def _width(text: str) -> int:
@@ -233,6 +286,7 @@ def cmd_compare(args) -> int:
     params = parse_defines(args.define)
     setup_variant(args.variant)
     from . import compare
+    from .assets import BUNDLED
     from .methods import METHOD_BY_KEY, METHODS
     from .scene_xml import SceneError
 
@@ -258,9 +312,9 @@ def cmd_compare(args) -> int:
     if args.validation and not Path(args.validation).is_dir():
         raise CLIError(f"validation directory not found: {args.validation}")
     for scene in args.scenes:
-        if scene not in compare.BUNDLED and not Path(scene).is_file():
-            raise CLIError(f"scene file not found: {scene} (bundled scenes: {', '.join(compare.BUNDLED)})")
-        if scene not in compare.BUNDLED:
+        if scene not in BUNDLED and not Path(scene).is_file():
+            raise CLIError(f"scene file not found: {scene} (bundled scenes: {', '.join(BUNDLED)})")
+        if scene not in BUNDLED:
             check_xml_integers(scene, params)
     command = "mfnormal " + " ".join(shlex.quote(a) for a in getattr(args, "argv", []))
     try:
@@ -287,29 +341,79 @@ def _add_limit(p):
     p.add_argument("--limit", action="append", metavar="NAME=N", help=LIMIT_HELP)
 
 
-def build_parser() -> argparse.ArgumentParser:
-    parser = _Parser(prog="mfnormal", description=__doc__.split("\n\n")[0])
-    sub = parser.add_subparsers(dest="command", required=True)
+def _add_seed(p):
+    p.add_argument("--seed", type=int, default=0, help="sampler seed, 0 to 4294967295 (default 0)")
 
+
+def _add_scene_options(p):
+    """--variant, --seed, -D and --limit (render and compare)."""
+    p.add_argument("--variant", default=DEFAULT_VARIANT, help=f"Mitsuba variant (default {DEFAULT_VARIANT})")
+    _add_seed(p)
+    p.add_argument("-D", "--define", action="append", metavar="KEY=VALUE", help="scene parameter ($KEY)")
+    _add_limit(p)
+
+
+def _positive_int(text: str) -> int:
+    try:
+        v = int(text)
+    except ValueError:
+        v = 0
+    if v <= 0:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}")
+    return v
+
+
+def _resolution(text: str) -> tuple:
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+        if w <= 0 or h <= 0:
+            raise ValueError
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected WIDTHxHEIGHT, e.g. 512x384, got {text!r}")
+    return w, h
+
+
+def _add_render(sub):
     r = sub.add_parser("render", help="render a Mitsuba 3 scene (XML) that may use normalmap_microfacet, "
                                       "or a glTF 2.0 model (.gltf, .glb)")
     r.add_argument("scene", help="scene file (.xml), or a glTF 2.0 file (.gltf, .glb: -D sets width, "
                                  "height, spp, max_depth, model, tangents, normal_maps, lights)")
     r.add_argument("-o", "--output", help="output path without extension (writes .exr and .png)")
     r.add_argument("--spp", type=int, help="samples per pixel (default: the scene's)")
-    r.add_argument("--variant", default=DEFAULT_VARIANT, help=f"Mitsuba variant (default {DEFAULT_VARIANT})")
-    r.add_argument("--seed", type=int, default=0, help="sampler seed, 0 to 4294967295 (default 0)")
-    r.add_argument("-D", "--define", action="append", metavar="KEY=VALUE", help="scene parameter ($KEY)")
-    _add_limit(r)
+    _add_scene_options(r)
     r.set_defaults(func=cmd_render)
+    return r
 
-    d = sub.add_parser("demo", help="render the bundled demo scene")
-    d.add_argument("-o", "--output", help="output path (default out/demo.png)")
-    d.add_argument("--spp", type=int)
-    d.add_argument("--model")
+
+def _add_demo(sub):
+    from . import demo
+
+    d = sub.add_parser("demo", help="render the bundled demo scene",
+                       description="Render the mfnormal demo scene (scenes/demo.xml): a normal-mapped "
+                                   "sphere and ground plane under a procedural sky. Writes a linear EXR "
+                                   "and a tonemapped sRGB PNG.")
+    d.add_argument("-o", "--output", default=DEMO_OUTPUT,
+                   help=f"output image; the .exr and .png are written side by side (default: {DEMO_OUTPUT})")
+    d.add_argument("--spp", type=_positive_int, default=demo.DEFAULT_SPP,
+                   help=f"samples per pixel (default: {demo.DEFAULT_SPP})")
+    d.add_argument("--resolution", type=_resolution, default=demo.DEFAULT_RESOLUTION, metavar="WxH",
+                   help="image size (default: %dx%d)" % demo.DEFAULT_RESOLUTION)
+    d.add_argument("--model", default="faithful",
+                   help="normalmap_microfacet model (default: faithful), or "
+                        f"'{demo.CLASSIC}' for Mitsuba's built-in normal mapping")
+    d.add_argument("--strength", type=float, default=1.0, help="normal map strength (default: 1.0)")
+    d.add_argument("--max-depth", type=int, default=demo.DEFAULT_MAX_DEPTH,
+                   help=f"path integrator max_depth (default: {demo.DEFAULT_MAX_DEPTH})")
+    d.add_argument("--exposure", type=float, default=0.0, help="exposure of the PNG in stops (default: 0)")
+    _add_seed(d)
+    d.add_argument("--assets-dir", default=None,
+                   help="where to generate the textures (default: <output dir>/demo_assets)")
     _add_limit(d)
     d.set_defaults(func=cmd_demo)
+    return d
 
+
+def _add_compare(sub):
     c = sub.add_parser("compare", help="render a scene with every normal-mapping method; write an HTML report",
                        description="Render SCENE once per normal-mapping method (flat, Mitsuba's normalmap "
                                    "without and with its fixes, normalmap_microfacet's analytic, separable "
@@ -329,11 +433,16 @@ def build_parser() -> argparse.ArgumentParser:
                    help="add the PNG figures in DIR to the report (default: validation/results "
                         "of this checkout, written by validation/run.py, when it exists)")
     c.add_argument("--quick", action="store_true", help="tiny images and sample counts (for tests)")
-    c.add_argument("--variant", default=DEFAULT_VARIANT, help=f"Mitsuba variant (default {DEFAULT_VARIANT})")
-    c.add_argument("--seed", type=int, default=0, help="sampler seed, 0 to 4294967295 (default 0)")
-    c.add_argument("-D", "--define", action="append", metavar="KEY=VALUE", help="scene parameter ($KEY)")
-    _add_limit(c)
+    _add_scene_options(c)
     c.set_defaults(func=cmd_compare)
+    return c
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The ``mfnormal`` parser; ``parser.commands`` holds each subcommand's own parser."""
+    parser = _Parser(prog="mfnormal", description=__doc__.split("\n\n")[0])
+    sub = parser.add_subparsers(dest="command", required=True)
+    parser.commands = {"render": _add_render(sub), "demo": _add_demo(sub), "compare": _add_compare(sub)}
     return parser
 
 
@@ -374,15 +483,26 @@ def run_command(prog: str, command) -> int:
             return 1
 
 
-def main(argv=None) -> int:
+def main(argv=None, prog: str = "mfnormal", command: str | None = None) -> int:
+    """``mfnormal`` with ``argv`` (default: the process's); ``command`` runs one subcommand as
+    a program of its own, named ``prog`` (``mfnormal-demo`` is ``mfnormal demo``)."""
     argv = list(sys.argv[1:] if argv is None else argv)
 
-    def command():
-        args = build_parser().parse_args(argv)
-        args.argv = argv
+    def run():
+        parser = build_parser()
+        if command is not None:
+            parser = parser.commands[command]
+            parser.prog = prog
+        args = parser.parse_args(argv)
+        args.argv = argv if command is None else [command, *argv]
         return args.func(args)
 
-    return run_command("mfnormal", command)
+    return run_command(prog, run)
+
+
+def demo_main(argv=None) -> int:
+    """``mfnormal-demo`` and ``python -m mfnormal.demo``: ``mfnormal demo`` under that name."""
+    return main(argv, prog="mfnormal-demo", command="demo")
 
 
 if __name__ == "__main__":

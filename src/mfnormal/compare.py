@@ -14,9 +14,8 @@ on the normal-mapped surfaces (and of pixels much darker than the flat render)
 reciprocity error of each method's BSDF alone. The results feed
 :func:`mfnormal.report.write_report`, which only writes the HTML.
 
-Bundled scenes: ``demo`` (scene (a), :mod:`mfnormal.demo`), ``model`` (scene (b))
-and ``eggcrate`` (scene (c)) (:mod:`mfnormal.assets`), with their assets generated
-on the fly.
+Bundled scenes (:data:`mfnormal.assets.BUNDLED`): ``demo`` (a), ``model`` (b) and
+``eggcrate`` (c), with their assets generated on the fly.
 """
 
 from __future__ import annotations
@@ -36,6 +35,7 @@ import drjit as dr
 import mitsuba as mi
 
 from . import report
+from .assets import BUNDLED
 from .bsdf_checks import bsdf_checks
 from .coverage import choose_crops, surface_maps
 from .images import atomic_write, png_bytes, sanitize, save_render, tonemap
@@ -48,9 +48,7 @@ from .scene_xml import (SceneError, defaults, film_size_parameters, read_scene, 
                         rewrite, set_film_width)
 from .validate import DEFAULT_LIMITS, check_render_size
 
-__all__ = ["SceneSource", "scene_source", "Settings", "QUICK", "BUNDLED", "compare_scene", "compare"]
-
-BUNDLED = ("demo", "model", "eggcrate")
+__all__ = ["SceneSource", "scene_source", "Settings", "QUICK", "compare_scene", "compare"]
 
 #: A pixel is near-black below this fraction of the median luminance of the
 #: normal-mapped surface in the flat reference.
@@ -75,27 +73,13 @@ class SceneSource:
 
 
 def scene_source(scene: str, assets_root, params: dict | None = None) -> SceneSource:
-    """``demo`` / ``model`` (generating their assets under ``assets_root``) or an XML path."""
+    """A bundled scene (:data:`mfnormal.assets.BUNDLED`, its assets generated under
+    ``assets_root``) or an XML path."""
     params = dict(params or {})
-    if scene == "demo":
-        from . import demo
-        assets = demo.generate_assets(Path(assets_root) / "demo")
-        return SceneSource("demo", demo.SCENE_XML, {
-            "normalmap": str(Path(assets["normalmap"]).resolve()),
-            "envmap": str(Path(assets["envmap"]).resolve()), **params},
-            "(a) demo: sphere and ground plane")
-    if scene == "model":
-        from . import assets as model_assets
-        assets = model_assets.generate_model_assets(Path(assets_root) / "model")
-        return SceneSource("model", model_assets.MODEL_XML,
-                           {**model_assets.model_parameters(assets), **params},
-                           "(b) model: torus knot with textured roughness")
-    if scene == "eggcrate":
-        from . import assets as model_assets
-        assets = model_assets.generate_eggcrate_assets(Path(assets_root) / "eggcrate")
-        return SceneSource("eggcrate", model_assets.EGGCRATE_XML,
-                           {**model_assets.eggcrate_parameters(assets), **params},
-                           "(c) egg crate: glossy metal at 78° from the vertical")
+    if scene in BUNDLED:
+        b = BUNDLED[scene]
+        assets = b.generate(Path(assets_root) / b.name)
+        return SceneSource(b.name, b.xml, {**b.parameters(assets), **params}, b.title)
     path = Path(scene)
     if not path.is_file():
         raise SceneError(f"scene file not found: {path}"
@@ -132,10 +116,7 @@ def load_method_scene(src: SceneSource, root: ET.Element, values: dict, method: 
         if "unused parameters" in msg:
             msg += " (compare sets the model and tangent_facet of each BSDF itself)"
         raise SceneError(f"cannot load {src.path.name} ({method.key}): {msg}") from None
-    try:
-        check_scene(scene)
-    except ValueError as exc:
-        raise SceneError(f"{src.path.name}: {exc}") from None
+    check_scene(scene, SceneError, src.path.name)
     return scene
 
 

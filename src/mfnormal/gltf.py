@@ -41,12 +41,13 @@ from pathlib import Path
 
 import numpy as np
 
+from . import sky
 from .gltf_validate import GLTFError, decode_error, read_model
 from .messages import one_line
 from .tangents import mikktspace, split_vertices
 from .validate import DEFAULT_LIMITS, Limits
 
-__all__ = ["load_gltf", "sky_envmap", "GLTF_SUFFIXES", "TANGENT_MODES", "GLTFError"]
+__all__ = ["load_gltf", "GLTF_SUFFIXES", "TANGENT_MODES", "GLTFError"]
 
 GLTF_SUFFIXES = (".gltf", ".glb")
 TANGENT_MODES = ("auto", "mikktspace", "mitsuba")
@@ -507,33 +508,6 @@ def _framing_camera(lo, hi, aspect, fov=35.0, elevation=20.0, azimuth=20.0, marg
             "to_world": _look_at(center + distance * back, center, [0, 1, 0])}
 
 
-def sky_envmap(width: int = 256, sun_elevation: float = 40.0, sun_azimuth: float = -35.0,
-               sun_irradiance: float = 3.0, sun_radius: float = 3.0):
-    """A generated lat-long sky (Mitsuba ``envmap``, +Y up) with a sun disk, as an RGB array.
-
-    Sky: a blue gradient from a bright horizon to the zenith; ground: dark grey.
-    The sun is a disk of ``sun_radius`` degrees at (elevation, azimuth from +Z
-    toward +X) whose irradiance at normal incidence is ``sun_irradiance``.
-    """
-    height = width // 2
-    theta = (np.arange(height) + 0.5) / height * np.pi
-    phi = (np.arange(width) + 0.5) / width * 2 * np.pi
-    th, ph = np.meshgrid(theta, phi, indexing="ij")
-    # Mitsuba's envmap: d = (sinφ sinθ, cosθ, −cosφ sinθ).
-    d = np.stack([np.sin(ph) * np.sin(th), np.cos(th), -np.cos(ph) * np.sin(th)], axis=-1)
-    up = np.clip(d[..., 1], 0.0, 1.0)[..., None]
-    sky = (1 - up) * np.array([0.75, 0.78, 0.85]) + up * np.array([0.25, 0.38, 0.70])
-    ground = np.array([0.12, 0.11, 0.10])
-    img = np.where(d[..., 1:2] > 0, sky, ground) * 0.6
-    el, az = math.radians(sun_elevation), math.radians(sun_azimuth)
-    sun = np.array([math.sin(az) * math.cos(el), math.sin(el), math.cos(az) * math.cos(el)])
-    disk = (d @ sun) > math.cos(math.radians(sun_radius))
-    pixel_sr = (2 * np.pi / width) * (np.pi / height) * np.sin(th)
-    irradiance = np.sum(pixel_sr[disk] * (d[disk] @ sun))
-    img[disk] = np.array([1.0, 0.95, 0.88]) * (sun_irradiance / irradiance)
-    return img.astype(np.float32)
-
-
 def _punctual_lights(gltf, nodes):
     """Mitsuba emitters for the KHR_lights_punctual lights of the scene's nodes (validated:
     known types, indices in range, colours and intensities >= 0, cone angles in order)."""
@@ -570,47 +544,13 @@ def _punctual_lights(gltf, nodes):
 
 # The scene
 
-def load_gltf(path, *, width: int = 640, height: int = 480, spp: int = 64, max_depth: int = 8,
-              model: str = "faithful", tangents: str = "auto", normal_maps: bool = True,
-              lights: bool = True, limits: Limits = DEFAULT_LIMITS) -> dict:
-    """A Mitsuba scene dict of the glTF 2.0 file ``path`` (``.gltf`` or ``.glb``).
-
-    Needs an active Mitsuba variant (the meshes are built in it). Options:
-    ``width``, ``height``, ``spp``, ``max_depth`` (path tracer); ``model``: the
-    ``normalmap_microfacet`` model; ``tangents``: ``auto`` (the file's
-    ``TANGENT``, else MikkTSpace), ``mikktspace`` (always computed) or
-    ``mitsuba`` (Mitsuba's per-triangle frame, for comparison);
-    ``normal_maps=False`` drops the normal maps; ``lights=False`` ignores the
-    file's lights for the generated sky; ``limits``: the caps on what the file
-    may make the loader allocate (:class:`mfnormal.validate.Limits`).
-
-    The file is validated first (:mod:`mfnormal.gltf_validate`); anything the
-    loader cannot use safely raises :class:`GLTFError`, one line naming the
-    element. Files are read only from the model's own folder.
-    """
+def _meshes(f: _File, materials: _Materials, nodes, tangents: str):
+    """({shape id: Mitsuba mesh}, lo, hi): every triangle primitive of the scene's nodes in
+    world space, and their bounding box; one BSDF per (material, uv, tangents) shared by its
+    meshes."""
     import mitsuba as mi
 
-    import mfnormal
-
-    if tangents not in TANGENT_MODES:
-        raise ValueError(f"tangents must be one of {', '.join(TANGENT_MODES)}, got '{tangents}'")
-    for name, value, lo in (("width", width, 1), ("height", height, 1), ("spp", spp, 1),
-                            ("max_depth", max_depth, -1)):
-        if isinstance(value, bool) or not isinstance(value, int) or not lo <= value < 1 << 31:
-            raise GLTFError(f"{name} must be an integer from {lo} to {(1 << 31) - 1}, got {value!r}")
-    _check_render_size(width, height, limits, "the film (width, height)")
-    mfnormal.register()
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"glTF file not found: {path}")
-    f = _File(path, limits)
-    gltf = f.gltf
-    materials = _Materials(f, model, tangents, normal_maps)
-    nodes = list(_walk_nodes(gltf, f.model.scene_roots))
-    scene = {"type": "scene", "integrator": {"type": "path", "max_depth": int(max_depth)}}
-
-    # Meshes, in world space; one BSDF per (material, uv, tangents) shared by its meshes.
-    bsdfs = {}
+    gltf, shapes, bsdfs = f.gltf, {}, {}
     lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
     for i, node, world in nodes:
         if node.skin is not None:
@@ -640,8 +580,8 @@ def load_gltf(path, *, width: int = 640, height: int = 480, spp: int = 64, max_d
             if key not in bsdfs:
                 bsdfs[key] = mi.load_dict(materials.bsdf(prim.material, uvs is not None, tan is not None))
             name = f"{mesh.name or f'mesh{node.mesh}'}/{k}"
-            shape_id = f"mesh_{len([s for s in scene if s.startswith('mesh_')])}"
-            scene[shape_id] = _mitsuba_mesh(name, bsdfs[key], positions, normals, uvs, tan, faces)
+            shapes[f"mesh_{len(shapes)}"] = _mitsuba_mesh(name, bsdfs[key], positions, normals, uvs,
+                                                          tan, faces)
             lo = np.minimum(lo, positions.min(axis=0))
             hi = np.maximum(hi, positions.max(axis=0))
     if not np.all(np.isfinite(lo)):
@@ -649,8 +589,12 @@ def load_gltf(path, *, width: int = 640, height: int = 480, spp: int = 64, max_d
     with np.errstate(over="ignore", invalid="ignore"):
         if not np.all(np.isfinite(hi - lo)) or not np.isfinite(np.linalg.norm(hi - lo)):
             raise GLTFError("the model's extent overflows the float range")
+    return shapes, lo, hi
 
-    # Camera: the file's first, else one that frames the model.
+
+def _sensor(gltf, nodes, lo, hi, width: int, height: int, spp: int, limits: Limits) -> dict:
+    """The file's first camera (its aspect ratio sets the width), else one that frames the
+    box [lo, hi]; with sampler and film."""
     sensor = None
     for i, node, world in nodes:
         if node.camera is not None:
@@ -671,14 +615,58 @@ def load_gltf(path, *, width: int = 640, height: int = 480, spp: int = 64, max_d
     sensor["sampler"] = {"type": "independent", "sample_count": int(spp)}
     sensor["film"] = {"type": "hdrfilm", "width": int(width), "height": int(height),
                       "pixel_format": "rgb", "rfilter": {"type": "gaussian"}}
-    scene["sensor"] = sensor
+    return sensor
 
-    # Lights: the file's punctual lights, else a generated sky with a sun.
+
+def _emitters(gltf, nodes, lights: bool) -> dict:
+    """The file's punctual lights (unless ``lights`` is False), else a generated sky with a sun."""
+    import mitsuba as mi
+
     emitters = _punctual_lights(gltf, nodes) if lights else {}
     if not emitters:
-        emitters = {"sky": {"type": "envmap", "bitmap": mi.Bitmap(sky_envmap())}}
-    scene.update(emitters)
-    return scene
+        sun = sky.DiskSun(elevation_deg=40.0, azimuth_deg=-35.0, irradiance=3.0, radius_deg=3.0)
+        bitmap = mi.Bitmap(sky.envmap(256, gradient=sky.GLTF, sun=sun))
+        emitters = {"sky": {"type": "envmap", "bitmap": bitmap}}
+    return emitters
+
+
+def load_gltf(path, *, width: int = 640, height: int = 480, spp: int = 64, max_depth: int = 8,
+              model: str = "faithful", tangents: str = "auto", normal_maps: bool = True,
+              lights: bool = True, limits: Limits = DEFAULT_LIMITS) -> dict:
+    """A Mitsuba scene dict of the glTF 2.0 file ``path`` (``.gltf`` or ``.glb``).
+
+    Needs an active Mitsuba variant (the meshes are built in it). Options:
+    ``width``, ``height``, ``spp``, ``max_depth`` (path tracer); ``model``: the
+    ``normalmap_microfacet`` model; ``tangents``: ``auto`` (the file's
+    ``TANGENT``, else MikkTSpace), ``mikktspace`` (always computed) or
+    ``mitsuba`` (Mitsuba's per-triangle frame, for comparison);
+    ``normal_maps=False`` drops the normal maps; ``lights=False`` ignores the
+    file's lights for the generated sky; ``limits``: the caps on what the file
+    may make the loader allocate (:class:`mfnormal.validate.Limits`).
+
+    The file is validated first (:mod:`mfnormal.gltf_validate`); anything the
+    loader cannot use safely raises :class:`GLTFError`, one line naming the
+    element. Files are read only from the model's own folder.
+    """
+    import mfnormal
+
+    if tangents not in TANGENT_MODES:
+        raise ValueError(f"tangents must be one of {', '.join(TANGENT_MODES)}, got '{tangents}'")
+    for name, value, lo in (("width", width, 1), ("height", height, 1), ("spp", spp, 1),
+                            ("max_depth", max_depth, -1)):
+        if isinstance(value, bool) or not isinstance(value, int) or not lo <= value < 1 << 31:
+            raise GLTFError(f"{name} must be an integer from {lo} to {(1 << 31) - 1}, got {value!r}")
+    _check_render_size(width, height, limits, "the film (width, height)")
+    mfnormal.register()
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"glTF file not found: {path}")
+    f = _File(path, limits)
+    nodes = list(_walk_nodes(f.gltf, f.model.scene_roots))
+    shapes, lo, hi = _meshes(f, _Materials(f, model, tangents, normal_maps), nodes, tangents)
+    return {"type": "scene", "integrator": {"type": "path", "max_depth": int(max_depth)}, **shapes,
+            "sensor": _sensor(f.gltf, nodes, lo, hi, width, height, spp, limits),
+            **_emitters(f.gltf, nodes, lights)}
 
 
 def _check_render_size(width, height, limits, source):

@@ -56,6 +56,7 @@ import numpy as np
 import mfnormal  # noqa: F401  (before mitsuba: selects a working libLLVM)
 import mitsuba as mi
 
+from . import sky
 from .methods import METHODS as CATALOGUE, METHOD_BY_KEY, plugin_bsdf
 from .metrics import REL_MSE_EPS, luminance, rel_mse
 from .rendering import render_rgb
@@ -65,7 +66,7 @@ __all__ = [
     "tilt_stats", "texel_centres", "normal_map", "height_map", "texel_normals", "encode_normals",
     "bitmap_texture", "displaced_arrays", "displaced_mesh", "plane_mesh",
     "View", "Lighting", "Magnification", "VIEWS", "LIGHTINGS", "MAGNIFICATIONS", "MATERIALS",
-    "sky_envmap", "scene_dict", "footprint", "Method", "METHODS", "DEFAULT_METHODS",
+    "scene_dict", "footprint", "Method", "METHODS", "DEFAULT_METHODS",
     "plugin_method", "method_from_spec", "metrics", "near_black_threshold", "Cell", "render",
     "render_cell", "cell_seed", "cell_metrics", "block_mean", "exposure_scale", "EXPOSURE_MEAN", "rel_mse", "luminance", "REL_MSE_EPS", "LN_FLOOR", "BLACK_FRACTION",
 ]
@@ -500,19 +501,6 @@ MATERIALS = {
 }
 
 
-def sky_envmap(width: int = 128) -> np.ndarray:
-    """A smooth lat-long sky without a sun disc (Mitsuba ``envmap`` layout, its +Y = the zenith):
-    bright hazy horizon to blue zenith, dark ground. Use with :data:`SKY_TO_WORLD` for z up."""
-    height = width // 2
-    theta = (np.arange(height) + 0.5) / height * np.pi
-    mu = np.cos(theta)[:, None, None] * np.ones((1, width, 1))
-    up = np.sqrt(np.clip(mu, 0.0, 1.0))
-    sky = (1 - up) * np.array([0.80, 0.83, 0.88]) + up * np.array([0.30, 0.45, 0.80])
-    ground = np.array([0.10, 0.09, 0.08])
-    img = np.where(mu > 0, sky, ground) * 0.5
-    return np.ascontiguousarray(img, np.float32)
-
-
 def _sky_to_world():
     return mi.ScalarTransform4f().rotate([1.0, 0.0, 0.0], 90.0)      # envmap +Y → world +Z
 
@@ -565,7 +553,7 @@ def _emitters(lighting: Lighting) -> dict:
         em["sun"] = {"type": "directional", "direction": (-sun).tolist(),
                      "irradiance": _rgb(np.array([1.0, 0.96, 0.90]) * lighting.sun_irradiance)}
     if lighting.sky > 0:
-        em["sky"] = {"type": "envmap", "bitmap": mi.Bitmap(sky_envmap() * lighting.sky),
+        em["sky"] = {"type": "envmap", "bitmap": mi.Bitmap(sky.envmap(128, gradient=sky.HAZY) * lighting.sky),
                      "to_world": _sky_to_world()}
     return em
 

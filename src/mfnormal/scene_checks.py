@@ -71,9 +71,16 @@ def _evaluates_rgb(tex) -> bool:
     return True
 
 
-def check_scene(scene) -> None:
-    """Raise ``ValueError`` (one line) for the first normal-mapped shape that cannot work:
-    a mesh without UVs, or a normal map that does not have 3 channels."""
+def check_scene(scene, error: type = ValueError, where: str = "") -> None:
+    """Raise ``error`` (one line, after ``where: `` when given) for the first normal-mapped
+    shape that cannot work: a mesh without UVs, or a normal map that does not have 3 channels."""
+    try:
+        _check_shapes(scene)
+    except ValueError as exc:
+        raise error(f"{where}: {exc}" if where else str(exc)) from None
+
+
+def _check_shapes(scene) -> None:
     for shape in normal_mapped_shapes(scene):
         bsdf = shape.bsdf()
         kind = "normalmap_microfacet" if _is_plugin(bsdf) else "normalmap"
