@@ -106,6 +106,89 @@ def _components(n, links):
             parent = grand
 
 
+def _triangle_frames(p, t, welded):
+    """Per triangle (InitTriInfo): unit ∂p/∂u times the orientation sign, the orientation
+    (UV area > 0), whether the frame is usable, and whether the triangle is degenerate."""
+    d1, d2 = p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]
+    t21, t31 = t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]
+    area = t21[:, 0] * t31[:, 1] - t21[:, 1] * t31[:, 0]
+    v_os = t31[:, 1:2] * d1 - t21[:, 1:2] * d2
+    v_ot = -t31[:, 0:1] * d1 + t21[:, 0:1] * d2
+    orient = area > 0
+    good_area = np.abs(area) > _FLT_MIN
+    len_os, len_ot = np.linalg.norm(v_os, axis=-1), np.linalg.norm(v_ot, axis=-1)
+    sign = np.where(orient, 1.0, -1.0)
+    v_os = np.where((good_area & (len_os > _FLT_MIN))[:, None],
+                    v_os * (sign / np.where(len_os > 0, len_os, 1.0))[:, None], 0.0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        mag_s, mag_t = len_os / np.abs(area), len_ot / np.abs(area)
+    good = good_area & (mag_s > _FLT_MIN) & (mag_t > _FLT_MIN)
+    degenerate = ((welded[:, 0] == welded[:, 1]) | (welded[:, 1] == welded[:, 2])
+                  | (welded[:, 0] == welded[:, 2]))
+    return v_os, orient, good & ~degenerate, degenerate
+
+
+def _adopt_orientations(orient, good, degenerate, neighbours):
+    """Zero-UV-area triangles take the orientation of a well-formed neighbour (in place)."""
+    settled = good.copy()
+    for _ in range(8):
+        pending = np.flatnonzero(~settled & ~degenerate)
+        if len(pending) == 0:
+            break
+        nb = neighbours[pending]
+        has = (nb >= 0) & settled[np.maximum(nb, 0)]
+        first = np.where(has.any(axis=1), nb[np.arange(len(pending)), np.argmax(has, axis=1)], -1)
+        adopt = pending[first >= 0]
+        orient[adopt] = orient[first[first >= 0]]
+        settled[adopt] = True
+
+
+def _corner_groups(welded, neighbours, orient):
+    """A group label per corner (Build4RuleGroups): the corners around a vertex joined across
+    shared edges of triangles of the same orientation."""
+    n_tri = len(welded)
+    f_idx = np.repeat(np.arange(n_tri), 3)
+    i_idx = np.tile(np.arange(3), n_tri)
+    g = neighbours.ravel()
+    has = g >= 0
+    f, i, g = f_idx[has], i_idx[has], g[has]
+    same = orient[f] == orient[g]
+    f, i, g = f[same], i[same], g[same]
+    links = []
+    for k in (i, (i + 1) % 3):                         # the edge's two end vertices
+        vert = welded[f, k]
+        j = np.argmax(welded[g] == vert[:, None], axis=1)
+        links.append(np.stack([3 * f + k, 3 * g + j], axis=-1))
+    return _components(3 * n_tri, np.concatenate(links))
+
+
+def _group_tangents(p, n, v_os, good, labels):
+    """Per corner (EvalTspace): the sum over its group of ∂p/∂u projected onto each corner's
+    vertex normal, weighted by the corner angle; normalised."""
+    def project(v):
+        return _normalize(v - np.sum(n * v, axis=-1, keepdims=True) * n)
+
+    os_c = project(np.broadcast_to(v_os[:, None, :], n.shape))
+    e1 = project(p[:, [2, 0, 1]] - p)                 # to the previous corner
+    e2 = project(p[:, [1, 2, 0]] - p)                 # to the next corner
+    angle = np.arccos(np.clip(np.sum(e1 * e2, axis=-1), -1.0, 1.0))
+    contrib = np.where(good[:, None, None], angle[..., None] * os_c, 0.0).reshape(-1, 3)
+    sums = np.zeros((3 * len(p), 3))
+    np.add.at(sums, labels, contrib)
+    return _normalize(sums[labels])
+
+
+def _copy_to_degenerate(result, welded, degenerate):
+    """Degenerate triangles copy the frame of another corner of the same vertex
+    (DegenEpilogue), in place."""
+    donor_corner = np.full(welded.max() + 1, -1)
+    ok = np.repeat(~degenerate, 3)
+    donor_corner[welded.ravel()[ok][::-1]] = np.flatnonzero(ok)[::-1]
+    bad = np.flatnonzero(~ok)
+    donor = donor_corner[welded.ravel()[bad]]
+    result[bad[donor >= 0]] = result[donor[donor >= 0]]
+
+
 def mikktspace(positions, normals, uvs, faces, flip_v: bool = False):
     """MikkTSpace tangents per triangle corner: an (F, 3, 4) array of (T, sign).
 
@@ -127,78 +210,16 @@ def mikktspace(positions, normals, uvs, faces, flip_v: bool = False):
     n = normals[faces].astype(np.float64)
     t = uvs[faces].astype(np.float64)
 
-    # Per triangle: unit ∂p/∂u (times the orientation sign) and the orientation (InitTriInfo).
-    d1, d2 = p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]
-    t21, t31 = t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]
-    area = t21[:, 0] * t31[:, 1] - t21[:, 1] * t31[:, 0]
-    v_os = t31[:, 1:2] * d1 - t21[:, 1:2] * d2
-    v_ot = -t31[:, 0:1] * d1 + t21[:, 0:1] * d2
-    orient = area > 0
-    good_area = np.abs(area) > _FLT_MIN
-    len_os, len_ot = np.linalg.norm(v_os, axis=-1), np.linalg.norm(v_ot, axis=-1)
-    sign = np.where(orient, 1.0, -1.0)
-    v_os = np.where((good_area & (len_os > _FLT_MIN))[:, None],
-                    v_os * (sign / np.where(len_os > 0, len_os, 1.0))[:, None], 0.0)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        mag_s, mag_t = len_os / np.abs(area), len_ot / np.abs(area)
-    good = good_area & (mag_s > _FLT_MIN) & (mag_t > _FLT_MIN)
-    degenerate = ((welded[:, 0] == welded[:, 1]) | (welded[:, 1] == welded[:, 2])
-                  | (welded[:, 0] == welded[:, 2]))
-    good &= ~degenerate
-
-    # Zero-UV-area triangles take the orientation of a well-formed neighbour.
+    v_os, orient, good, degenerate = _triangle_frames(p, t, welded)
     neighbours = _neighbours(welded)
     neighbours[degenerate] = -1
     neighbours[np.isin(neighbours, np.flatnonzero(degenerate))] = -1
-    settled = good.copy()
-    for _ in range(8):
-        pending = np.flatnonzero(~settled & ~degenerate)
-        if len(pending) == 0:
-            break
-        nb = neighbours[pending]
-        has = (nb >= 0) & settled[np.maximum(nb, 0)]
-        first = np.where(has.any(axis=1), nb[np.arange(len(pending)), np.argmax(has, axis=1)], -1)
-        adopt = pending[first >= 0]
-        orient[adopt] = orient[first[first >= 0]]
-        settled[adopt] = True
-
-    # Group the corners around each vertex (Build4RuleGroups): across shared edges, same orientation.
-    f_idx = np.repeat(np.arange(n_tri), 3)
-    i_idx = np.tile(np.arange(3), n_tri)
-    g = neighbours.ravel()
-    has = g >= 0
-    f, i, g = f_idx[has], i_idx[has], g[has]
-    same = orient[f] == orient[g]
-    f, i, g = f[same], i[same], g[same]
-    links = []
-    for k in (i, (i + 1) % 3):                         # the edge's two end vertices
-        vert = welded[f, k]
-        j = np.argmax(welded[g] == vert[:, None], axis=1)
-        links.append(np.stack([3 * f + k, 3 * g + j], axis=-1))
-    labels = _components(3 * n_tri, np.concatenate(links))
-
-    # Per corner: ∂p/∂u projected onto the vertex normal, weighted by the corner angle (EvalTspace).
-    def project(v):
-        return _normalize(v - np.sum(n * v, axis=-1, keepdims=True) * n)
-
-    os_c = project(np.broadcast_to(v_os[:, None, :], n.shape))
-    e1 = project(p[:, [2, 0, 1]] - p)                 # to the previous corner
-    e2 = project(p[:, [1, 2, 0]] - p)                 # to the next corner
-    angle = np.arccos(np.clip(np.sum(e1 * e2, axis=-1), -1.0, 1.0))
-    contrib = np.where(good[:, None, None], angle[..., None] * os_c, 0.0).reshape(-1, 3)
-    sums = np.zeros((3 * n_tri, 3))
-    np.add.at(sums, labels, contrib)
-    tangent = _normalize(sums[labels])
+    _adopt_orientations(orient, good, degenerate, neighbours)
+    labels = _corner_groups(welded, neighbours, orient)
+    tangent = _group_tangents(p, n, v_os, good, labels)
     result = np.concatenate([tangent, np.repeat(np.where(orient, 1.0, -1.0), 3)[:, None]], axis=-1)
-
-    # Degenerate triangles copy the frame of another corner of the same vertex (DegenEpilogue).
     if degenerate.any():
-        donor_corner = np.full(welded.max() + 1, -1)
-        ok = np.repeat(~degenerate, 3)
-        donor_corner[welded.ravel()[ok][::-1]] = np.flatnonzero(ok)[::-1]
-        bad = np.flatnonzero(~ok)
-        donor = donor_corner[welded.ravel()[bad]]
-        result[bad[donor >= 0]] = result[donor[donor >= 0]]
+        _copy_to_degenerate(result, welded, degenerate)
     return result.reshape(n_tri, 3, 4)
 
 
