@@ -26,26 +26,22 @@ stderr line and arguments to FILE.
 
 from __future__ import annotations
 
-import os
-import shutil
-import tempfile
-import time
 from pathlib import Path
 
 import mfnormal  # noqa: F401  (first: selects a working libLLVM)
 
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, Phase, given, settings
+from hypothesis import given
 from hypothesis import strategies as st
 
 from cli_worker import Worker
+from fuzzing import Stats, fuzz_settings, input_count, render_or_one_line_error
 from gltf_models import base_document, glb_bytes, write_gltf
 from mfnormal.images import png_bytes
 
-LONG = os.environ.get("MFNORMAL_FUZZ_LONG", "") not in ("", "0")
 CI_INPUTS, LONG_INPUTS = 400, 1000
-INPUTS = int(os.environ.get("MFNORMAL_FUZZ_INPUTS", LONG_INPUTS if LONG else CI_INPUTS))
+INPUTS = input_count(CI_INPUTS, LONG_INPUTS)
 TIMEOUT = 120.0
 FORCED = ["--limit", "render_pixels=4096"]
 
@@ -210,20 +206,15 @@ def snapshot(root: Path) -> set:
 
 
 def check_outcome(result, root: Path, before: set):
-    assert not result.timed_out, f"no answer within {TIMEOUT:.0f} s"
-    assert result.died is None, result.describe()
-    assert result.exception is None, result.describe()
-    lines = [ln for ln in result.stderr.strip().splitlines() if ln.strip()]
     written = snapshot(root) - before
-    if result.rc == 0:
-        assert all(ln.startswith("mfnormal: warning: ") for ln in lines), result.stderr
+
+    def rendered():
         assert any(w.endswith((".exr", ".html")) for w in written), (written, result.stdout)
-        return "render"
-    assert result.rc == 2, result.describe()
-    assert lines and lines[-1].startswith("mfnormal: error: "), result.stderr
-    assert all(ln.startswith("mfnormal: warning: ") for ln in lines[:-1]), result.stderr
-    assert not written, f"written despite the error: {sorted(written)}"
-    return "error"
+
+    def nothing_written():
+        assert not written, f"written despite the error: {sorted(written)}"
+
+    return render_or_one_line_error(result, TIMEOUT, rendered, nothing_written)
 
 
 @pytest.fixture(scope="module")
@@ -233,42 +224,24 @@ def worker():
     w.close()
 
 
-STATS = {"inputs": 0, "render": 0, "error": 0, "seconds": 0.0}
-LOG = os.environ.get("MFNORMAL_FUZZ_LOG")      # a file: each input's exit code, last stderr line, arguments
+STATS = Stats("CLI fuzzer", digits=2)
 
 
 @pytest.fixture(scope="module", autouse=True)
 def report_throughput():
     yield
-    if STATS["inputs"]:
-        print(f"\nCLI fuzzer: {STATS['inputs']} inputs ({STATS['render']} rendered, {STATS['error']} one-line "
-              f"errors) in {STATS['seconds']:.1f} s: {STATS['inputs'] / STATS['seconds']:.2f} inputs/s")
+    STATS.report()
 
 
-FUZZ_SETTINGS = settings(max_examples=INPUTS, derandomize=not LONG, database=None, deadline=None,
-                         print_blob=LONG, phases=(Phase.explicit, Phase.generate, Phase.shrink),
-                         suppress_health_check=list(HealthCheck))
-
-
-@FUZZ_SETTINGS
+@fuzz_settings(INPUTS)
 @given(data=st.data())
 def test_random_command_lines_render_or_fail_in_one_line(worker, data):
-    start = time.perf_counter()
-    root = Path(tempfile.mkdtemp(prefix="mfnormal-clifuzz."))
-    try:
+    with STATS.sandbox("mfnormal-clifuzz.") as root:
         make_sandbox(root)
         kind = data.draw(st.sampled_from(["render"] * 7 + ["demo", "compare"]), label="command")
         args = data.draw({"render": render_args(), "demo": demo_args(), "compare": compare_args()}[kind],
                          label="args")
         before = snapshot(root)
         result = worker.run(args + FORCED, cwd=root, timeout=TIMEOUT)
-        if LOG:
-            lines = result.stderr.strip().splitlines()
-            with open(LOG, "a") as f:
-                f.write(f"{result.rc}\t{lines[-1] if lines else ''}\t{args}\n")
-        outcome = check_outcome(result, root, before)
-        STATS["inputs"] += 1
-        STATS[outcome] += 1
-    finally:
-        shutil.rmtree(root, ignore_errors=True)
-        STATS["seconds"] += time.perf_counter() - start
+        STATS.log(result, f"\t{args}")
+        STATS.count(check_outcome(result, root, before))

@@ -43,10 +43,7 @@ import base64
 import copy
 import json
 import os
-import shutil
 import struct
-import tempfile
-import time
 from pathlib import Path
 
 import mfnormal  # noqa: F401  (first: selects a working libLLVM)
@@ -54,16 +51,16 @@ import mfnormal  # noqa: F401  (first: selects a working libLLVM)
 import mitsuba as mi
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, Phase, given, settings
+from hypothesis import given
 from hypothesis import strategies as st
 
 from cli_worker import Worker
+from fuzzing import Stats, fuzz_settings, input_count, render_or_one_line_error
 from gltf_models import base_document, glb_bytes
 from mfnormal.images import png_bytes
 
-LONG = os.environ.get("MFNORMAL_FUZZ_LONG", "") not in ("", "0")
 CI_INPUTS, LONG_INPUTS = 800, 3000
-INPUTS = int(os.environ.get("MFNORMAL_FUZZ_INPUTS", LONG_INPUTS if LONG else CI_INPUTS))
+INPUTS = input_count(CI_INPUTS, LONG_INPUTS)
 TIMEOUT = 60.0
 # Small caps: a mutation that asks for more is refused quickly (and the caps are exercised).
 LIMITS = ["--limit", "render_pixels=20000", "--limit", "image_pixels=1048576", "--limit", "texture_pixels=4194304",
@@ -299,23 +296,18 @@ def outside_reads(opened, folder: Path, root: Path) -> list:
 
 def check_outcome(result, out: Path, folder: Path, root: Path):
     """Render or one-line error; never anything else. Returns 'render' or 'error'."""
-    assert not result.timed_out, f"no answer within {TIMEOUT:.0f} s"
-    assert result.died is None, result.describe()
-    assert result.exception is None, result.describe()
     bad = outside_reads(result.opened, folder, root)
     assert not bad, f"opened outside the model's folder: {bad}"
-    lines = [ln for ln in result.stderr.strip().splitlines() if ln.strip()]
-    if result.rc == 0:
-        assert all(ln.startswith("mfnormal: warning: ") for ln in lines), result.stderr
+
+    def rendered():
         img = np.array(mi.Bitmap(f"{out}.exr"), dtype=np.float64)
         assert np.all(np.isfinite(img)) and img.min() >= 0.0
         assert Path(f"{out}.png").is_file()
-        return "render"
-    assert result.rc == 2, result.describe()
-    assert lines and lines[-1].startswith("mfnormal: error: "), result.stderr
-    assert all(ln.startswith("mfnormal: warning: ") for ln in lines[:-1]), result.stderr
-    assert not out.parent.exists() or not list(out.parent.iterdir()), list(out.parent.iterdir())
-    return "error"
+
+    def nothing_written():
+        assert not out.parent.exists() or not list(out.parent.iterdir()), list(out.parent.iterdir())
+
+    return render_or_one_line_error(result, TIMEOUT, rendered, nothing_written)
 
 
 @pytest.fixture(scope="module")
@@ -325,45 +317,23 @@ def worker():
     w.close()
 
 
-STATS = {"inputs": 0, "render": 0, "error": 0, "seconds": 0.0}
-LOG = os.environ.get("MFNORMAL_FUZZ_LOG")      # a file: each input's last stderr line is appended
-
-
-def log_outcome(result):
-    if LOG:
-        lines = result.stderr.strip().splitlines()
-        with open(LOG, "a") as f:
-            f.write(f"{result.rc}\t{lines[-1] if lines else ''}\n")
+STATS = Stats("glTF fuzzer")
 
 
 @pytest.fixture(scope="module", autouse=True)
 def report_throughput():
     yield
-    if STATS["inputs"]:
-        print(f"\nglTF fuzzer: {STATS['inputs']} inputs ({STATS['render']} rendered, {STATS['error']} one-line "
-              f"errors) in {STATS['seconds']:.1f} s: {STATS['inputs'] / STATS['seconds']:.1f} inputs/s")
+    STATS.report()
 
 
-FUZZ_SETTINGS = settings(max_examples=INPUTS, derandomize=not LONG, database=None, deadline=None,
-                         print_blob=LONG, phases=(Phase.explicit, Phase.generate, Phase.shrink),
-                         suppress_health_check=list(HealthCheck))
-
-
-@FUZZ_SETTINGS
+@fuzz_settings(INPUTS)
 @given(data=st.data())
 def test_mutated_gltf_renders_or_fails_in_one_line(worker, data):
-    start = time.perf_counter()
-    root = Path(tempfile.mkdtemp(prefix="mfnormal-fuzz."))
-    try:
+    with STATS.sandbox("mfnormal-fuzz.") as root:
         folder = make_sandbox(root)
         doc, blobs, container, corrupt = data.draw(mutated_model(sandbox_uris(folder)), label="model")
         path = write_model(folder, doc, blobs, container, corrupt)
         out = root / "out" / "render"
         result = worker.run(["render", path, "-o", out, *ARGS, *LIMITS], cwd=folder, timeout=TIMEOUT)
-        log_outcome(result)
-        outcome = check_outcome(result, out, folder, root)
-        STATS["inputs"] += 1
-        STATS[outcome] += 1
-    finally:
-        shutil.rmtree(root, ignore_errors=True)
-        STATS["seconds"] += time.perf_counter() - start
+        STATS.log(result)
+        STATS.count(check_outcome(result, out, folder, root))
