@@ -1,4 +1,5 @@
-"""Shared test setup: every test starts in llvm_ad_rgb with the plugin registered.
+"""Shared test setup: every test starts in llvm_ad_rgb with the plugin registered; ``worker``,
+one command-line worker process per test module (``tests/cli_worker.py``).
 
 ``import mfnormal`` comes first so that Dr.Jit loads a compatible libLLVM. Some
 tests switch to ``scalar_rgb``; the variant is process-global and the plugin is
@@ -19,3 +20,12 @@ def _llvm_variant():
     if mi.variant() != VARIANT:
         mi.set_variant(VARIANT)
     mfnormal.register()
+
+
+@pytest.fixture(scope="module")
+def worker():
+    from cli_worker import Worker
+
+    w = Worker()
+    yield w
+    w.close()

@@ -1,6 +1,6 @@
 """What the two fuzzers (``test_cli_fuzz.py``, ``test_gltf_fuzz.py``) share.
 
-- :func:`input_count` and :func:`fuzz_settings`: ``CI`` inputs derandomised (the
+- :func:`input_count` and :func:`fuzz_test`: ``CI`` inputs derandomised (the
   same every run) unless ``MFNORMAL_FUZZ_LONG=1`` (``LONG`` random inputs, the
   Hypothesis seed of a failure printed); ``MFNORMAL_FUZZ_INPUTS=N`` sets the count;
 - :class:`Stats`: the inputs run, their outcomes and time, printed at the end
@@ -21,7 +21,9 @@ import time
 from contextlib import contextmanager
 from pathlib import Path
 
-from hypothesis import HealthCheck, Phase, settings
+import pytest
+from hypothesis import HealthCheck, Phase, given, settings
+from hypothesis import strategies as st
 
 LONG = os.environ.get("MFNORMAL_FUZZ_LONG", "") not in ("", "0")
 LOG = os.environ.get("MFNORMAL_FUZZ_LOG")
@@ -31,10 +33,12 @@ def input_count(ci: int, long: int) -> int:
     return int(os.environ.get("MFNORMAL_FUZZ_INPUTS", long if LONG else ci))
 
 
-def fuzz_settings(inputs: int):
-    return settings(max_examples=inputs, derandomize=not LONG, database=None, deadline=None,
+def fuzz_test(inputs: int):
+    """A fuzz test of ``inputs`` examples, drawing from Hypothesis's ``data`` strategy."""
+    fuzz = settings(max_examples=inputs, derandomize=not LONG, database=None, deadline=None,
                     print_blob=LONG, phases=(Phase.explicit, Phase.generate, Phase.shrink),
                     suppress_health_check=list(HealthCheck))
+    return lambda test: fuzz(given(data=st.data())(test))
 
 
 class Stats:
@@ -72,6 +76,14 @@ class Stats:
         if c["inputs"]:
             print(f"\n{self.name}: {c['inputs']} inputs ({c['render']} rendered, {c['error']} one-line "
                   f"errors) in {self.seconds:.1f} s: {c['inputs'] / self.seconds:.{self.digits}f} inputs/s")
+
+    def report_fixture(self):
+        """A module fixture that prints the report after the module's tests."""
+        @pytest.fixture(scope="module", autouse=True)
+        def report_throughput():
+            yield
+            self.report()
+        return report_throughput
 
 
 def render_or_one_line_error(result, timeout: float, check_rendered, check_nothing_written) -> str:

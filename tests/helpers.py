@@ -1,4 +1,5 @@
-"""What the tests share: directions, normal-map texels, the plugin on a texel row, queries, tiny scenes.
+"""What the tests share: directions, normal-map texels, the plugin on a texel row, queries, tiny scenes
+(dicts, and XML text for the command line).
 
 Per-query normals come from an N×1 float32 bitmap with nearest filtering: a query
 whose ``si.uv`` points at the centre of texel k sees the normal of texel k, so
@@ -18,6 +19,14 @@ import mitsuba as mi
 import numpy as np
 
 WHITE = {"type": "diffuse", "reflectance": {"type": "rgb", "value": [1.0, 1.0, 1.0]}}
+#: The nested BSDFs the models' tests run on (those the acceptance criteria name).
+NESTED = {
+    "diffuse": {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.2, 0.5, 0.9]}},
+    "ggx_0.1": {"type": "roughconductor", "distribution": "ggx", "alpha": 0.1},
+    "ggx_0.5": {"type": "roughconductor", "distribution": "ggx", "alpha": 0.5},
+    "roughplastic": {"type": "roughplastic", "distribution": "ggx", "alpha": 0.3,
+                     "diffuse_reflectance": {"type": "rgb", "value": [0.3, 0.6, 0.2]}},
+}
 
 
 # -- Directions and texels (numpy, float64) ------------------------------------------------
@@ -161,3 +170,44 @@ def small_scene(normalmap_texels, spp=8, width=48, height=36):
                    "bsdf": material({"type": "diffuse",
                                      "reflectance": {"type": "rgb", "value": 0.5}})},
     }
+
+
+# -- XML scenes for the command line (text: the tests replace parts of it) ---------------------
+
+
+def xml_plugin(nested: str = '<bsdf type="diffuse"/>', extra: str = "", texture: str = "$nm") -> str:
+    """A ``normalmap_microfacet`` element of model ``$model`` around ``nested``, its normal map
+    the raw bitmap ``texture``, with ``extra`` properties."""
+    return ('<bsdf type="normalmap_microfacet"><string name="model" value="$model"/>' + extra
+            + f'<texture type="bitmap" name="normalmap"><string name="filename" value="{texture}"/>'
+            '<boolean name="raw" value="true"/></texture>' + nested + "</bsdf>")
+
+
+def xml_scene(shapes: str, defaults: dict, *, spp="1", width="24", height="16", max_depth=3, fov=None,
+              origin="0, 2, 4", target="0, 0, 0", emitters='<emitter type="constant"/>') -> str:
+    """A Mitsuba XML scene: the ``<default>`` parameters ``defaults``, a path tracer, a
+    perspective camera at ``origin`` looking at ``target``, ``emitters`` and ``shapes``."""
+    fov = "" if fov is None else f'<float name="fov" value="{fov}"/>'
+    lines = ['<scene version="3.0.0">',
+             *(f'    <default name="{k}" value="{v}"/>' for k, v in defaults.items()),
+             f'    <integrator type="path"><integer name="max_depth" value="{max_depth}"/></integrator>',
+             f'    <sensor type="perspective">{fov}',
+             f'        <transform name="to_world"><lookat origin="{origin}" target="{target}" up="0, 1, 0"/>'
+             '</transform>',
+             f'        <sampler type="independent"><integer name="sample_count" value="{spp}"/></sampler>',
+             f'        <film type="hdrfilm"><integer name="width" value="{width}"/>'
+             f'<integer name="height" value="{height}"/></film>',
+             '    </sensor>', f'    {emitters}', f'    {shapes}', '</scene>', '']
+    return "\n".join(lines)
+
+
+def write_maps(folder) -> None:
+    """``normalmap.png`` (8 × 8, flat but for a tilted 4 × 4 square) and ``gray.png`` (the same
+    size, one channel: not a normal map) in ``folder``, for the command line's scenes."""
+    from mfnormal.images import png_bytes
+
+    bumps = np.zeros((8, 8, 3), np.uint8)
+    bumps[...] = (128, 128, 255)
+    bumps[2:6, 2:6] = (200, 128, 220)
+    (folder / "normalmap.png").write_bytes(png_bytes(bumps))
+    (folder / "gray.png").write_bytes(png_bytes(np.full((8, 8), 128, np.uint8)))

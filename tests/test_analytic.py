@@ -24,7 +24,7 @@ mi.set_variant(VARIANT)
 mfnormal.register()
 
 import helpers  # noqa: E402
-from helpers import (WHITE, decode_ref, encode, make_si, normalmap, np1, np3,  # noqa: E402
+from helpers import (NESTED, WHITE, decode_ref, encode, make_si, normalmap, np1, np3,  # noqa: E402
                      random_hemisphere, sph, vec3)
 
 
@@ -32,15 +32,8 @@ def make_bsdf(nested, texels, **params):
     """The plugin with model="analytic" (the default model is another one)."""
     return helpers.make_bsdf(nested, texels, **{"model": "analytic", **params})
 
-# The nested BSDFs required by the acceptance criteria.
-NESTED = {
-    "diffuse": {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.2, 0.5, 0.9]}},
-    "ggx_0.1": {"type": "roughconductor", "distribution": "ggx", "alpha": 0.1},
-    "ggx_0.5": {"type": "roughconductor", "distribution": "ggx", "alpha": 0.5},
-    "roughplastic": {"type": "roughplastic", "distribution": "ggx", "alpha": 0.3,
-                     "diffuse_reflectance": {"type": "rgb", "value": [0.3, 0.6, 0.2]}},
-}
-# Plus a delta lobe where the contract is about not breaking.
+
+# The nested BSDFs of helpers.NESTED, plus a delta lobe where the contract is about not breaking.
 NESTED_WITH_DELTA = dict(NESTED, conductor={"type": "conductor"})
 
 

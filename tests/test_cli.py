@@ -32,37 +32,14 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from mfnormal.images import png_bytes
 from cli_checks import assert_one_line_error  # noqa: E402
-from cli_worker import Worker  # noqa: E402
 from gltf_models import base_document, write_gltf  # noqa: E402
+from helpers import write_maps, xml_plugin, xml_scene  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 
-SCENE = """<scene version="3.0.0">
-    <default name="nm" value="normalmap.png"/>
-    <default name="model" value="analytic"/>
-    <integrator type="path"><integer name="max_depth" value="3"/></integrator>
-    <sensor type="perspective">
-        <transform name="to_world"><lookat origin="0, 2, 4" target="0, 0, 0" up="0, 1, 0"/></transform>
-        <sampler type="independent"><integer name="sample_count" value="1"/></sampler>
-        <film type="hdrfilm"><integer name="width" value="24"/><integer name="height" value="16"/></film>
-    </sensor>
-    <emitter type="constant"/>
-    <shape type="SHAPE">
-        SHAPE_PROPS
-        <bsdf type="normalmap_microfacet">
-            <string name="model" value="$model"/>
-            EXTRA
-            <texture type="bitmap" name="normalmap">
-                <string name="filename" value="$nm"/>
-                <boolean name="raw" value="true"/>
-            </texture>
-            <bsdf type="diffuse"/>
-        </bsdf>
-    </shape>
-</scene>
-"""
+SCENE = xml_scene('<shape type="SHAPE">SHAPE_PROPS' + xml_plugin(extra="EXTRA") + "</shape>",
+                  {"nm": "normalmap.png", "model": "analytic"})
 
 RECTANGLE = '<transform name="to_world"><rotate x="1" angle="-90"/></transform>'
 
@@ -97,11 +74,7 @@ def write_scene(path, shape="rectangle", shape_props=RECTANGLE, extra="", text=N
 def scenes(tmp_path_factory):
     """A directory with the good scene and one bad variant per failure."""
     d = tmp_path_factory.mktemp("cli")
-    bumps = np.zeros((8, 8, 3), np.uint8)
-    bumps[...] = (128, 128, 255)
-    bumps[2:6, 2:6] = (200, 128, 220)
-    (d / "normalmap.png").write_bytes(png_bytes(bumps))
-    (d / "gray.png").write_bytes(png_bytes(np.full((8, 8), 128, np.uint8)))
+    write_maps(d)
     (d / "quad.ply").write_text(PLY_NO_UV)
     write_scene(d / "good.xml")
     write_scene(d / "bad_xml.xml", text=SCENE.replace("</scene>", "</scne>"))
@@ -186,21 +159,11 @@ def film_scene(film_props="", integrator='<integrator type="path"><integer name=
 
 
 @pytest.fixture(scope="module")
-def worker():
-    w = Worker()
-    yield w
-    w.close()
-
-
-@pytest.fixture(scope="module")
 def hard(tmp_path_factory):
     """Scenes for the hardening tests: $spp/$width/$height/$mb parameters, film formats,
     XML <include> chains, a checkerboard normal map, negative radiance, a glTF model."""
     d = tmp_path_factory.mktemp("hard")
-    bumps = np.zeros((8, 8, 3), np.uint8)
-    bumps[...] = (128, 128, 255)
-    bumps[2:6, 2:6] = (200, 128, 220)
-    (d / "normalmap.png").write_bytes(png_bytes(bumps))
+    write_maps(d)
     write_scene(d / "good.xml")
     write_scene(d / "params.xml", text=SPP_SCENE.replace("SHAPE_PROPS", RECTANGLE).replace("SHAPE", "rectangle")
                 .replace("EXTRA", '<integer name="max_bounces" value="$mb"/><string name="tangent_facet" '
@@ -214,8 +177,8 @@ def hard(tmp_path_factory):
                 .replace("SHAPE_PROPS", RECTANGLE).replace("SHAPE", "rectangle").replace("EXTRA", ""))
     write_scene(d / "checker.xml", text=SCENE.replace("SHAPE_PROPS", RECTANGLE).replace("SHAPE", "rectangle")
                 .replace("EXTRA", "").replace('<default name="nm" value="normalmap.png"/>', "")
-                .replace('<texture type="bitmap" name="normalmap">\n                <string name="filename" '
-                         'value="$nm"/>\n                <boolean name="raw" value="true"/>\n            </texture>',
+                .replace('<texture type="bitmap" name="normalmap"><string name="filename" value="$nm"/>'
+                         '<boolean name="raw" value="true"/></texture>',
                          '<texture type="checkerboard" name="normalmap"/>'))
     (d / "negative.xml").write_text(SCENE.replace('<emitter type="constant"/>',
                                                   '<emitter type="constant"><rgb name="radiance" value="-1, 0.5, 0.5"/>'

@@ -30,51 +30,22 @@ from pathlib import Path
 
 import mfnormal  # noqa: F401  (first: selects a working libLLVM)
 
-import numpy as np
-import pytest
-from hypothesis import given
 from hypothesis import strategies as st
 
-from cli_worker import Worker
-from fuzzing import Stats, fuzz_settings, input_count, render_or_one_line_error
+from fuzzing import Stats, fuzz_test, input_count, render_or_one_line_error
 from gltf_models import base_document, glb_bytes, write_gltf
-from mfnormal.images import png_bytes
+from helpers import write_maps, xml_plugin, xml_scene
 
 CI_INPUTS, LONG_INPUTS = 400, 1000
 INPUTS = input_count(CI_INPUTS, LONG_INPUTS)
 TIMEOUT = 120.0
 FORCED = ["--limit", "render_pixels=4096"]
 
-SCENE = """<scene version="3.0.0">
-    <default name="spp" value="1"/>
-    <default name="width" value="24"/>
-    <default name="height" value="16"/>
-    <default name="mb" value="64"/>
-    <default name="model" value="separable"/>
-    <default name="nm" value="normalmap.png"/>
-    <default name="strength" value="1"/>
-    <integrator type="path"><integer name="max_depth" value="3"/></integrator>
-    <sensor type="perspective">
-        <transform name="to_world"><lookat origin="0, 2, 4" target="0, 0, 0" up="0, 1, 0"/></transform>
-        <sampler type="independent"><integer name="sample_count" value="$spp"/></sampler>
-        <film type="hdrfilm"><integer name="width" value="$width"/><integer name="height" value="$height"/></film>
-    </sensor>
-    <emitter type="constant"/>
-    <shape type="rectangle">
-        <transform name="to_world"><rotate x="1" angle="-90"/></transform>
-        <bsdf type="normalmap_microfacet">
-            <string name="model" value="$model"/>
-            <integer name="max_bounces" value="$mb"/>
-            <float name="strength" value="$strength"/>
-            <texture type="bitmap" name="normalmap">
-                <string name="filename" value="$nm"/>
-                <boolean name="raw" value="true"/>
-            </texture>
-            <bsdf type="diffuse"/>
-        </bsdf>
-    </shape>
-</scene>
-"""
+SCENE = xml_scene('<shape type="rectangle"><transform name="to_world"><rotate x="1" angle="-90"/></transform>'
+                  + xml_plugin(extra='<integer name="max_bounces" value="$mb"/>'
+                                     '<float name="strength" value="$strength"/>') + "</shape>",
+                  {"spp": "1", "width": "24", "height": "16", "mb": "64", "model": "separable",
+                   "nm": "normalmap.png", "strength": "1"}, spp="$spp", width="$width", height="$height")
 
 BIG_INTS = ["2147483648", "4294967295", "4294967296", "9223372036854775808", "-2147483649", "1" + "0" * 40]
 SMALL_INTS = ["-5", "-1", "0", "1", "2", "3", "8", "16"]
@@ -185,11 +156,7 @@ def compare_args(draw):
 
 
 def make_sandbox(root: Path) -> Path:
-    bumps = np.zeros((8, 8, 3), np.uint8)
-    bumps[...] = (128, 128, 255)
-    bumps[2:6, 2:6] = (200, 128, 220)
-    (root / "normalmap.png").write_bytes(png_bytes(bumps))
-    (root / "gray.png").write_bytes(png_bytes(np.full((8, 8), 128, np.uint8)))
+    write_maps(root)
     (root / "scene.xml").write_text(SCENE)
     (root / "gray.xml").write_text(SCENE.replace('value="normalmap.png"', 'value="gray.png"'))
     (root / "good.xml").write_text(SCENE)
@@ -217,24 +184,11 @@ def check_outcome(result, root: Path, before: set):
     return render_or_one_line_error(result, TIMEOUT, rendered, nothing_written)
 
 
-@pytest.fixture(scope="module")
-def worker():
-    w = Worker()
-    yield w
-    w.close()
-
-
 STATS = Stats("CLI fuzzer", digits=2)
+report_throughput = STATS.report_fixture()
 
 
-@pytest.fixture(scope="module", autouse=True)
-def report_throughput():
-    yield
-    STATS.report()
-
-
-@fuzz_settings(INPUTS)
-@given(data=st.data())
+@fuzz_test(INPUTS)
 def test_random_command_lines_render_or_fail_in_one_line(worker, data):
     with STATS.sandbox("mfnormal-clifuzz.") as root:
         make_sandbox(root)

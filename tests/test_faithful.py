@@ -15,21 +15,14 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 import pytest
-from helpers import (WHITE, encode, make_bsdf, make_si, normalmap, np1, np3, random_hemisphere, sph,
-                     vec3)
+from helpers import (NESTED, WHITE, encode, make_bsdf, make_si, normalmap, np1, np3, random_hemisphere,
+                     sph, vec3)
 
 from mfnormal import faithful
 
 WHITE_GGX = {"type": "roughconductor", "distribution": "ggx", "alpha": 0.05,
              "specular_reflectance": {"type": "rgb", "value": [1.0, 1.0, 1.0]}}
 WHITE_GGX_ROUGH = dict(WHITE_GGX, alpha=0.3)
-NESTED = {
-    "diffuse": {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.2, 0.5, 0.9]}},
-    "ggx_0.1": {"type": "roughconductor", "distribution": "ggx", "alpha": 0.1},
-    "ggx_0.5": {"type": "roughconductor", "distribution": "ggx", "alpha": 0.5},
-    "roughplastic": {"type": "roughplastic", "distribution": "ggx", "alpha": 0.3,
-                     "diffuse_reflectance": {"type": "rgb", "value": [0.3, 0.6, 0.2]}},
-}
 # Nested BSDFs whose albedo is at most 1 (the fuzz of "never above 1").
 ENERGY_NESTED = {
     "white_diffuse": WHITE,

@@ -50,12 +50,9 @@ import mfnormal  # noqa: F401  (first: selects a working libLLVM)
 
 import mitsuba as mi
 import numpy as np
-import pytest
-from hypothesis import given
 from hypothesis import strategies as st
 
-from cli_worker import Worker
-from fuzzing import Stats, fuzz_settings, input_count, render_or_one_line_error
+from fuzzing import Stats, fuzz_test, input_count, render_or_one_line_error
 from gltf_models import base_document, glb_bytes
 from mfnormal.images import png_bytes
 
@@ -310,24 +307,11 @@ def check_outcome(result, out: Path, folder: Path, root: Path):
     return render_or_one_line_error(result, TIMEOUT, rendered, nothing_written)
 
 
-@pytest.fixture(scope="module")
-def worker():
-    w = Worker()
-    yield w
-    w.close()
-
-
 STATS = Stats("glTF fuzzer")
+report_throughput = STATS.report_fixture()
 
 
-@pytest.fixture(scope="module", autouse=True)
-def report_throughput():
-    yield
-    STATS.report()
-
-
-@fuzz_settings(INPUTS)
-@given(data=st.data())
+@fuzz_test(INPUTS)
 def test_mutated_gltf_renders_or_fails_in_one_line(worker, data):
     with STATS.sandbox("mfnormal-fuzz.") as root:
         folder = make_sandbox(root)

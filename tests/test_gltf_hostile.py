@@ -35,18 +35,21 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cli_worker import Worker
 from gltf_models import base_document, glb_bytes, write_gltf
 from mfnormal.images import png_bytes
 
 SMALL = ["-D", "height=12", "-D", "spp=1", "-D", "max_depth=2"]
 
+#: (id, mutation, expected: "renders" or the needles of the one-line error), one per mutation below.
+CASES = []
 
-@pytest.fixture(scope="module")
-def worker():
-    w = Worker()
-    yield w
-    w.close()
+
+def case(name: str, expected):
+    """Register the decorated mutation ``f(doc, blobs, folder)`` as the hostile case ``name``."""
+    def register(mutation):
+        CASES.append((name, mutation, expected))
+        return mutation
+    return register
 
 
 @pytest.fixture(scope="module")
@@ -73,15 +76,18 @@ def jpeg_header(w, h) -> bytes:
 
 # -- Mutations: (doc, blobs, folder) -> optional extra CLI arguments -------------------------------
 
+@case("cycle", ["nodes[1].children", "cycle through node 0"])
 def cycle(doc, blobs, folder):
     doc["nodes"][1]["children"] = [0]
 
 
+@case("self_cycle", ["nodes[0].children", "cycle through node 0"])
 def self_cycle(doc, blobs, folder):
     doc["scenes"] = [{"nodes": [0]}]
     doc["nodes"] = [{"mesh": 0, "children": [0]}]
 
 
+@case("two_parents_40_levels", ["nodes[2].children", "node 3 is already a child of node 1"])
 def diamond_tower(doc, blobs, folder):
     """40 levels of two nodes, each listing both nodes of the next level: 2^40 paths."""
     nodes = [{"children": [1, 2]}]
@@ -93,34 +99,42 @@ def diamond_tower(doc, blobs, folder):
     doc["scenes"] = [{"nodes": [0]}]
 
 
+@case("child_listed_twice", ["nodes[0].children", "node 1 is listed twice"])
 def child_listed_twice(doc, blobs, folder):
     doc["nodes"][0]["children"] = [1, 1, 2, 3, 4]
 
 
+@case("scene_root_is_a_child", ["scenes[0].nodes", "node 1", "not a root"])
 def root_listed_as_child(doc, blobs, folder):
     doc["scenes"][0]["nodes"] = [0, 1]
 
 
+@case("negative_byteStride", ["bufferViews[0].byteStride", "-12"])
 def negative_stride(doc, blobs, folder):
     doc["bufferViews"][0]["byteStride"] = -12
 
 
+@case("byteStride_below_element", ["accessors[0]", "byteStride 8", "12-byte element"])
 def small_stride(doc, blobs, folder):
     doc["bufferViews"][0]["byteStride"] = 8
 
 
+@case("negative_byteOffset", ["accessors[2].byteOffset", "-8"])
 def negative_offset(doc, blobs, folder):
     doc["accessors"][2]["byteOffset"] = -8
 
 
+@case("count_past_bufferView", ["accessors[2]", "bufferViews[1]"])
 def count_past_view(doc, blobs, folder):
     doc["accessors"][2]["count"] = 100000
 
 
+@case("bufferView_past_buffer", ["bufferViews[1]", "buffers[0]"])
 def view_past_buffer(doc, blobs, folder):
     doc["bufferViews"][1]["byteLength"] = 1 << 20
 
 
+@case("sparse_index_out_of_range", ["accessors[0].sparse.indices", "200"])
 def sparse_index_out_of_range(doc, blobs, folder):
     view = doc["bufferViews"][3]
     blob = bytearray(blobs["quad.bin"])
@@ -128,10 +142,12 @@ def sparse_index_out_of_range(doc, blobs, folder):
     blobs["quad.bin"] = bytes(blob)
 
 
+@case("sparse_count_past_accessor", ["accessors[0].sparse.count", "50"])
 def sparse_count_past_accessor(doc, blobs, folder):
     doc["accessors"][0]["sparse"]["count"] = 50
 
 
+@case("zero_filled_accessor_bomb", ["accessors[0]", "data_bytes"])
 def zero_filled_bomb(doc, blobs, folder):
     """An accessor without bufferView is zeros: a count of 2^40 asks for 12 TB."""
     acc = doc["accessors"][0]
@@ -140,50 +156,56 @@ def zero_filled_bomb(doc, blobs, folder):
     acc["count"] = 1 << 40
 
 
-def dotdot_uri(doc, blobs, folder):
-    doc["images"][0]["uri"] = "../secret.png"
+# URIs that lead out of the model's folder: (case, element, its uri for the model's folder, needles).
+OUTSIDE_URIS = [
+    ("uri_dotdot", "images", lambda folder: "../secret.png", ["images[0].uri", "outside the model's folder"]),
+    ("uri_subfolder_dotdot", "images", lambda folder: "textures/../../secret.png",
+     ["images[0].uri", "outside the model's folder"]),
+    ("uri_absolute", "images", lambda folder: str((folder.parent / "secret.png").resolve()),
+     ["images[0].uri", "absolute path"]),
+    ("uri_percent_encoded", "images", lambda folder: "%2e%2e/secret.png",
+     ["images[0].uri", "outside the model's folder"]),
+    ("uri_file_scheme", "images", lambda folder: (folder.parent / "secret.png").resolve().as_uri(),
+     ["images[0].uri", "file: URIs are not read"]),
+    ("uri_dev_zero", "buffers", lambda folder: "/dev/zero", ["buffers[0].uri", "absolute path"]),
+]
 
 
-def subfolder_dotdot_uri(doc, blobs, folder):
-    doc["images"][0]["uri"] = "textures/../../secret.png"
+def set_uri(element: str, uri):
+    def mutate(doc, blobs, folder):
+        doc[element][0]["uri"] = uri(folder)
+    return mutate
 
 
-def absolute_uri(doc, blobs, folder):
-    doc["images"][0]["uri"] = str((folder.parent / "secret.png").resolve())
+for name, element, uri, needles in OUTSIDE_URIS:
+    case(name, needles)(set_uri(element, uri))
 
 
-def percent_encoded_uri(doc, blobs, folder):
-    doc["images"][0]["uri"] = "%2e%2e/secret.png"
-
-
-def file_scheme_uri(doc, blobs, folder):
-    doc["images"][0]["uri"] = (folder.parent / "secret.png").resolve().as_uri()
-
-
+@case("uri_symlink_out_of_folder", ["images[0].uri", "outside the model's folder"])
 def symlink_out_of_folder(doc, blobs, folder):
     (folder / "link.png").symlink_to(folder.parent / "secret.png")
     doc["images"][0]["uri"] = "link.png"
 
 
-def dev_zero_buffer(doc, blobs, folder):
-    doc["buffers"][0]["uri"] = "/dev/zero"
-
-
+@case("uri_symlink_to_dev_zero", ["buffers[0].uri", "outside the model's folder"])
 def dev_zero_symlink(doc, blobs, folder):
     (folder / "zero.bin").symlink_to("/dev/zero")
     doc["buffers"][0]["uri"] = "zero.bin"
 
 
+@case("uri_folder", ["buffers[0].uri", "not a regular file"])
 def folder_as_buffer(doc, blobs, folder):
     (folder / "sub").mkdir()
     doc["buffers"][0]["uri"] = "sub"
 
 
+@case("uri_fifo", ["images[0].uri", "not a regular file"])
 def fifo_as_image(doc, blobs, folder):
     os.mkfifo(folder / "pipe.png")
     doc["images"][0]["uri"] = "pipe.png"
 
 
+@case("buffer_shorter_than_byteLength", ["buffers[0].uri", "less than the byteLength"])
 def buffer_shorter_than_declared(doc, blobs, folder):
     doc["buffers"][0]["byteLength"] += 4096
     doc["bufferViews"][1]["byteLength"] += 4096
@@ -195,31 +217,42 @@ def png_bomb(huge):
     return mutate
 
 
+# The PNG bomb's mutation needs the huge_png fixture: prepare() builds it.
+CASES.append(("png_16000x16000", "png_bomb", ["images[0]", "16000x16000", "image_pixels"]))
+
+
+@case("jpeg_20000x20000", ["images[0]", "20000x20000", "image_pixels"])
 def jpeg_bomb(doc, blobs, folder):
     blobs["nm.jpg"] = jpeg_header(20000, 20000)
     doc["images"][0]["uri"] = "nm.jpg"
 
 
+@case("camera_aspectRatio_1e6", ["cameras[0].perspective.aspectRatio", "render_pixels"])
 def huge_aspect_ratio(doc, blobs, folder):
     doc["cameras"][0]["perspective"]["aspectRatio"] = 1e6
 
 
+@case("width_24000000", ["24000000", "render_pixels"])
 def huge_width(doc, blobs, folder):
     return ["-D", "width=24000000"]
 
 
+@case("material_index_out_of_range", ["meshes[0].primitives[0].material", "5"])
 def material_out_of_range(doc, blobs, folder):
     doc["meshes"][0]["primitives"][0]["material"] = 5
 
 
+@case("accessor_index_out_of_range", ["attributes.POSITION", "99"])
 def accessor_out_of_range(doc, blobs, folder):
     doc["meshes"][0]["primitives"][0]["attributes"]["POSITION"] = 99
 
 
+@case("texture_source_out_of_range", ["textures[1].source", "7"])
 def texture_source_out_of_range(doc, blobs, folder):
     doc["textures"][1]["source"] = 7
 
 
+@case("index_data_out_of_range", ["meshes[0].primitives[0].indices", "5124"])
 def index_data_out_of_range(doc, blobs, folder):
     view = doc["bufferViews"][2]
     blob = bytearray(blobs["quad.bin"])
@@ -227,56 +260,68 @@ def index_data_out_of_range(doc, blobs, folder):
     blobs["quad.bin"] = bytes(blob)
 
 
+@case("camera_without_perspective", ["cameras[0]", "'perspective' is required"])
 def camera_without_projection(doc, blobs, folder):
     doc["cameras"][0].pop("perspective")
 
 
+@case("light_index_minus_one", ["nodes[3].extensions.KHR_lights_punctual.light", "-1"])
 def light_index_minus_one(doc, blobs, folder):
     doc["nodes"][3]["extensions"]["KHR_lights_punctual"]["light"] = -1
 
 
+@case("light_negative_intensity", ["lights[0].intensity", "-3"])
 def negative_intensity(doc, blobs, folder):
     doc["extensions"]["KHR_lights_punctual"]["lights"][0]["intensity"] = -3.0
 
 
+@case("light_negative_cone_angle", ["lights[1].spot.innerConeAngle", "-0.5"])
 def negative_cone_angle(doc, blobs, folder):
     doc["extensions"]["KHR_lights_punctual"]["lights"][1]["spot"]["innerConeAngle"] = -0.5
 
 
+@case("scale_zero_node_renders", "renders")
 def zero_scale_node(doc, blobs, folder):
     """A second instance of the mesh, scaled to nothing (legal: e.g. a hidden object)."""
     doc["nodes"].append({"mesh": 0, "scale": [0, 0, 0]})
     doc["nodes"][0]["children"].append(len(doc["nodes"]) - 1)
 
 
+@case("scale_flat_node_renders", "renders")
 def flat_scale_node(doc, blobs, folder):
     doc["nodes"][1]["scale"] = [1, 0, 1]      # the quad seen edge-on: flattened, still legal
     doc["nodes"].append({"mesh": 0, "translation": [0, 0, -1]})
     doc["nodes"][0]["children"].append(len(doc["nodes"]) - 1)
 
 
+@case("zero_quaternion", ["nodes[1].rotation", "unit quaternion"])
 def zero_quaternion(doc, blobs, folder):
     doc["nodes"][1]["rotation"] = [0, 0, 0, 0]
 
 
+@case("json_nan", ["not a valid glTF 2.0 file", "NaN"])
 def nan_matrix(doc, blobs, folder):
     (folder / "model.gltf").write_text(json.dumps(doc).replace('"scale": [1, 1, 1]', '"scale": [NaN, 1, 1]'))
     return "raw"
 
 
+@case("json_not_an_object", ["not a valid glTF 2.0 file", "not an object"])
 def json_not_an_object(doc, blobs, folder):
     (folder / "model.gltf").write_text("[1, 2, 3]")
     return "raw"
 
 
+@case("asset_version_1", ["asset.version", "1.0"])
 def wrong_version(doc, blobs, folder):
     doc["asset"]["version"] = "1.0"
 
 
+@case("data_uri_not_base64", ["images[1].uri", "base64"])
 def data_uri_not_base64(doc, blobs, folder):
     doc["images"][1]["uri"] = "data:image/png,%89PNG"
 
 
+@case("vertex_limit_after_instancing", ["vertices", "after instancing"])
 def many_instances(doc, blobs, folder):
     """1000 nodes instancing the 4-vertex quad, under a vertex limit of 100."""
     for k in range(1000):
@@ -285,6 +330,7 @@ def many_instances(doc, blobs, folder):
     return ["--limit", "vertices=100"]
 
 
+@case("glb_chunk_past_end", ["not a valid glTF 2.0 file", "GLB", "past the end"])
 def glb_chunk_past_end(doc, blobs, folder):
     data = bytearray(glb_bytes(doc, blobs))
     struct.pack_into("<I", data, 12, len(data) * 4)         # the JSON chunk's length
@@ -292,6 +338,7 @@ def glb_chunk_past_end(doc, blobs, folder):
     return "glb"
 
 
+@case("glb_buffer_past_binary_chunk", ["buffers[0]", "binary chunk"])
 def glb_buffer_past_binary_chunk(doc, blobs, folder):
     """buffers[0].byteLength is larger than the binary chunk (cut to 16 bytes)."""
     data = glb_bytes(doc, blobs)
@@ -303,55 +350,6 @@ def glb_buffer_past_binary_chunk(doc, blobs, folder):
     return "glb"
 
 
-# (id, mutation, expected: "renders" or the needles of the one-line error)
-CASES = [
-    ("cycle", cycle, ["nodes[1].children", "cycle through node 0"]),
-    ("self_cycle", self_cycle, ["nodes[0].children", "cycle through node 0"]),
-    ("two_parents_40_levels", diamond_tower, ["nodes[2].children", "node 3 is already a child of node 1"]),
-    ("child_listed_twice", child_listed_twice, ["nodes[0].children", "node 1 is listed twice"]),
-    ("scene_root_is_a_child", root_listed_as_child, ["scenes[0].nodes", "node 1", "not a root"]),
-    ("negative_byteStride", negative_stride, ["bufferViews[0].byteStride", "-12"]),
-    ("byteStride_below_element", small_stride, ["accessors[0]", "byteStride 8", "12-byte element"]),
-    ("negative_byteOffset", negative_offset, ["accessors[2].byteOffset", "-8"]),
-    ("count_past_bufferView", count_past_view, ["accessors[2]", "bufferViews[1]"]),
-    ("bufferView_past_buffer", view_past_buffer, ["bufferViews[1]", "buffers[0]"]),
-    ("sparse_index_out_of_range", sparse_index_out_of_range, ["accessors[0].sparse.indices", "200"]),
-    ("sparse_count_past_accessor", sparse_count_past_accessor, ["accessors[0].sparse.count", "50"]),
-    ("zero_filled_accessor_bomb", zero_filled_bomb, ["accessors[0]", "data_bytes"]),
-    ("uri_dotdot", dotdot_uri, ["images[0].uri", "outside the model's folder"]),
-    ("uri_subfolder_dotdot", subfolder_dotdot_uri, ["images[0].uri", "outside the model's folder"]),
-    ("uri_absolute", absolute_uri, ["images[0].uri", "absolute path"]),
-    ("uri_percent_encoded", percent_encoded_uri, ["images[0].uri", "outside the model's folder"]),
-    ("uri_file_scheme", file_scheme_uri, ["images[0].uri", "file: URIs are not read"]),
-    ("uri_symlink_out_of_folder", symlink_out_of_folder, ["images[0].uri", "outside the model's folder"]),
-    ("uri_dev_zero", dev_zero_buffer, ["buffers[0].uri", "absolute path"]),
-    ("uri_symlink_to_dev_zero", dev_zero_symlink, ["buffers[0].uri", "outside the model's folder"]),
-    ("uri_folder", folder_as_buffer, ["buffers[0].uri", "not a regular file"]),
-    ("uri_fifo", fifo_as_image, ["images[0].uri", "not a regular file"]),
-    ("buffer_shorter_than_byteLength", buffer_shorter_than_declared, ["buffers[0].uri", "less than the byteLength"]),
-    ("png_16000x16000", "png_bomb", ["images[0]", "16000x16000", "image_pixels"]),
-    ("jpeg_20000x20000", jpeg_bomb, ["images[0]", "20000x20000", "image_pixels"]),
-    ("camera_aspectRatio_1e6", huge_aspect_ratio, ["cameras[0].perspective.aspectRatio", "render_pixels"]),
-    ("width_24000000", huge_width, ["24000000", "render_pixels"]),
-    ("material_index_out_of_range", material_out_of_range, ["meshes[0].primitives[0].material", "5"]),
-    ("accessor_index_out_of_range", accessor_out_of_range, ["attributes.POSITION", "99"]),
-    ("texture_source_out_of_range", texture_source_out_of_range, ["textures[1].source", "7"]),
-    ("index_data_out_of_range", index_data_out_of_range, ["meshes[0].primitives[0].indices", "5124"]),
-    ("camera_without_perspective", camera_without_projection, ["cameras[0]", "'perspective' is required"]),
-    ("light_index_minus_one", light_index_minus_one, ["nodes[3].extensions.KHR_lights_punctual.light", "-1"]),
-    ("light_negative_intensity", negative_intensity, ["lights[0].intensity", "-3"]),
-    ("light_negative_cone_angle", negative_cone_angle, ["lights[1].spot.innerConeAngle", "-0.5"]),
-    ("zero_quaternion", zero_quaternion, ["nodes[1].rotation", "unit quaternion"]),
-    ("json_nan", nan_matrix, ["not a valid glTF 2.0 file", "NaN"]),
-    ("json_not_an_object", json_not_an_object, ["not a valid glTF 2.0 file", "not an object"]),
-    ("asset_version_1", wrong_version, ["asset.version", "1.0"]),
-    ("data_uri_not_base64", data_uri_not_base64, ["images[1].uri", "base64"]),
-    ("vertex_limit_after_instancing", many_instances, ["vertices", "after instancing"]),
-    ("glb_chunk_past_end", glb_chunk_past_end, ["not a valid glTF 2.0 file", "GLB", "past the end"]),
-    ("glb_buffer_past_binary_chunk", glb_buffer_past_binary_chunk, ["buffers[0]", "binary chunk"]),
-    ("scale_zero_node_renders", zero_scale_node, "renders"),
-    ("scale_flat_node_renders", flat_scale_node, "renders"),
-]
 
 
 def prepare(tmp_path, mutation, huge_png):

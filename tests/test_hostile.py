@@ -46,6 +46,7 @@ import mitsuba as mi
 import numpy as np
 import pytest
 from cli_checks import assert_one_line_error  # noqa: E402
+from helpers import xml_plugin, xml_scene  # noqa: E402
 
 VARIANT = "llvm_ad_rgb"
 mi.set_variant(VARIANT)
@@ -136,32 +137,12 @@ def grid_mesh(nx, ny, size=2.0, height=None):
 
 # -- Scenes ------------------------------------------------------------------------------------
 
-SCENE = """<scene version="3.0.0">
-    <default name="nm" value="nm.png"/>
-    <default name="model" value="analytic"/>
-    <integrator type="path"><integer name="max_depth" value="4"/></integrator>
-    <sensor type="perspective">
-        <float name="fov" value="50"/>
-        <transform name="to_world"><lookat origin="0, 2.2, 2.2" target="0, 0, 0" up="0, 1, 0"/></transform>
-        <sampler type="independent"><integer name="sample_count" value="4"/></sampler>
-        <film type="hdrfilm"><integer name="width" value="16"/><integer name="height" value="12"/></film>
-    </sensor>
-    <emitter type="constant"><rgb name="radiance" value="0.5"/></emitter>
-    <emitter type="directional">
-        <vector name="direction" value="0.3, -1, -0.4"/><rgb name="irradiance" value="3"/>
-    </emitter>
-    SHAPE
-</scene>
-"""
-
-PLUGIN = """<bsdf type="normalmap_microfacet">
-    <string name="model" value="$model"/>
-    <texture type="bitmap" name="normalmap">
-        <string name="filename" value="$nm"/>
-        <boolean name="raw" value="true"/>
-    </texture>
-    NESTED
-</bsdf>"""
+SUN = ('<emitter type="constant"><rgb name="radiance" value="{sky}"/></emitter><emitter type="directional">'
+       '<vector name="direction" value="{direction}"/><rgb name="irradiance" value="3"/></emitter>')
+SCENE = xml_scene("SHAPE", {"nm": "nm.png", "model": "analytic"}, spp="4", width="16", height="12",
+                  max_depth=4, fov=50, origin="0, 2.2, 2.2",
+                  emitters=SUN.format(sky="0.5", direction="0.3, -1, -0.4"))
+PLUGIN = xml_plugin(nested="NESTED")
 
 DIFFUSE = '<bsdf type="diffuse"><rgb name="reflectance" value="0.7"/></bsdf>'
 RECTANGLE = '<shape type="rectangle"><transform name="to_world"><rotate x="1" angle="-90"/></transform>BSDF</shape>'
@@ -475,33 +456,12 @@ def test_same_seed_gives_bit_identical_files_across_processes(tmp_path, scenes):
 # -- Scale ---------------------------------------------------------------------------------------
 
 
-SCALE_SCENE = """<scene version="3.0.0">
-    <default name="spp" value="8"/>
-    <default name="model" value="analytic"/>
-    <integrator type="path"><integer name="max_depth" value="6"/></integrator>
-    <sensor type="perspective">
-        <float name="fov" value="40"/>
-        <transform name="to_world"><lookat origin="0, 2.0, 3.2" target="0, 0.1, 0" up="0, 1, 0"/></transform>
-        <sampler type="independent"><integer name="sample_count" value="$spp"/></sampler>
-        <film type="hdrfilm"><integer name="width" value="1920"/><integer name="height" value="1080"/></film>
-    </sensor>
-    <emitter type="constant"><rgb name="radiance" value="0.4"/></emitter>
-    <emitter type="directional">
-        <vector name="direction" value="0.5, -0.8, -0.4"/><rgb name="irradiance" value="3"/>
-    </emitter>
-    <shape type="ply">
-        <string name="filename" value="terrain.ply"/>
-        <bsdf type="normalmap_microfacet">
-            <string name="model" value="$model"/>
-            <texture type="bitmap" name="normalmap">
-                <string name="filename" value="nm_8k.png"/>
-                <boolean name="raw" value="true"/>
-            </texture>
-            <bsdf type="roughconductor"><string name="material" value="Au"/><float name="alpha" value="0.15"/></bsdf>
-        </bsdf>
-    </shape>
-</scene>
-"""
+SCALE_SCENE = xml_scene(
+    '<shape type="ply"><string name="filename" value="terrain.ply"/>'
+    + xml_plugin('<bsdf type="roughconductor"><string name="material" value="Au"/>'
+                 '<float name="alpha" value="0.15"/></bsdf>', texture="nm_8k.png") + "</shape>",
+    {"spp": "8", "model": "analytic"}, spp="$spp", width="1920", height="1080", max_depth=6, fov=40,
+    origin="0, 2.0, 3.2", target="0, 0.1, 0", emitters=SUN.format(sky="0.4", direction="0.5, -0.8, -0.4"))
 
 
 def run_measured(args, cwd, timeout):

@@ -41,6 +41,7 @@ import importlib.util
 import itertools
 import json
 import math
+import re
 import sys
 import time
 from pathlib import Path
@@ -259,6 +260,20 @@ def fmt(x, digits=4):
     return f"{x:.{digits}g}"
 
 
+def method_table(L, header, first, keys, metrics, row, errors=None):
+    """Append a Markdown table to ``L``: ``header`` (its ``\\|`` are literal bars), its separator,
+    the row ``first``, then per method key the ``errors`` row or ``row(k, metrics[k])`` (methods
+    without metrics are left out), and a blank line."""
+    columns = len(re.split(r"(?<!\\)\|", header.strip())) - 2
+    L += [header, "|" + "---|" * columns, first]
+    for k in keys:
+        if errors and k in errors:
+            L.append(errors[k])
+        elif metrics.get(k) is not None:
+            L.append(row(k, metrics[k]))
+    L.append("")
+
+
 def markdown(report, labels, settings, quick):
     L = []
     L.append("# Normal-mapping methods against true geometry" + (" (quick run)" if quick else ""))
@@ -311,20 +326,16 @@ def markdown(report, labels, settings, quick):
         for gname, row in report["summary"].items():
             L.append(f"### {gname} ({row['cells']} cells)")
             L.append("")
-            L.append("| method | relMSE (geo-mean) | mean \\|ln\\| | contrast / truth | energy / truth "
-                     "| near-black | ≤classic | ~floor |")
-            L.append("|---|---|---|---|---|---|---|---|")
-            L.append(f"| *noise floor (truth @ spp)* | {fmt(row['floor_rel_mse'])} | {fmt(row['floor_ln_err'], 3)} "
-                     "| 1 | 1 | | | |")
-            for k in method_keys:
-                m = row["methods"].get(k)
-                if m is None:
-                    continue
-                L.append(f"| {labels.get(k, k)} | {fmt(m['rel_mse'])} | {fmt(m['ln_err'], 3)} | "
-                         f"{fmt(m['contrast_ratio'], 3)} | {fmt(m['energy_ratio'], 3)} | "
-                         f"{m['near_black'] * 100:.2f} % | {m['le_best_classic']}/{m['cells']} | "
-                         f"{m['within_2x_floor']}/{m['cells']} |")
-            L.append("")
+            def summary_row(k, m):
+                return (f"| {labels.get(k, k)} | {fmt(m['rel_mse'])} | {fmt(m['ln_err'], 3)} | "
+                        f"{fmt(m['contrast_ratio'], 3)} | {fmt(m['energy_ratio'], 3)} | "
+                        f"{m['near_black'] * 100:.2f} % | {m['le_best_classic']}/{m['cells']} | "
+                        f"{m['within_2x_floor']}/{m['cells']} |")
+            method_table(L, "| method | relMSE (geo-mean) | mean \\|ln\\| | contrast / truth | energy / truth "
+                            "| near-black | ≤classic | ~floor |",
+                         f"| *noise floor (truth @ spp)* | {fmt(row['floor_rel_mse'])} | "
+                         f"{fmt(row['floor_ln_err'], 3)} | 1 | 1 | | | |",
+                         method_keys, row["methods"], summary_row)
     for sname in ("relief", "eggcrate"):
         s = report.get(sname)
         if not s:
@@ -338,19 +349,15 @@ def markdown(report, labels, settings, quick):
                  f" (reference {fmt(s['truth_stats']['contrast'], 3)}), truth near-black "
                  f"{s['floor']['near_black_px'] * 100:.2f} %.")
         L.append("")
-        L.append("| method | contrast | contrast / truth | near-black | relMSE | \\|ln\\| | energy |")
-        L.append("|---|---|---|---|---|---|---|")
-        L.append(f"| *truth @ spp* | {fmt(s['floor']['contrast'], 3)} | 1 | {s['floor']['near_black_px'] * 100:.2f} % "
-                 f"| {fmt(s['floor']['rel_mse'])} | {fmt(s['floor']['ln_err'], 3)} | 1 |")
-        for k in method_keys:
-            m = s["metrics"].get(k)
-            if m is None:
-                continue
-            L.append(f"| {labels.get(k, k)} | {fmt(m['contrast'], 3)} | "
-                     f"{fmt(m['contrast'] / max(s['floor']['contrast'], 1e-9), 3)} | "
-                     f"{m['near_black_px'] * 100:.2f} % | {fmt(m['rel_mse'])} | {fmt(m['ln_err'], 3)} | "
-                     f"{fmt(m['mean'] / s['truth_stats']['mean'], 3)} |")
-        L.append("")
+        def scene_row(k, m, s=s):
+            return (f"| {labels.get(k, k)} | {fmt(m['contrast'], 3)} | "
+                    f"{fmt(m['contrast'] / max(s['floor']['contrast'], 1e-9), 3)} | "
+                    f"{m['near_black_px'] * 100:.2f} % | {fmt(m['rel_mse'])} | {fmt(m['ln_err'], 3)} | "
+                    f"{fmt(m['mean'] / s['truth_stats']['mean'], 3)} |")
+        method_table(L, "| method | contrast | contrast / truth | near-black | relMSE | \\|ln\\| | energy |",
+                     f"| *truth @ spp* | {fmt(s['floor']['contrast'], 3)} | 1 | "
+                     f"{s['floor']['near_black_px'] * 100:.2f} % | {fmt(s['floor']['rel_mse'])} | "
+                     f"{fmt(s['floor']['ln_err'], 3)} | 1 |", method_keys, s["metrics"], scene_row)
     if report.get("cells"):
         L.append("## Cells")
         L.append("")
@@ -367,25 +374,21 @@ def markdown(report, labels, settings, quick):
                      f"the reference's own noise in every score ≈ {fmt(r['ref_noise'])}.")
             L.append("")
             noise = bool(r.get("self_noise"))
-            L.append("| method | relMSE | \\|ln\\| | contrast | near-black | energy | time (s)"
-                     + (" | own noise |" if noise else " |"))
-            L.append("|---|---|---|---|---|---|---|" + ("---|" if noise else ""))
-            L.append(f"| *noise floor* | {fmt(r['floor']['rel_mse'])} | {fmt(r['floor']['ln_err'], 3)} | "
-                     f"{fmt(r['floor']['contrast'], 3)} | {r['floor']['near_black_px'] * 100:.2f} % | "
-                     f"{fmt(r['floor']['mean'] / r['truth_stats']['mean'], 3)} | "
-                     f"{r['times'].get('truth', 0):.1f}" + (" | |" if noise else " |"))
-            for k in method_keys:
-                if k in r["errors"]:
-                    L.append(f"| {labels.get(k, k)} | error: {r['errors'][k]} | | | | | |" + (" |" if noise else ""))
-                    continue
-                m = r["metrics"].get(k)
-                if m is None:
-                    continue
-                L.append(f"| {labels.get(k, k)} | {fmt(m['rel_mse'])} | {fmt(m['ln_err'], 3)} | "
-                         f"{fmt(m['contrast'], 3)} | {m['near_black_px'] * 100:.2f} % | "
-                         f"{fmt(m['mean'] / r['truth_stats']['mean'], 3)} | {r['times'].get(k, 0):.1f}"
-                         + (f" | {fmt(r['self_noise'].get(k))} |" if noise else " |"))
-            L.append("")
+
+            def cell_row(k, m, r=r, noise=noise):
+                return (f"| {labels.get(k, k)} | {fmt(m['rel_mse'])} | {fmt(m['ln_err'], 3)} | "
+                        f"{fmt(m['contrast'], 3)} | {m['near_black_px'] * 100:.2f} % | "
+                        f"{fmt(m['mean'] / r['truth_stats']['mean'], 3)} | {r['times'].get(k, 0):.1f}"
+                        + (f" | {fmt(r['self_noise'].get(k))} |" if noise else " |"))
+            errors = {k: f"| {labels.get(k, k)} | error: {e} | | | | | |" + (" |" if noise else "")
+                      for k, e in r["errors"].items()}
+            method_table(L, "| method | relMSE | \\|ln\\| | contrast | near-black | energy | time (s)"
+                            + (" | own noise |" if noise else " |"),
+                         f"| *noise floor* | {fmt(r['floor']['rel_mse'])} | {fmt(r['floor']['ln_err'], 3)} | "
+                         f"{fmt(r['floor']['contrast'], 3)} | {r['floor']['near_black_px'] * 100:.2f} % | "
+                         f"{fmt(r['floor']['mean'] / r['truth_stats']['mean'], 3)} | "
+                         f"{r['times'].get('truth', 0):.1f}" + (" | |" if noise else " |"),
+                         method_keys, r["metrics"], cell_row, errors)
     return "\n".join(L) + "\n"
 
 

@@ -316,6 +316,14 @@ def _is_num(v) -> bool:
     return (isinstance(v, (int, float)) and not isinstance(v, bool)) and math.isfinite(v)
 
 
+def _value(o: dict, key: str, where: str, required: bool):
+    """``o[key]``, or None where it is absent (an error where it is ``required``)."""
+    v = o.get(key)
+    if v is None and required:
+        _fail(where, f"'{key}' is required")
+    return v
+
+
 class _Checker:
     def __init__(self, doc: dict, limits: Limits):
         self.doc, self.limits = doc, limits
@@ -332,20 +340,16 @@ class _Checker:
 
     # Typed getters: None when absent (or ``default``), else the checked value.
     def obj(self, o, key, where, required=False):
-        v = o.get(key)
+        v = _value(o, key, where, required)
         if v is None:
-            if required:
-                _fail(where, f"'{key}' is required")
             return None
         if not isinstance(v, dict):
             _fail(_at(where, key), f"expected an object, got {_show(v)}")
         return v
 
     def integer(self, o, key, where, lo=0, hi=None, default=None, required=False):
-        v = o.get(key)
+        v = _value(o, key, where, required)
         if v is None:
-            if required:
-                _fail(where, f"'{key}' is required")
             return default
         if not _is_int(v):
             _fail(_at(where, key), f"expected an integer, got {_show(v)}")
@@ -355,10 +359,8 @@ class _Checker:
         return v
 
     def index(self, o, key, where, target, required=False):
-        v = o.get(key)
+        v = _value(o, key, where, required)
         if v is None:
-            if required:
-                _fail(where, f"'{key}' is required")
             return None
         return self.ref(v, _at(where, key), target)
 
@@ -373,10 +375,8 @@ class _Checker:
 
     def number(self, o, key, where, lo=None, hi=None, lo_open=False, hi_open=False, default=None,
                required=False):
-        v = o.get(key)
+        v = _value(o, key, where, required)
         if v is None:
-            if required:
-                _fail(where, f"'{key}' is required")
             return default
         if not _is_num(v):
             _fail(_at(where, key), f"expected a finite number, got {_show(v)}")
