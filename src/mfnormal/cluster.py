@@ -165,7 +165,8 @@ def _resolver(folder: Path):
     """Mitsuba's file resolver with ``folder`` searched first (what ``load_file`` uses)."""
     import mitsuba as mi
 
-    resolver = mi.FileResolver(mi.Thread.thread().file_resolver())
+    current = mi.file_resolver() if hasattr(mi, "file_resolver") else mi.Thread.thread().file_resolver()
+    resolver = mi.FileResolver(current)
     resolver.prepend(str(folder))
     return resolver
 
