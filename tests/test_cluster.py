@@ -50,7 +50,7 @@ def cluster():
     import logging
 
     c = distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
-                                 dashboard_address=None, silence_logs=logging.ERROR)
+                                 dashboard_address=":0", silence_logs=logging.ERROR)
     client = distributed.Client(c)
     yield c, client
     client.close()
@@ -259,3 +259,37 @@ def test_compare_on_a_local_cluster_gives_the_same_report(tmp_path, capsys):
     for key in ("flat", "classic", "faithful", "analytic", "faithful_ref"):
         a, b = (_exr(tmp_path / d / "scene" / f"{key}.exr") for d in ("here", "there"))
         assert np.abs(a - b).max() <= TOL, key
+
+
+# -- A worker's own variant (mfnormal.worker) -----------------------------------------------------
+
+
+def _preloaded_cluster(variant: str):
+    import logging
+
+    return distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=True,
+                                    dashboard_address=":0", silence_logs=logging.CRITICAL,
+                                    preload=["mfnormal.worker"], preload_argv=["--variant", variant])
+
+
+def test_a_worker_started_with_a_variant_renders_its_chunks_in_it(tmp_path, capsys):
+    scene = _scene(tmp_path, width=8, height=6)
+    with _preloaded_cluster("scalar_rgb") as c:
+        rc, out, err = _cli(["render", str(scene), "-o", str(tmp_path / "out"), "--spp", "1",
+                             "--cluster", c.scheduler_address], capsys)
+    assert rc == 0, err
+    assert "scalar_rgb" in out and np.isfinite(_exr(tmp_path / "out.exr")).all()
+
+
+def test_a_worker_that_cannot_use_its_variant_is_refused_with_one_line(tmp_path, capsys):
+    import drjit as dr
+
+    if dr.has_backend(dr.JitBackend.CUDA):
+        pytest.skip("a CUDA device is here: the refusal is for workers without one")
+    scene = _scene(tmp_path)
+    with _preloaded_cluster("cuda_ad_rgb") as c:
+        rc, _, err = _cli(["render", str(scene), "-o", str(tmp_path / "out"), "--cluster",
+                           c.scheduler_address], capsys)
+    assert rc == 2 and len(err.strip().splitlines()) == 1, err
+    assert "cannot use variant 'cuda_ad_rgb'" in err
+    assert _outputs(tmp_path) == []

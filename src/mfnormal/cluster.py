@@ -258,8 +258,10 @@ def files_digest(files: dict) -> str:
 # The workers' side
 # ---------------------------------------------------------------------------
 
-#: The variant this worker process was started with (:mod:`mfnormal.worker`), if any.
+#: The variant this worker process was started with (:mod:`mfnormal.worker`), if any, and
+#: why it cannot use it (then it refuses every task: Dask only logs a failed preload).
 WORKER_VARIANT: str | None = None
+WORKER_PROBLEM: str | None = None
 _LOCK = threading.Lock()
 _SCENES: OrderedDict = OrderedDict()
 _THREADS: list = []
@@ -276,10 +278,14 @@ class Env:
 
 def set_worker_variant(variant: str | None) -> None:
     """Make ``variant`` this worker process's variant (every task renders in it)."""
-    global WORKER_VARIANT
+    global WORKER_VARIANT, WORKER_PROBLEM
+    WORKER_VARIANT, WORKER_PROBLEM = variant or None, None
     if variant:
-        _use_variant(variant)
-    WORKER_VARIANT = variant or None
+        try:
+            _use_variant(variant)
+        except RuntimeError as exc:
+            WORKER_PROBLEM = str(exc)
+            raise
 
 
 def _use_variant(variant: str):
@@ -302,7 +308,7 @@ def _prepare(env: Env):
     """Mitsuba in the worker's variant, after the version check; raises RuntimeError."""
     import drjit as dr
 
-    problem = _mismatch(versions(), env.versions, f"worker (pid {os.getpid()})")
+    problem = WORKER_PROBLEM or _mismatch(versions(), env.versions, f"worker (pid {os.getpid()})")
     if problem:
         raise RuntimeError(problem)
     mi = _use_variant(WORKER_VARIANT or env.variant)
@@ -386,7 +392,7 @@ def bsdf_checks_job(env: Env, method, samples: int, repeats: int) -> dict:
 
 
 def _worker_info() -> dict:
-    return {"versions": versions(), "variant": WORKER_VARIANT}
+    return {"versions": versions(), "variant": WORKER_VARIANT, "problem": WORKER_PROBLEM}
 
 
 def _files(files: dict) -> dict:
@@ -428,7 +434,7 @@ class Cluster:
         if self.target.workers:
             try:
                 self._local = LocalCluster(n_workers=self.target.workers, threads_per_worker=1,
-                                           processes=True, dashboard_address=None,
+                                           processes=True, dashboard_address=":0",
                                            silence_logs=logging.ERROR, memory_limit=0)
                 self.client = Client(self._local)
             except Exception as exc:
@@ -463,7 +469,8 @@ class Cluster:
         """Every worker's {'versions', 'variant'}, after refusing any whose versions differ."""
         info = self.client.run(_worker_info)
         for address, item in info.items():
-            problem = _mismatch(item["versions"], self.env.versions, f"worker {address}")
+            problem = item["problem"] and f"worker {address}: {item['problem']}"
+            problem = problem or _mismatch(item["versions"], self.env.versions, f"worker {address}")
             if problem:
                 raise CLIError(problem)
         return info
