@@ -293,3 +293,22 @@ def test_a_worker_that_cannot_use_its_variant_is_refused_with_one_line(tmp_path,
     assert rc == 2 and len(err.strip().splitlines()) == 1, err
     assert "cannot use variant 'cuda_ad_rgb'" in err
     assert _outputs(tmp_path) == []
+
+
+def test_a_gltf_bundle_holds_its_buffers_and_images_and_nothing_else(tmp_path):
+    import json
+
+    from mfnormal.cluster import scene_spec
+
+    (tmp_path / "mesh.bin").write_bytes(b"\0" * 12)
+    (tmp_path / "albedo map.png").write_bytes(b"png bytes")
+    (tmp_path / "unrelated.png").write_bytes(b"not named")
+    doc = {"asset": {"version": "2.0"}, "buffers": [{"uri": "mesh.bin", "byteLength": 12}],
+           "images": [{"uri": "albedo%20map.png"}, {"uri": "data:image/png;base64,AAAA"}]}
+    (tmp_path / "model.gltf").write_text(json.dumps(doc))
+    spec, files = scene_spec(tmp_path / "model.gltf", {}, gltf_options={"spp": 4})
+    assert sorted(files.values()) == sorted([b"\0" * 12, b"png bytes", files[spec.source]])
+    bundled = json.loads(files[spec.source])
+    assert [b["uri"] for b in bundled["buffers"]] == [k for k in files if k.endswith("mesh.bin")]
+    assert bundled["images"][0]["uri"].endswith("albedo_map.png")
+    assert bundled["images"][1]["uri"].startswith("data:") and spec.params == (("spp", 4),)

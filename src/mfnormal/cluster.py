@@ -39,6 +39,7 @@ import re
 import threading
 import time
 import urllib.parse
+import warnings
 import xml.etree.ElementTree as ET
 from collections import OrderedDict
 from dataclasses import dataclass
@@ -339,11 +340,22 @@ def _materialise(files: dict, digest: str) -> Path:
 
 
 def _scene(mi, spec: SceneSpec, files: dict | None):
-    """The loaded scene of ``spec`` (the last two are kept per process)."""
+    """The loaded scene of ``spec`` (the last two are kept per process). Its warnings are
+    not repeated: the client loaded it first and showed them."""
     key = (mi.variant(), spec)
     if key in _SCENES:
         _SCENES.move_to_end(key)
         return _SCENES[key]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        scene = _load(mi, spec, files)
+    _SCENES[key] = scene
+    while len(_SCENES) > 2:
+        _SCENES.popitem(last=False)
+    return scene
+
+
+def _load(mi, spec: SceneSpec, files: dict | None):
     params = dict(spec.params)
     folder = None if spec.shared else _materialise(files or {}, spec.files)
     if spec.kind == "gltf":
@@ -357,9 +369,6 @@ def _scene(mi, spec: SceneSpec, files: dict | None):
         if not path.exists():
             path.write_text(spec.source, encoding="utf-8")
         scene = mi.load_file(str(path), **params)
-    _SCENES[key] = scene
-    while len(_SCENES) > 2:
-        _SCENES.popitem(last=False)
     return scene
 
 
