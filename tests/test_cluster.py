@@ -2,7 +2,8 @@
 
 The cluster is a ``LocalCluster`` of two worker processes of one thread each on this
 machine, shared by the tests of this module (its address is what ``--cluster ADDRESS``
-takes; ``compare`` starts its own with ``local:2``). Skipped without the extra
+takes); ``compare`` starts its own with ``local:2``, and the tests that take a cluster
+down start their own. Skipped without the extra
 (``pip install 'mfnormal[cluster]'``; ``scripts/setup.sh --test`` installs it).
 
 Tolerances: a cluster render and the same chunks rendered here in sequence are
@@ -102,6 +103,15 @@ def test_bad_cluster_values_are_one_line_errors_before_any_work(tmp_path, value)
     rc = cli.main(["render", str(scene), "-o", str(tmp_path / "out"), "--cluster", value])
     assert rc == 2
     assert not (tmp_path / "out.exr").exists()
+
+
+def test_without_the_extra_cluster_is_one_line_that_says_what_to_install(tmp_path, monkeypatch,
+                                                                         capsys):
+    monkeypatch.setitem(sys.modules, "distributed", None)      # import distributed fails
+    rc, _, err = _cli(["render", str(_scene(tmp_path)), "-o", str(tmp_path / "out"),
+                       "--cluster", "local:2"], capsys)
+    assert rc == 2 and "pip install 'mfnormal[cluster]'" in err and len(err.strip().splitlines()) == 1
+    assert _outputs(tmp_path) == []
 
 
 def test_unreachable_scheduler_is_one_line_and_writes_nothing(tmp_path, capsys):
@@ -217,22 +227,59 @@ def test_a_worker_killed_mid_run_leaves_a_complete_and_correct_render(tmp_path, 
     out, err = proc.communicate(timeout=180)
     assert proc.returncode == 0, err
     assert np.abs(_exr(tmp_path / "out.exr") - _sequential(scene, 64, 8, 5)).max() <= TOL
-    client.wait_for_workers(2, timeout=60)       # the nanny restarts it, for the next tests
+    deadline = time.monotonic() + 60             # the nanny restarts it, for the next tests
+    while time.monotonic() < deadline:
+        now = client.run(os.getpid)
+        if len(now) == 2 and pids[victim] not in now.values():
+            break
+        time.sleep(0.1)
 
 
-def test_a_render_that_cannot_complete_writes_nothing(tmp_path, cluster):
-    c, client = cluster
+def _own_cluster(workers: int):
+    """A cluster of its own, for a test that takes it down."""
+    import logging
+
+    c = distributed.LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
+                                 dashboard_address=":0", silence_logs=logging.CRITICAL)
+    return c, distributed.Client(c)
+
+
+def test_a_render_whose_workers_all_leave_writes_nothing(tmp_path):
     scene = _scene(tmp_path, spp=64, width=48, height=36)
-    proc = _render_process(scene, tmp_path / "out", c.scheduler_address, "--chunks", "8",
-                           "--cluster-timeout", "2")
-    _processing_chunk(client)
-    c.scale(0)                                   # every worker gone for good
+    c, client = _own_cluster(2)
     try:
-        out, err = proc.communicate(timeout=120)
+        proc = _render_process(scene, tmp_path / "out", c.scheduler_address, "--chunks", "8",
+                               "--cluster-timeout", "2")
+        _processing_chunk(client)
+        c.scale(0)                               # every worker gone for good
+        try:
+            out, err = proc.communicate(timeout=60)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            out, err = proc.communicate()
+            raise AssertionError(f"still running 60 s after its workers left ({client.nthreads()}): "
+                                 f"{err[-2000:]}") from None
     finally:
-        c.scale(2)
+        client.close()
+        c.close()
     assert proc.returncode == 2, out + err
     assert "no worker" in err and len(err.strip().splitlines()) == 1, err
+    assert _outputs(tmp_path) == []
+
+
+def test_a_render_whose_scheduler_is_lost_writes_nothing(tmp_path):
+    scene = _scene(tmp_path, spp=64, width=48, height=36)
+    c, client = _own_cluster(1)
+    proc = _render_process(scene, tmp_path / "out", c.scheduler_address, "--chunks", "8",
+                           "--cluster-timeout", "2")
+    try:
+        _processing_chunk(client)
+    finally:
+        client.close()
+        c.close()
+    out, err = proc.communicate(timeout=120)
+    assert proc.returncode == 2, out + err
+    assert "lost the cluster" in err and len(err.strip().splitlines()) == 1, err
     assert _outputs(tmp_path) == []
 
 

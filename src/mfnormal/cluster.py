@@ -39,6 +39,7 @@ import re
 import threading
 import time
 import urllib.parse
+import uuid
 import warnings
 import xml.etree.ElementTree as ET
 from collections import OrderedDict
@@ -423,6 +424,7 @@ class Cluster:
         self.info: dict = {}
         threads = max(1, (os.cpu_count() or 1) // target.workers) if target.workers else None
         self.env = Env(variant, versions(), threads)
+        self._token = uuid.uuid4().hex[:12]
         self._submitted = 0
 
     def __enter__(self):
@@ -440,6 +442,10 @@ class Cluster:
     def _connect(self):
         from distributed import Client, LocalCluster
 
+        for name in ["distributed", *logging.root.manager.loggerDict]:
+            if name.startswith("distributed"):      # its errors are ours to tell, in one line
+                logging.getLogger(name).setLevel(logging.CRITICAL)
+
         if self.target.workers:
             try:
                 self._local = LocalCluster(n_workers=self.target.workers, threads_per_worker=1,
@@ -450,7 +456,6 @@ class Cluster:
                 raise CLIError(f"--cluster {self.target.text}: cannot start the local cluster: "
                                f"{one_line(exc)}") from None
             return
-        logging.getLogger("distributed").setLevel(logging.ERROR)
         try:
             self.client = Client(self.target.address, timeout=f"{self.timeout}s")
         except (OSError, TimeoutError, ValueError) as exc:
@@ -495,11 +500,13 @@ class Cluster:
         """The files as a task's result: a lost copy is recomputed from the scheduler's graph."""
         if not files:
             return None
-        return self.client.submit(_files, files, key=f"mfnormal-files-{digest}", pure=False)
+        with warnings.catch_warnings():     # "large object in the graph": these files, on purpose
+            warnings.simplefilter("ignore", UserWarning)
+            return self.client.submit(_files, files, key=f"mfnormal-files-{digest}", pure=False)
 
     def _submit(self, function, *args):
         self._submitted += 1
-        key = f"mfnormal-{function.__name__}-{os.getpid()}-{id(self)}-{self._submitted}"
+        key = f"mfnormal-{function.__name__}-{self._token}-{self._submitted}"
         return self.client.submit(function, self.env, *args, key=key, retries=RETRIES, pure=False)
 
     def _in_order(self, futures: list, progress=None):
@@ -516,6 +523,9 @@ class Cluster:
                 finished, pending = wait(pending, timeout=1.0, return_when="FIRST_COMPLETED")
             except TimeoutError:
                 finished = set()
+            except Exception as exc:  # noqa: BLE001  (cancelled: the client lost its scheduler)
+                raise CLIError(f"lost the cluster with {len(futures) - done} of {len(futures)} "
+                               f"tasks left: {one_line(exc)}") from None
             for f in finished:
                 results[index[f.key]] = self._result(f)
                 done += 1
