@@ -175,6 +175,19 @@ def test_cluster_render_equals_its_chunks_rendered_in_sequence_and_a_local_rende
     assert np.abs(diff).max() > 1e-3                                    # independent samples
 
 
+def test_with_shared_files_the_workers_read_the_scene_from_its_path(tmp_path, cluster, capsys):
+    scene = _scene(tmp_path)
+    rc, _, err = _cli(["render", str(scene), "-o", str(tmp_path / "out"), "--chunks", "3",
+                       "--shared-files", "--cluster", cluster[0].scheduler_address], capsys)
+    assert rc == 0, err
+    assert np.abs(_exr(tmp_path / "out.exr") - _sequential(scene, 16, 3, 0)).max() <= TOL
+    from mfnormal.cluster import scene_spec
+
+    spec, files = scene_spec(scene, {"nm": "gray.png"}, shared=True)
+    assert files == {} and spec.shared and spec.source == str(scene.resolve())
+    assert spec.params == (("nm", "gray.png"),)
+
+
 def test_workers_with_other_versions_are_refused_with_one_line(tmp_path, cluster, capsys):
     scene = _scene(tmp_path)
     client = cluster[1]
