@@ -2,7 +2,8 @@
 # Set up mfnormal on a fresh machine: a libLLVM >= 17 for Dr.Jit, a virtual
 # environment in .venv with the pinned Mitsuba/Dr.Jit, and the package itself.
 # With --test, also what the test suite needs (pytest, scipy, matplotlib,
-# selenium, Debian's headless Chromium for the report's browser test,
+# selenium, Dask.distributed for the --cluster tests, Debian's headless Chromium
+# for the report's browser test,
 # pymikktspace, the reference MikkTSpace of the glTF tests, and their
 # third-party glTF asset, from Debian's archive).
 # Idempotent: re-running it only checks what is already there.
@@ -42,7 +43,7 @@ if [ ! -x .venv/bin/python ]; then
     "$PYTHON" -m venv .venv
 fi
 EXTRAS=""
-[ "$TEST" = 1 ] && EXTRAS="[test]"
+[ "$TEST" = 1 ] && EXTRAS="[test,cluster]"
 .venv/bin/python -m pip install -q --disable-pip-version-check -e ".$EXTRAS" 2>&1 | grep -v '^WARNING: Location' || true
 
 # 2b. The reference MikkTSpace (C) that tests/test_gltf.py compares against; its sdist

@@ -1,9 +1,10 @@
 """The ``mfnormal`` command line: render scenes that use the plugin, and the bundled demo.
 
     mfnormal render SCENE.xml|MODEL.gltf|MODEL.glb [-o OUT] [--spp N] [--variant V] [-D key=value ...]
+                    [--chunks N] [--cluster local:N|ADDRESS [--shared-files] [--cluster-timeout S]]
     mfnormal demo [-o OUT] [--spp N] [--resolution WxH] [--model M] [--seed N] ...
                                            (also mfnormal-demo, python -m mfnormal.demo)
-    mfnormal compare SCENE [SCENE ...] [-o DIR] [--spp N] [--ref-spp N] [--quick]
+    mfnormal compare SCENE [SCENE ...] [-o DIR] [--spp N] [--ref-spp N] [--quick] [--cluster ...]
     (each also takes --limit NAME=N: the caps of mfnormal.validate.Limits)
 
 Every error is one line on stderr and exit code 2, reported before the render
@@ -135,10 +136,11 @@ def load_scene(mi, path, params: dict[str, str], limits: Limits = DEFAULT_LIMITS
 
 class Progress:
     """A one-line progress bar with ETA on a terminal; silent when piped.
-    ``update(done, total)`` after each of ``total`` passes."""
+    ``update(done, total)`` after each of ``total`` passes (or other ``unit``)."""
 
-    def __init__(self, stream=sys.stderr):
+    def __init__(self, stream=sys.stderr, unit: str = "passes"):
         self.stream = stream
+        self.unit = unit
         self.enabled = stream.isatty()
         self.start = time.time()
 
@@ -148,7 +150,7 @@ class Progress:
         elapsed = time.time() - self.start
         eta = elapsed / done * (total - done) if done else 0.0
         bar = "#" * int(30 * done / total)
-        self.stream.write(f"\r[{bar:<30}] {done}/{total} passes, {elapsed:5.1f}s, ETA {eta:5.1f}s")
+        self.stream.write(f"\r[{bar:<30}] {done}/{total} {self.unit}, {elapsed:5.1f}s, ETA {eta:5.1f}s")
         if done == total:
             self.stream.write("\n")
         self.stream.flush()
@@ -172,6 +174,41 @@ def write_render(mi, scene, img, output, exposure: float = 0.0):
     return img, exr, png
 
 
+def _check_cluster_args(args):
+    """The ``--cluster`` target (None without it), its options checked; :class:`CLIError`."""
+    if getattr(args, "chunks", None) is not None:
+        check_int32(args.chunks, "--chunks", lo=1)
+    timeout = getattr(args, "cluster_timeout", 60.0)
+    if not (0 < timeout < float("inf")):
+        raise CLIError(f"--cluster-timeout {timeout}: expected a number of seconds above 0")
+    if args.cluster is None:
+        if getattr(args, "shared_files", False):
+            raise CLIError("--shared-files goes with --cluster")
+        return None
+    from .cluster import parse_cluster
+    return parse_cluster(args.cluster)
+
+
+def _render_on_cluster(args, target, scene, spp: int, params: dict, limits: Limits):
+    """``mfnormal render --cluster``: the chunks of :func:`mfnormal.rendering.schedule`
+    rendered on the workers, merged in order; returns (image, what it ran on)."""
+    from .cluster import Cluster, scene_spec
+    from .gltf import GLTF_SUFFIXES
+    from .rendering import film_image, schedule
+
+    gltf = Path(args.scene).suffix.lower() in GLTF_SUFFIXES
+    spec, files = scene_spec(args.scene, params, gltf_options(params) if gltf else None,
+                             args.shared_files, limits)
+    pixels = int(np.prod([int(v) for v in scene.sensors()[0].film().crop_size()]))
+    with Cluster(target, args.variant, args.cluster_timeout) as cluster:
+        workers = cluster.workers()
+        passes = schedule(spp, pixels, args.chunks or max(8, 4 * workers), args.seed)
+        where = (f"{len(passes)} chunks on {workers} worker(s) of {target.text}, "
+                 f"{cluster.variants(cluster.info)}")
+        img = cluster.render(spec, files, passes, Progress(unit="chunks").update)
+    return film_image(img), where
+
+
 def cmd_render(args) -> int:
     import mfnormal
 
@@ -179,6 +216,7 @@ def cmd_render(args) -> int:
     check_seed(args.seed)
     if args.spp is not None:
         check_spp(args.spp, "--spp")
+    target = _check_cluster_args(args)
     output = args.output or str(Path("out") / Path(args.scene).stem)
     check_output(output)
     params = parse_defines(args.define)
@@ -186,13 +224,19 @@ def cmd_render(args) -> int:
     started = time.time()
     scene = load_scene(mi, args.scene, params, limits)
     spp = check_scene_before_render(mi, scene, args.spp, limits, Path(args.scene).name)
+    where = "on this machine"
     try:
-        img = render_scene(scene, spp, seed=args.seed, progress=Progress().update)
+        if target is None:
+            img = render_scene(scene, spp, passes=args.chunks, seed=args.seed, progress=Progress().update)
+        else:
+            img, where = _render_on_cluster(args, target, scene, spp, params, limits)
+    except CLIError:
+        raise
     except Exception as exc:
         raise CLIError(f"render failed: {one_line(exc)}") from None
     img, exr, png = write_render(mi, scene, img, output)
     print(f"variant {args.variant}, libLLVM {mfnormal.LLVM_PATH}")
-    print(f"rendered {img.shape[1]}x{img.shape[0]} at {spp} spp in {time.time() - started:.1f}s")
+    print(f"rendered {img.shape[1]}x{img.shape[0]} at {spp} spp ({where}) in {time.time() - started:.1f}s")
     print(f"wrote {exr}\nwrote {png}")
     return 0
 
@@ -283,6 +327,7 @@ def cmd_compare(args) -> int:
     if out.exists() and not out.is_dir():
         raise CLIError(f"-o {args.output} is a file; compare writes a folder (report.html and the renders)")
     check_output(out / "report")
+    target = _check_cluster_args(args)
     params = parse_defines(args.define)
     setup_variant(args.variant)
     from . import compare
@@ -318,8 +363,15 @@ def cmd_compare(args) -> int:
             check_xml_integers(scene, params)
     command = "mfnormal " + " ".join(shlex.quote(a) for a in getattr(args, "argv", []))
     try:
-        report = compare.compare(args.scenes, out, settings, methods, validation=args.validation,
-                                 params=params, command=command, limits=limits)
+        if target is None:
+            report = compare.compare(args.scenes, out, settings, methods, validation=args.validation,
+                                     params=params, command=command, limits=limits)
+        else:
+            from .cluster import Cluster
+            with Cluster(target, args.variant, args.cluster_timeout) as cluster:
+                report = compare.compare(args.scenes, out, settings, methods, validation=args.validation,
+                                         params=params, command=command, limits=limits,
+                                         cluster=cluster)
     except CLIError:
         raise
     except SceneError as exc:
@@ -351,6 +403,11 @@ def _add_scene_options(p):
     _add_seed(p)
     p.add_argument("-D", "--define", action="append", metavar="KEY=VALUE", help="scene parameter ($KEY)")
     _add_limit(p)
+    from .cluster import CLUSTER_HELP
+    p.add_argument("--cluster", metavar="local:N|ADDRESS", help=CLUSTER_HELP)
+    p.add_argument("--cluster-timeout", type=float, default=60.0, metavar="S",
+                   help="seconds to wait for the scheduler, for a first worker, and with no "
+                        "worker left (default 60)")
 
 
 def _positive_int(text: str) -> int:
@@ -380,6 +437,13 @@ def _add_render(sub):
                                  "height, spp, max_depth, model, tangents, normal_maps, lights)")
     r.add_argument("-o", "--output", help="output path without extension (writes .exr and .png)")
     r.add_argument("--spp", type=int, help="samples per pixel (default: the scene's)")
+    r.add_argument("--chunks", type=int, help="split the samples into N passes with seeds derived "
+                                              "from --seed (default 8; with --cluster, 4 per worker, "
+                                              "at least 8): the same N gives the same image here "
+                                              "and on a cluster")
+    r.add_argument("--shared-files", action="store_true",
+                   help="with --cluster: the workers read the scene and its files from the same "
+                        "path (a shared file system) instead of receiving them")
     _add_scene_options(r)
     r.set_defaults(func=cmd_render)
     return r

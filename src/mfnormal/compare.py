@@ -99,15 +99,22 @@ def parse_scene(src: SceneSource):
     return root, values
 
 
-def load_method_scene(src: SceneSource, root: ET.Element, values: dict, method: Method,
-                      notes: set | None = None):
-    """Load ``root`` rewritten for ``method`` in the active variant; check it."""
+def method_xml(src: SceneSource, root: ET.Element, values: dict, method: Method,
+               notes: set | None = None) -> tuple:
+    """(XML text, ``$`` parameters) of ``root`` rewritten for ``method``."""
     xml = ET.tostring(rewrite(root, method, values, notes), encoding="unicode")
     params = src.params
     if method.kind != "microfacet":
         # Mitsuba rejects unused parameters: drop those only the plugin used
         # (a microfacet method keeps every reference, so it still reports typos).
         params = {k: v for k, v in params.items() if references(xml, k)}
+    return xml, params
+
+
+def load_method_scene(src: SceneSource, root: ET.Element, values: dict, method: Method,
+                      notes: set | None = None):
+    """Load ``root`` rewritten for ``method`` in the active variant; check it."""
+    xml, params = method_xml(src, root, values, method, notes)
     try:
         scene = mi.load_string(xml, **params)
     except Exception as exc:
@@ -155,13 +162,16 @@ QUICK = Settings(spp=2, ref_spp=4, width=64, crops=2, check_samples=1 << 10, che
 
 
 def compare_scene(src: SceneSource, out_dir, settings: Settings, methods=METHODS, log=print,
-                  limits=None) -> dict:
+                  limits=None, cluster=None):
     """Render ``src`` with each method; write EXR/PNG per method into ``out_dir``.
 
-    Returns the data of one report section (see :func:`mfnormal.report.write_report`).
+    Returns the data of one report section (see :func:`mfnormal.report.write_report`);
+    with ``cluster`` (a :class:`mfnormal.cluster.Cluster`), a function that returns it
+    once the renders, submitted to the cluster now, are done.
     """
     with scene_folder(src.path):
-        return _compare_scene(src, Path(out_dir), settings, methods, log, limits)
+        finish = _start_scene(src, Path(out_dir), settings, methods, log, limits, cluster)
+        return finish if cluster is not None else finish()
 
 
 def _sized_scene(src: SceneSource, settings: Settings, limits):
@@ -178,26 +188,68 @@ def _sized_scene(src: SceneSource, settings: Settings, limits):
     return src, root, values, width, height
 
 
+def _seeds(settings: Settings) -> tuple:
+    """The (render, reference) seeds of :func:`mfnormal.rendering.render_rgb`."""
+    return settings.seed * 1000, settings.seed * 1000 + 500_000
+
+
+def _record(i, n, method, img, ref, times, settings, out_dir, log) -> dict:
+    """One method's result, its render and reference written as EXR/PNG pairs."""
+    img32, bad = sanitize(img.astype(np.float32))
+    ref32, bad_ref = sanitize(ref.astype(np.float32))
+    save_render(img32, out_dir / method.key)
+    save_render(ref32, out_dir / f"{method.key}_ref")
+    log(f"  [{i + 1}/{n}] {method.key:<22} {times[0]:6.1f} s ({settings.spp} spp), "
+        f"reference {times[1]:6.1f} s ({settings.ref_spp} spp)")
+    return {"method": method, "image": img32, "ref": ref32, "time": times[0],
+            "ref_time": times[1], "nonfinite": bad + bad_ref}
+
+
 def _render_methods(src, root, values, methods, settings, out_dir, notes, log) -> list:
     """Each method's render and reference (written as EXR/PNG pairs), with their times."""
     results = []
+    seed, ref_seed = _seeds(settings)
     for i, method in enumerate(methods):
         scene = load_method_scene(src, root, values, method, notes)
         t0 = time.perf_counter()
-        img = render_rgb(scene, settings.spp, settings.seed * 1000, settings.pass_spp)
+        img = render_rgb(scene, settings.spp, seed, settings.pass_spp)
         t1 = time.perf_counter()
-        ref = render_rgb(scene, settings.ref_spp, settings.seed * 1000 + 500_000, settings.pass_spp)
+        ref = render_rgb(scene, settings.ref_spp, ref_seed, settings.pass_spp)
         t2 = time.perf_counter()
         del scene
-        img32, bad = sanitize(img.astype(np.float32))
-        ref32, bad_ref = sanitize(ref.astype(np.float32))
-        save_render(img32, out_dir / method.key)
-        save_render(ref32, out_dir / f"{method.key}_ref")
-        results.append({"method": method, "image": img32, "ref": ref32, "time": t1 - t0,
-                        "ref_time": t2 - t1, "nonfinite": bad + bad_ref})
-        log(f"  [{i + 1}/{len(methods)}] {method.key:<22} {t1 - t0:6.1f} s ({settings.spp} spp), "
-            f"reference {t2 - t1:6.1f} s ({settings.ref_spp} spp)")
+        results.append(_record(i, len(methods), method, img, ref, (t1 - t0, t2 - t1), settings,
+                               out_dir, log))
     return results
+
+
+def _submit_methods(src, root, values, methods, settings, out_dir, notes, log, cluster):
+    """:func:`_render_methods` on ``cluster``: each render and reference one task, submitted
+    now (every scene checked here first, as a local run would); returns the function
+    that collects and records them."""
+    from .cluster import SceneSpec, xml_bundle, files_digest
+
+    bundles, files = [], {}
+    for method in methods:
+        load_method_scene(src, root, values, method, notes)     # its errors, here
+        xml, params = method_xml(src, root, values, method, notes)
+        text, params, named = xml_bundle(xml, src.path.parent, params)
+        files.update(named)
+        bundles.append((text, tuple(sorted(params.items()))))
+    digest = files_digest(files)
+    seed, ref_seed = _seeds(settings)
+    jobs = []
+    for text, params in bundles:
+        spec = SceneSpec("xml", text, params, files=digest)
+        jobs += [(spec, settings.spp, seed, settings.pass_spp),
+                 (spec, settings.ref_spp, ref_seed, settings.pass_spp)]
+    collect = cluster.render_rgb_many(jobs, files, digest)
+
+    def finish() -> list:
+        done = collect()
+        return [_record(i, len(methods), m, done[2 * i][0], done[2 * i + 1][0],
+                        (done[2 * i][1], done[2 * i + 1][1]), settings, out_dir, log)
+                for i, m in enumerate(methods)]
+    return finish
 
 
 def _measure(results: list, mask: np.ndarray, crops: list) -> float:
@@ -217,7 +269,10 @@ def _measure(results: list, mask: np.ndarray, crops: list) -> float:
     return threshold
 
 
-def _compare_scene(src: SceneSource, out_dir: Path, settings: Settings, methods, log, limits) -> dict:
+def _start_scene(src: SceneSource, out_dir: Path, settings: Settings, methods, log, limits,
+                 cluster=None):
+    """What :func:`compare_scene` does, as a function that returns the section: the
+    renders are submitted to ``cluster`` now, or (None) made here when it is called."""
     src, root, values, width, height = _sized_scene(src, settings, limits)
     notes: set = set()
 
@@ -231,10 +286,24 @@ def _compare_scene(src: SceneSource, out_dir: Path, settings: Settings, methods,
     crop_size = max(12, min(width, height) // 5)
     crops = choose_crops(coverage_by_shape * (grazing + 0.02), settings.crops, crop_size)
 
-    results = _render_methods(src, root, values, methods, settings, out_dir, notes, log)
-    threshold = _measure(results, mask, crops)
-    mask_png = tonemap(np.repeat((0.3 * (coverage > 0) + 0.7 * grazing)[..., None], 3, axis=-1))
-    atomic_write(out_dir / "mask.png", lambda p: Path(p).write_bytes(png_bytes(mask_png)))
+    if cluster is None:
+        def render():
+            return _render_methods(src, root, values, methods, settings, out_dir, notes, log)
+    else:
+        render = _submit_methods(src, root, values, methods, settings, out_dir, notes, log, cluster)
+
+    def finish() -> dict:
+        results = render()
+        threshold = _measure(results, mask, crops)
+        mask_png = tonemap(np.repeat((0.3 * (coverage > 0) + 0.7 * grazing)[..., None], 3, axis=-1))
+        atomic_write(out_dir / "mask.png", lambda p: Path(p).write_bytes(png_bytes(mask_png)))
+        return _section(src, width, height, settings, crops, mask, grazing, threshold, notes,
+                        results, mask_png)
+    return finish
+
+
+def _section(src, width, height, settings, crops, mask, grazing, threshold, notes, results,
+             mask_png) -> dict:
     return {"name": src.name, "title": src.title, "path": str(src.path), "width": width,
             "height": height, "spp": settings.spp, "ref_spp": settings.ref_spp, "crops": crops,
             "mask_fraction": float(mask.mean()), "grazing_fraction": float(grazing.mean()),
@@ -242,28 +311,45 @@ def _compare_scene(src: SceneSource, out_dir: Path, settings: Settings, methods,
             "mask_png": mask_png}
 
 
-def compare(scenes, out_dir, settings: Settings = Settings(), methods=METHODS, validation=None,
-            params: dict | None = None, log=print, command: str = "", limits=None) -> Path:
-    """Compare ``methods`` on each scene (bundled name or XML path); write
-    ``out_dir/report.html`` and the renders (``out_dir/<scene>/<method>.exr|png``)."""
-    out_dir = Path(out_dir)
-    started = time.perf_counter()
-    sections = []
-    for name in scenes:
-        src = scene_source(name, out_dir / "assets", params)
-        # A name usable in file names and HTML ids, unique within the report.
-        src.name = re.sub(r"[^\w-]", "_", src.name) or "scene"
-        while any(s["name"] == src.name for s in sections):
-            src.name += "_"
-        log(f"scene {src.name} ({src.path})")
-        sections.append(compare_scene(src, out_dir / src.name, settings, methods, log, limits))
+def _checks(methods, settings: Settings, log, collect=None) -> list:
+    """:func:`mfnormal.bsdf_checks.bsdf_checks` of each method (``collect()``: their results
+    from the cluster)."""
     log("BSDF checks (white furnace, reciprocity)")
+    if collect is not None:
+        return [{"method": m, **c} for m, c in zip(methods, collect())]
     checks = []
     for method in methods:
         t0 = time.perf_counter()
         checks.append({"method": method, **bsdf_checks(method, settings.check_samples,
                                                        repeats=settings.check_repeats)})
         log(f"  {method.key:<22} {time.perf_counter() - t0:5.1f} s")
+    return checks
+
+
+def compare(scenes, out_dir, settings: Settings = Settings(), methods=METHODS, validation=None,
+            params: dict | None = None, log=print, command: str = "", limits=None,
+            cluster=None) -> Path:
+    """Compare ``methods`` on each scene (bundled name or XML path); write
+    ``out_dir/report.html`` and the renders (``out_dir/<scene>/<method>.exr|png``).
+    With ``cluster`` (a :class:`mfnormal.cluster.Cluster`) every scene's renders and
+    references are submitted first, then collected: the same seeds, the same numbers."""
+    out_dir = Path(out_dir)
+    started = time.perf_counter()
+    sections, names = [], []
+    for name in scenes:
+        src = scene_source(name, out_dir / "assets", params)
+        # A name usable in file names and HTML ids, unique within the report.
+        src.name = re.sub(r"[^\w-]", "_", src.name) or "scene"
+        while src.name in names:
+            src.name += "_"
+        names.append(src.name)
+        log(f"scene {src.name} ({src.path})")
+        sections.append(compare_scene(src, out_dir / src.name, settings, methods, log, limits, cluster))
+    collect = None
+    if cluster is not None:
+        collect = cluster.bsdf_checks(methods, settings.check_samples, settings.check_repeats)
+        sections = [finish() for finish in sections]
+    checks = _checks(methods, settings, log, collect)
     figures = report.find_figures(validation) if validation else []
     meta = {"command": command, "variant": mi.variant(), "mitsuba": mi.__version__,
             "drjit": dr.__version__, "llvm": mfnormal.LLVM_PATH,

@@ -1,11 +1,14 @@
 """Rendering in passes: one accumulator, two pass schedules.
 
 A render of N samples per pixel is split into passes, each one ``mi.render`` call,
-whose images are averaged weighted by their sample counts (:func:`average_passes`).
+whose images are averaged weighted by their sample counts (:func:`weighted_mean`, the
+one accumulator: :func:`average_passes` feeds it renders made here,
+:mod:`mfnormal.cluster` the chunks its workers rendered, in schedule order).
 Two schedules use it:
 
 - :func:`render_scene`, the command line's (``mfnormal render``, the demo at large
-  sizes): :func:`pass_count` passes (8 by default, more where a pass would trace more
+  sizes, and ``mfnormal render --cluster``, whose chunks are these passes): :func:`schedule`,
+  :func:`pass_count` passes (8 by default, more where a pass would trace more
   than :data:`MAX_PASS_LANES` paths, which bounds its memory), :func:`pass_spp` samples
   and seed :func:`pass_seed` each; every channel of the film;
 - :func:`render_rgb`, the comparisons' (``mfnormal compare``, the true-geometry
@@ -19,8 +22,8 @@ import numpy as np
 
 import mitsuba as mi
 
-__all__ = ["MAX_PASS_LANES", "pass_count", "pass_spp", "pass_seed", "average_passes",
-           "render_scene", "render_rgb"]
+__all__ = ["MAX_PASS_LANES", "pass_count", "pass_spp", "pass_seed", "schedule", "weighted_mean",
+           "average_passes", "render_scene", "film_image", "render_rgb"]
 
 #: A render pass traces at most this many paths at once (pixels × samples per pass),
 #: which bounds its memory; more samples take more passes.
@@ -46,18 +49,33 @@ def pass_seed(seed: int, i: int) -> int:
     return (seed * 1000003 + i) % (1 << 32)
 
 
-def average_passes(scene, passes, count: int | None = None, progress=None) -> np.ndarray:
-    """The mean of the renders ``(spp, seed)`` in ``passes`` weighted by their spp:
-    every channel of the film (H × W × C, float64). ``progress(done, count)`` is called
-    after each pass."""
+def schedule(total: int, pixels: int, passes: int | None = None, seed: int = 0) -> list:
+    """The passes ``(spp, seed)`` of :func:`render_scene`'s render of ``total`` spp on a film
+    of ``pixels`` pixels (:func:`pass_count` of them)."""
+    n = pass_count(total, pixels, passes)
+    return [(pass_spp(total, n, i), pass_seed(seed, i)) for i in range(n)]
+
+
+def weighted_mean(renders, count: int | None = None, progress=None) -> np.ndarray:
+    """The mean of the images in ``renders``, an iterable of ``(spp, image)``, weighted by
+    their spp (float64, summed in the iterable's order). ``progress(done, count)`` is called
+    after each image."""
     acc, total = None, 0
-    for i, (spp, seed) in enumerate(passes):
-        img = np.array(mi.render(scene, spp=spp, seed=seed), dtype=np.float64)
+    for i, (spp, img) in enumerate(renders):
+        img = np.asarray(img, dtype=np.float64)
         acc = img * spp if acc is None else acc + img * spp
         total += spp
         if progress:
             progress(i + 1, count)
     return acc / total
+
+
+def average_passes(scene, passes, count: int | None = None, progress=None) -> np.ndarray:
+    """The mean of the renders ``(spp, seed)`` in ``passes`` weighted by their spp:
+    every channel of the film (H × W × C, float64). ``progress(done, count)`` is called
+    after each pass."""
+    renders = ((spp, np.array(mi.render(scene, spp=spp, seed=seed))) for spp, seed in passes)
+    return weighted_mean(renders, count, progress)
 
 
 def render_scene(scene, spp: int | None = None, passes: int | None = None, seed: int = 0,
@@ -68,9 +86,13 @@ def render_scene(scene, spp: int | None = None, passes: int | None = None, seed:
     sensor = scene.sensors()[0]
     total = int(spp or sensor.sampler().sample_count())
     pixels = int(np.prod([int(v) for v in sensor.film().crop_size()]))
-    n = pass_count(total, pixels, passes)
-    schedule = ((pass_spp(total, n, i), pass_seed(seed, i)) for i in range(n))
-    out = average_passes(scene, schedule, n, progress).astype(np.float32)
+    passes = schedule(total, pixels, passes, seed)
+    return film_image(average_passes(scene, passes, len(passes), progress))
+
+
+def film_image(mean: np.ndarray) -> np.ndarray:
+    """:func:`render_scene`'s result from the mean of its passes: H × W × C, float32."""
+    out = mean.astype(np.float32)
     return out if out.ndim == 3 else out[..., None]
 
 
@@ -80,5 +102,5 @@ def render_rgb(scene, spp: int, seed: int, per_pass: int = 16) -> np.ndarray:
     if isinstance(scene, dict):
         scene = mi.load_dict(scene)
     n = -(-spp // per_pass)
-    schedule = ((min(per_pass, spp - i * per_pass), (seed + i) % (1 << 32)) for i in range(n))
-    return average_passes(scene, schedule, n)[..., :3]
+    passes = ((min(per_pass, spp - i * per_pass), (seed + i) % (1 << 32)) for i in range(n))
+    return average_passes(scene, passes, n)[..., :3]

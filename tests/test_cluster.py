@@ -1,0 +1,374 @@
+"""``mfnormal render|compare --cluster``: rendering on a Dask.distributed cluster (mfnormal.cluster).
+
+The cluster is a ``LocalCluster`` of two worker processes of one thread each on this
+machine, shared by the tests of this module (its address is what ``--cluster ADDRESS``
+takes); ``compare`` starts its own with ``local:2``, and the tests that take a cluster
+down start their own. Skipped without the extra
+(``pip install 'mfnormal[cluster]'``; ``scripts/setup.sh --test`` installs it).
+
+Tolerances: a cluster render and the same chunks rendered here in sequence are
+merged by the same accumulator in the same order, so they differ only where one
+``mi.render`` sums its film's samples in another order (other thread counts):
+|Δ| ≤ 1e-6 on pixel values of order 1 (16 float32 ulps; measured: 6e-8). Against a
+render with other seeds the image mean is compared within 4.5 standard errors of
+the per-pixel differences (the seeds are fixed: it passes or fails the same way
+every run).
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+distributed = pytest.importorskip("distributed")
+
+import mitsuba as mi  # noqa: E402
+
+from cli_checks import assert_one_line_error  # noqa: E402
+from helpers import write_maps, xml_plugin, xml_scene  # noqa: E402
+from mfnormal import cli  # noqa: E402
+from mfnormal.cluster import xml_bundle  # noqa: E402
+from mfnormal.rendering import average_passes, film_image, schedule  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+TOL = 1e-6
+SHAPES = ('<shape type="sphere">' + xml_plugin() + '</shape>'
+          '<shape type="rectangle"><transform name="to_world"><rotate x="1" angle="-90"/>'
+          '<translate y="-1"/></transform><bsdf type="diffuse"/></shape>')
+
+
+@pytest.fixture(scope="module")
+def cluster():
+    import logging
+
+    c = distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
+                                 dashboard_address=":0", silence_logs=logging.ERROR)
+    client = distributed.Client(c)
+    yield c, client
+    client.close()
+    c.close()
+
+
+def _scene(folder: Path, spp=16, width=32, height=24) -> Path:
+    write_maps(folder)
+    path = folder / "scene.xml"
+    path.write_text(xml_scene(SHAPES, {"nm": "normalmap.png", "model": "faithful"}, spp=str(spp),
+                              width=str(width), height=str(height)))
+    return path
+
+
+def _exr(path) -> np.ndarray:
+    return np.array(mi.Bitmap(str(path)), dtype=np.float64)
+
+
+def _sequential(scene_path, spp: int, chunks: int, seed: int) -> np.ndarray:
+    """The chunks of a cluster render (``--chunks``, ``--seed``), rendered here one after another."""
+    scene = mi.load_file(str(scene_path))
+    w, h = scene.sensors()[0].film().crop_size()
+    return film_image(average_passes(scene, schedule(spp, int(w) * int(h), chunks, seed)))[..., :3]
+
+
+def _outputs(folder: Path) -> list:
+    """The render's outputs in ``folder`` (``out.exr``, ``out.png``), and temporary files."""
+    return sorted(p.name for p in folder.iterdir() if p.name.startswith(("out", ".")))
+
+
+def _cli(argv, capsys):
+    rc = cli.main(argv)
+    out, err = capsys.readouterr()
+    return rc, out, err
+
+
+# -- Arguments -----------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("value", ["local", "local:0", "local:two", "local:-1", "scheduler",
+                                   "http://host:8786", "tcp://host", "host:99999", "tcp://a b:1"])
+def test_bad_cluster_values_are_one_line_errors_before_any_work(tmp_path, value):
+    scene = _scene(tmp_path)
+    proc = subprocess.run([sys.executable, "-m", "mfnormal", "render", str(scene), "-o",
+                           str(tmp_path / "out"), "--cluster", value], capture_output=True, text=True,
+                          timeout=60) if value == "local" else None
+    if proc is not None:            # one run as a process: the exit code and stderr as a user sees them
+        assert_one_line_error(proc, "--cluster")
+    rc = cli.main(["render", str(scene), "-o", str(tmp_path / "out"), "--cluster", value])
+    assert rc == 2
+    assert not (tmp_path / "out.exr").exists()
+
+
+def test_without_the_extra_cluster_is_one_line_that_says_what_to_install(tmp_path, monkeypatch,
+                                                                         capsys):
+    monkeypatch.setitem(sys.modules, "distributed", None)      # import distributed fails
+    rc, _, err = _cli(["render", str(_scene(tmp_path)), "-o", str(tmp_path / "out"),
+                       "--cluster", "local:2"], capsys)
+    assert rc == 2 and "pip install 'mfnormal[cluster]'" in err and len(err.strip().splitlines()) == 1
+    assert _outputs(tmp_path) == []
+
+
+def test_unreachable_scheduler_is_one_line_and_writes_nothing(tmp_path, capsys):
+    scene = _scene(tmp_path)
+    with socket.socket() as s:          # a port nobody listens on
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    t0 = time.monotonic()
+    rc, _, err = _cli(["render", str(scene), "-o", str(tmp_path / "out"), "--cluster",
+                       f"127.0.0.1:{port}", "--cluster-timeout", "1"], capsys)
+    assert rc == 2 and "cannot reach the scheduler" in err and len(err.strip().splitlines()) == 1, err
+    assert time.monotonic() - t0 < 30
+    assert _outputs(tmp_path) == []
+
+
+# -- What travels ----------------------------------------------------------------------------
+
+
+def test_the_bundle_holds_the_files_the_scene_names_and_nothing_else(tmp_path):
+    scene = _scene(tmp_path)
+    (tmp_path / "private.txt").write_text("not named by the scene")
+    (tmp_path / "part.xml").write_text('<scene version="3.0.0"><shape type="obj">'
+                                       '<string name="filename" value="$mesh"/></shape></scene>')
+    (tmp_path / "mesh.obj").write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
+    text = scene.read_text().replace("</scene>", '<include filename="part.xml"/></scene>')
+    text = text.replace('<default name="model"', '<default name="mesh" value="mesh.obj"/>'
+                        '<default name="model"')
+    bundled, params, files = xml_bundle(text, tmp_path, {"nm": "gray.png", "model": "analytic"})
+    contents = {data for data in files.values()}
+    assert (tmp_path / "gray.png").read_bytes() in contents          # the -D value, not the default
+    assert (tmp_path / "normalmap.png").read_bytes() not in contents
+    assert (tmp_path / "mesh.obj").read_bytes() in contents          # named inside the include
+    assert len(files) == 3 and not any(b"not named" in d for d in files.values())
+    assert "gray.png" not in bundled.replace("_gray.png", "") and params == {"model": "analytic"}
+    include = next(d for k, d in files.items() if k.endswith("part.xml")).decode()
+    assert next(k for k in files if k.endswith("mesh.obj")) in include
+
+
+# -- Rendering ---------------------------------------------------------------------------------
+
+
+def test_cluster_render_equals_its_chunks_rendered_in_sequence_and_a_local_render_within_noise(
+        tmp_path, cluster, capsys):
+    scene = _scene(tmp_path, spp=20)
+    address = cluster[0].scheduler_address
+    rc, out, err = _cli(["render", str(scene), "-o", str(tmp_path / "cl"), "--seed", "3",
+                         "--chunks", "6", "--cluster", address], capsys)
+    assert rc == 0, err
+    assert "6 chunks on 2 worker(s)" in out
+    img = _exr(tmp_path / "cl.exr")
+    same = _sequential(scene, 20, 6, 3)
+    assert np.abs(img - same).max() <= TOL
+    assert np.abs(img - _sequential(scene, 20, 6, 4)).max() > 1e-3      # the seeds matter
+    assert np.abs(img - _sequential(scene, 20, 5, 3)).max() > 1e-3      # and so does the split
+
+    rc, _, err = _cli(["render", str(scene), "-o", str(tmp_path / "local"), "--seed", "11"], capsys)
+    assert rc == 0, err
+    diff = (img - _exr(tmp_path / "local.exr")).mean(axis=-1).ravel()
+    z = diff.mean() / (diff.std(ddof=1) / np.sqrt(diff.size))
+    assert abs(z) < 4.5, z
+    assert np.abs(diff).max() > 1e-3                                    # independent samples
+
+
+def test_with_shared_files_the_workers_read_the_scene_from_its_path(tmp_path, cluster, capsys):
+    scene = _scene(tmp_path)
+    rc, _, err = _cli(["render", str(scene), "-o", str(tmp_path / "out"), "--chunks", "3",
+                       "--shared-files", "--cluster", cluster[0].scheduler_address], capsys)
+    assert rc == 0, err
+    assert np.abs(_exr(tmp_path / "out.exr") - _sequential(scene, 16, 3, 0)).max() <= TOL
+    from mfnormal.cluster import scene_spec
+
+    spec, files = scene_spec(scene, {"nm": "gray.png"}, shared=True)
+    assert files == {} and spec.shared and spec.source == str(scene.resolve())
+    assert spec.params == (("nm", "gray.png"),)
+
+
+def test_workers_with_other_versions_are_refused_with_one_line(tmp_path, cluster, capsys):
+    scene = _scene(tmp_path)
+    client = cluster[1]
+
+    def patch(version):            # on each worker: report another mfnormal, or its own again
+        import mfnormal.cluster as c
+        c.__dict__.setdefault("_own_version", c._package_version)
+        c._package_version = (lambda: version) if version else c._own_version
+
+    client.run(patch, "0.0.0+other")
+    try:
+        rc, _, err = _cli(["render", str(scene), "-o", str(tmp_path / "out"), "--cluster",
+                           cluster[0].scheduler_address], capsys)
+    finally:
+        client.run(patch, None)
+    assert rc == 2 and len(err.strip().splitlines()) == 1, err
+    assert "mfnormal 0.0.0+other" in err and "refusing to mix" in err
+    assert _outputs(tmp_path) == []
+
+
+def _render_process(scene, out, address, *extra):
+    return subprocess.Popen([sys.executable, "-m", "mfnormal", "render", str(scene), "-o", str(out),
+                             "--cluster", address, *extra], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, cwd=str(ROOT))
+
+
+def _processing_chunk(client, timeout=60.0):
+    """The address of a worker processing a chunk of the render (waits for one)."""
+    def processing(dask_scheduler):
+        return [ts.processing_on.address for ts in dask_scheduler.tasks.values()
+                if ts.state == "processing" and "render_chunk" in str(ts.key) and ts.processing_on]
+
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        found = client.run_on_scheduler(processing)
+        if found:
+            return found[0]
+        time.sleep(0.05)
+    raise AssertionError("no chunk was processed")
+
+
+def test_a_worker_killed_mid_run_leaves_a_complete_and_correct_render(tmp_path, cluster):
+    c, client = cluster
+    scene = _scene(tmp_path, spp=64, width=48, height=36)
+    proc = _render_process(scene, tmp_path / "out", c.scheduler_address, "--chunks", "8", "--seed", "5")
+    victim = _processing_chunk(client)
+    pids = client.run(os.getpid)
+    assert proc.poll() is None                   # mid-run
+    os.kill(pids[victim], signal.SIGKILL)
+    out, err = proc.communicate(timeout=180)
+    assert proc.returncode == 0, err
+    assert np.abs(_exr(tmp_path / "out.exr") - _sequential(scene, 64, 8, 5)).max() <= TOL
+    deadline = time.monotonic() + 60             # the nanny restarts it, for the next tests
+    while time.monotonic() < deadline:
+        now = client.run(os.getpid)
+        if len(now) == 2 and pids[victim] not in now.values():
+            break
+        time.sleep(0.1)
+
+
+def _own_cluster(workers: int):
+    """A cluster of its own, for a test that takes it down."""
+    import logging
+
+    c = distributed.LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
+                                 dashboard_address=":0", silence_logs=logging.CRITICAL)
+    return c, distributed.Client(c)
+
+
+def test_a_render_whose_workers_all_leave_writes_nothing(tmp_path):
+    scene = _scene(tmp_path, spp=64, width=48, height=36)
+    c, client = _own_cluster(2)
+    try:
+        proc = _render_process(scene, tmp_path / "out", c.scheduler_address, "--chunks", "8",
+                               "--cluster-timeout", "2")
+        _processing_chunk(client)
+        c.scale(0)                               # every worker gone for good
+        try:
+            out, err = proc.communicate(timeout=60)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            out, err = proc.communicate()
+            raise AssertionError(f"still running 60 s after its workers left ({client.nthreads()}): "
+                                 f"{err[-2000:]}") from None
+    finally:
+        client.close()
+        c.close()
+    assert proc.returncode == 2, out + err
+    assert "no worker" in err and len(err.strip().splitlines()) == 1, err
+    assert _outputs(tmp_path) == []
+
+
+def test_a_render_whose_scheduler_is_lost_writes_nothing(tmp_path):
+    scene = _scene(tmp_path, spp=64, width=48, height=36)
+    c, client = _own_cluster(1)
+    proc = _render_process(scene, tmp_path / "out", c.scheduler_address, "--chunks", "8",
+                           "--cluster-timeout", "2")
+    try:
+        _processing_chunk(client)
+    finally:
+        client.close()
+        c.close()
+    out, err = proc.communicate(timeout=120)
+    assert proc.returncode == 2, out + err
+    assert "lost the cluster" in err and len(err.strip().splitlines()) == 1, err
+    assert _outputs(tmp_path) == []
+
+
+# -- compare ---------------------------------------------------------------------------------
+
+
+def _report_numbers(path: Path) -> str:
+    """The report's tables without their timing columns."""
+    html = path.read_text()
+    tables = "".join(re.findall(r"<table.*?</table>", html, flags=re.S))
+    return re.sub(r"\d+\.\d s\b", "<time>", tables)
+
+
+def test_compare_on_a_local_cluster_gives_the_same_report(tmp_path, capsys):
+    scene = _scene(tmp_path)
+    args = ["compare", str(scene), "--quick", "--methods", "flat,classic,faithful,analytic"]
+    rc, _, err = _cli(args + ["-o", str(tmp_path / "here")], capsys)
+    assert rc == 0, err
+    rc, _, err = _cli(args + ["-o", str(tmp_path / "there"), "--cluster", "local:2"], capsys)
+    assert rc == 0, err
+    here, there = _report_numbers(tmp_path / "here" / "report.html"), \
+        _report_numbers(tmp_path / "there" / "report.html")
+    assert "relMSE" in here and here == there
+    for key in ("flat", "classic", "faithful", "analytic", "faithful_ref"):
+        a, b = (_exr(tmp_path / d / "scene" / f"{key}.exr") for d in ("here", "there"))
+        assert np.abs(a - b).max() <= TOL, key
+
+
+# -- A worker's own variant (mfnormal.worker) -----------------------------------------------------
+
+
+def _preloaded_cluster(variant: str):
+    import logging
+
+    return distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=True,
+                                    dashboard_address=":0", silence_logs=logging.CRITICAL,
+                                    preload=["mfnormal.worker"], preload_argv=["--variant", variant])
+
+
+def test_a_worker_started_with_a_variant_renders_its_chunks_in_it(tmp_path, capsys):
+    scene = _scene(tmp_path, width=8, height=6)
+    with _preloaded_cluster("scalar_rgb") as c:
+        rc, out, err = _cli(["render", str(scene), "-o", str(tmp_path / "out"), "--spp", "1",
+                             "--cluster", c.scheduler_address], capsys)
+    assert rc == 0, err
+    assert "scalar_rgb" in out and np.isfinite(_exr(tmp_path / "out.exr")).all()
+
+
+def test_a_worker_that_cannot_use_its_variant_is_refused_with_one_line(tmp_path, capsys):
+    import drjit as dr
+
+    if dr.has_backend(dr.JitBackend.CUDA):
+        pytest.skip("a CUDA device is here: the refusal is for workers without one")
+    scene = _scene(tmp_path)
+    with _preloaded_cluster("cuda_ad_rgb") as c:
+        rc, _, err = _cli(["render", str(scene), "-o", str(tmp_path / "out"), "--cluster",
+                           c.scheduler_address], capsys)
+    assert rc == 2 and len(err.strip().splitlines()) == 1, err
+    assert "cannot use variant 'cuda_ad_rgb'" in err
+    assert _outputs(tmp_path) == []
+
+
+def test_a_gltf_bundle_holds_its_buffers_and_images_and_nothing_else(tmp_path):
+    import json
+
+    from mfnormal.cluster import scene_spec
+
+    (tmp_path / "mesh.bin").write_bytes(b"\0" * 12)
+    (tmp_path / "albedo map.png").write_bytes(b"png bytes")
+    (tmp_path / "unrelated.png").write_bytes(b"not named")
+    doc = {"asset": {"version": "2.0"}, "buffers": [{"uri": "mesh.bin", "byteLength": 12}],
+           "images": [{"uri": "albedo%20map.png"}, {"uri": "data:image/png;base64,AAAA"}]}
+    (tmp_path / "model.gltf").write_text(json.dumps(doc))
+    spec, files = scene_spec(tmp_path / "model.gltf", {}, gltf_options={"spp": 4})
+    assert sorted(files.values()) == sorted([b"\0" * 12, b"png bytes", files[spec.source]])
+    bundled = json.loads(files[spec.source])
+    assert [b["uri"] for b in bundled["buffers"]] == [k for k in files if k.endswith("mesh.bin")]
+    assert bundled["images"][0]["uri"].endswith("albedo_map.png")
+    assert bundled["images"][1]["uri"].startswith("data:") and spec.params == (("spp", 4),)
