@@ -621,3 +621,41 @@ def test_shadow_terminator_wedge_is_not_black():
         assert np3(w).mean() > 0.1, model
     plain = mi.load_dict(NESTED["diffuse"])
     assert np.all(np3(plain.eval(mi.BSDFContext(), si, wo)) == 0)
+
+
+# -- 5. The glTF loader's option -----------------------------------------------------------------------
+
+def test_gltf_macro_normal_geometric_wraps_every_smooth_shaded_mesh(tmp_path):
+    """``load_gltf(macro_normal="geometric")``: a smooth-shaded icosphere without a normal map
+    gets ``normalmap_microfacet`` with ``macro_normal="geometric"`` and no map, a smooth one with a
+    normal map keeps its map and gets the geometric macro normal, a flat-shaded one (no NORMAL:
+    face normals) is left alone; the default leaves the map-less meshes alone. A bad value is a
+    one-line error."""
+    from gltf_writer import Material, Primitive, png_bytes, write_glb
+
+    from mfnormal import terminator
+    from mfnormal.gltf import is_smooth_shaded, load_gltf
+    pos, faces = terminator.icosphere(1)
+    flat_map = np.full((4, 4, 3), [128, 128, 255], np.uint8)
+    prims = [Primitive(pos.astype(np.float32), pos.astype(np.float32), None, faces, material=0),
+             Primitive((pos + [3, 0, 0]).astype(np.float32), pos.astype(np.float32),
+                       np.float32(pos[:, :2] * 0.5 + 0.5), faces, material=1),
+             Primitive((pos + [6, 0, 0]).astype(np.float32), None, None, faces, material=0)]
+    path = write_glb(tmp_path / "spheres.glb", prims, [Material(), Material(normal_png=png_bytes(flat_map))])
+    assert is_smooth_shaded(pos, pos, faces)
+    p = pos[faces].reshape(-1, 3)
+    fn = np.cross(p[1::3] - p[0::3], p[2::3] - p[0::3])
+    assert not is_smooth_shaded(p, np.repeat(fn / np.linalg.norm(fn, axis=1, keepdims=True), 3, 0),
+                                np.arange(len(p)).reshape(-1, 3))
+
+    def bsdfs(**kw):
+        scene = load_gltf(path, width=8, height=8, **kw)
+        return [str(scene[k].bsdf()) for k in sorted(k for k in scene if k.startswith("mesh_"))]
+    geo = bsdfs(macro_normal="geometric")
+    assert "NormalMapMicrofacet" in geo[0] and "macro_normal=geometric" in geo[0] and "normalmap=None" in geo[0]
+    assert "macro_normal=geometric" in geo[1] and "normalmap=Bitmap" in geo[1]
+    assert "NormalMapMicrofacet" not in geo[2]
+    default = bsdfs()
+    assert "NormalMapMicrofacet" not in default[0] and "macro_normal=shading" in default[1]
+    with pytest.raises(ValueError, match="macro_normal must be one of shading, geometric"):
+        load_gltf(path, macro_normal="triangle")

@@ -688,6 +688,9 @@ METHODS = {m.key: m for m in (
     plugin_method("nonseparable", "same"),
     Method("bumpmap", "bumpmap", _bumpmap, "Mitsuba bumpmap on the baked height map (scale 1)"),
     heightmap_method(),
+    heightmap_method("analytic"),
+    heightmap_method("separable"),
+    heightmap_method("nonseparable"),
 )}
 
 #: The methods of the default grid.

@@ -58,6 +58,8 @@ MACRO_NORMALS = ("shading", "geometric")
 #: ``eval`` in light tracing is the adjoint times ⟨b,n_s⟩⟨a,n_g⟩/(⟨a,n_s⟩⟨b,n_g⟩), capped here
 #: (the ratio is ``ptracer``'s correction inverted; it only exceeds this within ~1e-6 of a horizon).
 ADJOINT_MAX = 1e6
+#: si.n whose largest component (in the shading frame) is at most this is degenerate.
+NORMAL_MIN = 1e-30
 
 
 def unit_normal(n):
@@ -121,11 +123,13 @@ def texture_space_normal(grad, frame, dp_du, dp_dv):
 def geometric_frame(si):
     """G, the frame of the true triangle normal in ``si.sh_frame``'s local coordinates: n = si.n
     turned to the shading normal's side, s = the shading frame's s made orthogonal to n (t for an
-    s parallel to n). A degenerate si.n (zero, non-finite) gives the shading frame itself."""
+    s parallel to n). si.n of any finite length counts (scaled by its largest component first);
+    a degenerate one (largest component ≤ ``NORMAL_MIN`` or non-finite) gives the shading frame."""
     n = si.sh_frame.to_local(mi.Vector3f(si.n))
-    len2 = dr.squared_norm(n)
-    ok = dr.isfinite(len2) & (len2 > 1e-12)
-    n = dr.select(ok, n * dr.rsqrt(dr.select(ok, len2, 1.0)), mi.Vector3f(0, 0, 1))
+    m = dr.maximum(dr.maximum(dr.abs(n.x), dr.abs(n.y)), dr.abs(n.z))
+    ok = dr.isfinite(m) & (m > NORMAL_MIN)
+    n = n / dr.select(ok, m, 1.0)
+    n = dr.select(ok, n * dr.rsqrt(dr.select(ok, dr.squared_norm(n), 1.0)), mi.Vector3f(0, 0, 1))
     n = dr.select(n.z < 0, -n, n)
     s = mi.Vector3f(1.0 - n.x * n.x, -n.x * n.y, -n.x * n.z)
     s2 = dr.squared_norm(s)
