@@ -11,6 +11,27 @@ Microfacet-based normal mapping (:monosp:`normalmap_microfacet`)
    - Tangent-space normal map, decoded as :math:`n = 2\,\mathrm{rgb} - 1` in the
      base shading frame (like Mitsuba's built-in ``normalmap``). Give a
      ``bitmap`` texture with ``raw=true``, or a file name (loaded raw).
+ * - heightmap
+   - |texture| or |string|
+   - Instead of ``normalmap``: a height map (a ``bitmap``, ``raw=true``,
+     bilinear: ω_p comes from its uv gradient ``eval_1_grad``). ω_p is the
+     normal of the surface displaced along its normal by
+     ``height_scale · strength · h(u, v)``, exactly Mitsuba ``bumpmap``'s
+     perturbed normal for the same texture and ``scale`` (tested), mapped
+     through the tangent frame (``tangents`` respected). docs/normal_sources.md.
+ * - height_scale
+   - |float|
+   - Height map only: the heights' scale, Mitsuba ``bumpmap``'s ``scale``
+     (world units per texture unit where dp/du, dp/dv have unit length).
+     Default: 1; any finite number (negative inverts the relief).
+ * - macro_normal
+   - |string|
+   - ``shading`` (default): the microsurface's macro normal is the shading
+     normal ``si.sh_frame.n``. ``geometric``: it is the true triangle normal
+     ``si.n``, and ω_p is the interpolated shading normal with the map (if any)
+     applied on top of it. Without a map this is the shadow-terminator fix for
+     smooth-shaded low-poly meshes (``eval`` then returns f·⟨ω_o, si.n⟩;
+     directions stay in ``si.sh_frame`` for the integrator).
  * - (nested bsdf)
    - |bsdf|
    - The material of the microfacets: any Mitsuba BSDF (its reflection part).
@@ -95,7 +116,9 @@ like the true geometry the map was baked from.
 Contracts (each one is tested):
 
 - ``eval`` returns :math:`f\cdot\langle\omega_o,\omega_g\rangle` in the base
-  shading frame (:math:`\omega_g` = +z of ``si.sh_frame``), zero below it;
+  shading frame (:math:`\omega_g` = +z of ``si.sh_frame``; with
+  ``macro_normal="geometric"`` :math:`\omega_g` = ``si.n`` turned to the shading
+  normal's side, directions still in ``si.sh_frame``), zero below it;
 - ``eval_pdf`` equals ``(eval, pdf)``; ``pdf`` is a deterministic function of
   (wi, wo): for ``faithful`` and ``analytic`` the exact density of ``sample``, for
   the random walks a function for MIS (below);
@@ -103,6 +126,10 @@ Contracts (each one is tested):
   lobes the unbiased path weight), or the walk's throughput, an unbiased estimate of it;
 - ``faithful`` in ``TransportMode.Importance`` (light tracing) returns its adjoint,
   eval*(a, b) = eval(b, a)·⟨b,ω_g⟩/⟨a,ω_g⟩; the other models are reciprocal;
+  with ``macro_normal="geometric"`` every model's ``TransportMode.Importance``
+  eval is divided by the shading-normal correction Mitsuba's ``ptracer``
+  applies (the microsurface lies on the true triangle and needs none), so light
+  tracing matches path tracing;
 - normals that are NaN, infinite, zero, or point below the horizon never
   produce NaN: they decode to the flat normal, or are clamped to
   :math:`\cos\theta_p \ge 0.02`. A flat map reproduces the nested BSDF.
