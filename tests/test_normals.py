@@ -659,3 +659,28 @@ def test_gltf_macro_normal_geometric_wraps_every_smooth_shaded_mesh(tmp_path):
     assert "NormalMapMicrofacet" not in default[0] and "macro_normal=shading" in default[1]
     with pytest.raises(ValueError, match="macro_normal must be one of shading, geometric"):
         load_gltf(path, macro_normal="triangle")
+
+
+# -- 6. The shadow terminator against the true sphere (validation/normal_sources.py at full size) --------
+
+@pytest.mark.parametrize("level", [1, 2])
+def test_geometric_macro_normal_is_closer_to_the_true_sphere_in_the_terminator_band(level):
+    """A smooth-shaded icosphere (80 / 320 triangles, diffuse) under a grazing sun against the
+    analytic sphere (mfnormal.terminator, 64² pixels, 128 spp, truth at 512 spp): per 4×4 block
+    of the terminator band, |error| of plain interpolated normals minus that of ours (faithful,
+    no map, macro_normal="geometric") has a positive mean at z > 2.5 (one-sided 0.6 %; measured
+    3.1 / 5.2); ours has no near-black pixel there; and the analytic model with the geometric macro
+    normal is > 2.5× further off (measured 4.2×, as far as face normals: its mirror tangent facet
+    cancels the interpolated normal's relief, so the facets come back)."""
+    from mfnormal import terminator as T
+    methods = ("plain", "geometric", "geometric_analytic")
+    r = T.render_case(T.Case(level, "diffuse"), methods=methods, res=64, spp=128)
+    band = r["band"] & r["cover"]
+    full = T._blocks(band.astype(np.float64), 4) > 0.999
+    truth = T._blocks(T.luminance(r["images"]["truth"]), 4)[full]
+    err = {m: np.abs(T._blocks(T.luminance(r["images"][m]), 4)[full] - truth) for m in methods}
+    d = err["plain"] - err["geometric"]
+    assert full.sum() > 40
+    assert d.mean() / (d.std() / math.sqrt(d.size)) > 2.5, (d.mean(), d.std())
+    assert r["metrics"]["geometric"]["band"]["black"] == 0.0
+    assert err["geometric_analytic"].mean() > 2.5 * err["geometric"].mean()

@@ -356,7 +356,17 @@ def main(argv=None):
     p.add_argument("--res", type=int, default=128)
     p.add_argument("--levels", type=lambda s: [int(x) for x in s.split(",")], default=None)
     p.add_argument("--grid", type=Path, default=ROOT / "validation" / "results" / "heightmap" / "true_geometry.json")
+    p.add_argument("--report-only", action="store_true",
+                   help="rewrite the markdown from the json (re-reading --grid), rendering nothing")
     args = p.parse_args(argv)
+    if args.report_only:
+        stem = "normal_sources_quick" if args.quick else "normal_sources"
+        res = json.loads((args.out / f"{stem}.json").read_text())
+        res["bump"] = bump_summary(args.grid)
+        atomic_write(args.out / f"{stem}.json", lambda q: Path(q).write_text(json.dumps(res, indent=1, default=float)))
+        atomic_write(args.out / f"{stem}.md", lambda q: Path(q).write_text(markdown(res)))
+        log(f"rewrote {args.out / stem}.{{md,json}}")
+        return 0
     t0 = time.time()
     spp = args.spp or (16 if args.quick else 512)
     levels = args.levels or ([1] if args.quick else [1, 2, 3])
