@@ -18,8 +18,8 @@ The hostile inputs are the ones these options add to the normal-map path's
 Checked on every query (exactly, no tolerance unless stated): eval, pdf, eval_pdf and the
 sample's weight and pdf finite and ≥ 0; eval and pdf zero unless ω_i and ω_o lie above the
 macro plane (the shading plane for ``heightmap``; for ``geometric`` the triangle's, oriented to
-the shading normal's side, or the shading plane where si.n is degenerate: largest component
-≤ 1e-30 or not finite); pdf > 0 wherever
+the shading normal's side, or the shading plane where si.n is degenerate: |si.n|² in float32
+≤ 1e-12 or not finite); pdf > 0 wherever
 eval > 1e-30; eval_pdf = (eval, pdf) (relative 1e-4 for faithful/analytic, bit for bit for the
 walks); a sample with weight > 0 is a finite unit vector above the macro plane with pdf > 0;
 white furnace (white Lambertian facets, GROUPS groups of one (si.n, uv, ω_i) each): mean
@@ -126,11 +126,11 @@ def macro_planes(ng, geometric):
     if not geometric:
         return z
     with np.errstate(invalid="ignore", over="ignore"):
-        g = ng.astype(np.float32).astype(np.float64)
-        m = np.abs(g).max(1)
-        ok = np.isfinite(m) & (m > 1e-30)
+        g = ng.astype(np.float32)
+        len2 = np.sum(g * g, 1, dtype=np.float32)
+        ok = np.isfinite(len2) & (len2 > 1e-12)
     out = z.copy()
-    out[ok] = unit(g[ok])
+    out[ok] = unit(g[ok].astype(np.float64))
     out[ok] *= np.where(out[ok, 2] < 0, -1.0, 1.0)[:, None]
     return out
 

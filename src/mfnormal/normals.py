@@ -58,8 +58,8 @@ MACRO_NORMALS = ("shading", "geometric")
 #: ``eval`` in light tracing is the adjoint times ⟨b,n_s⟩⟨a,n_g⟩/(⟨a,n_s⟩⟨b,n_g⟩), capped here
 #: (the ratio is ``ptracer``'s correction inverted; it only exceeds this within ~1e-6 of a horizon).
 ADJOINT_MAX = 1e6
-#: si.n whose largest component (in the shading frame) is at most this is degenerate.
-NORMAL_MIN = 1e-30
+#: si.n whose squared length is at most this (or not finite) is degenerate.
+NORMAL_MIN2 = 1e-12
 
 
 def unit_normal(n):
@@ -122,21 +122,29 @@ def texture_space_normal(grad, frame, dp_du, dp_dv):
 
 def geometric_frame(si):
     """G, the frame of the true triangle normal in ``si.sh_frame``'s local coordinates: n = si.n
-    turned to the shading normal's side, s = the shading frame's s made orthogonal to n (t for an
-    s parallel to n). si.n of any finite length counts (scaled by its largest component first);
-    a degenerate one (largest component ≤ ``NORMAL_MIN`` or non-finite) gives the shading frame."""
+    turned to the shading normal's side, s = the shading frame's s made orthogonal to n (its n
+    for an s parallel to n). A degenerate si.n (|si.n|² not finite or ≤ ``NORMAL_MIN2``: zero,
+    NaN, or so long that float32 overflows) gives the shading frame itself. Written for few
+    operations: it runs on every query (benchmarks/normal_sources.py)."""
     n = si.sh_frame.to_local(mi.Vector3f(si.n))
-    m = dr.maximum(dr.maximum(dr.abs(n.x), dr.abs(n.y)), dr.abs(n.z))
-    ok = dr.isfinite(m) & (m > NORMAL_MIN)
-    n = n / dr.select(ok, m, 1.0)
-    n = dr.select(ok, n * dr.rsqrt(dr.select(ok, dr.squared_norm(n), 1.0)), mi.Vector3f(0, 0, 1))
-    n = dr.select(n.z < 0, -n, n)
-    s = mi.Vector3f(1.0 - n.x * n.x, -n.x * n.y, -n.x * n.z)
-    s2 = dr.squared_norm(s)
-    alt = s2 < 1e-6
-    s = dr.select(alt, mi.Vector3f(-n.y * n.x, 1.0 - n.y * n.y, -n.y * n.z), s)
-    s = s * dr.rsqrt(dr.maximum(dr.squared_norm(s), 1e-30))
+    len2 = dr.squared_norm(n)
+    ok = dr.isfinite(len2) & (len2 > NORMAL_MIN2)
+    n = dr.select(ok, n * dr.mulsign(dr.rsqrt(len2), n.z), mi.Vector3f(0, 0, 1))
+    # Gram-Schmidt of the shading frame's s = x (its n = z where n is within ~0.1° of ±x).
+    alt = dr.abs(n.x) > 1.0 - 1e-6
+    c = dr.select(alt, n.z, n.x)
+    s = mi.Vector3f(dr.select(alt, 0.0, 1.0), 0.0, dr.select(alt, 1.0, 0.0)) - c * n
+    s = s * dr.rsqrt(dr.maximum(dr.fma(-c, c, 1.0), 1e-12))
     return mi.Frame3f(s, dr.cross(n, s), n)
+
+
+def to_upper_hemisphere(n):
+    """A unit vector with cosθ below COS_P_MIN raised to it, keeping the azimuth (the clamp of
+    decoded maps; straight up where it has no azimuth)."""
+    xy2 = dr.fma(n.x, n.x, n.y * n.y)
+    scale = dr.sqrt((1.0 - COS_P_MIN * COS_P_MIN) / dr.maximum(xy2, 1e-30))
+    clamped = dr.select(xy2 > 1e-30, mi.Vector3f(n.x * scale, n.y * scale, COS_P_MIN), mi.Vector3f(0, 0, 1))
+    return dr.select(n.z < COS_P_MIN, clamped, n)
 
 
 class Macro:
@@ -205,7 +213,7 @@ def shading_point(plugin, ctx, si, active=True):
     si_g = mi.SurfaceInteraction3f(si)
     si_g.sh_frame = mi.Frame3f(si.to_world(g.s), si.to_world(g.t), si.to_world(g.n))
     si_g.wi = g.to_local(si.wi)
-    sp = ShadingPoint(plugin.nested, ctx, si_g, unit_normal(g.to_local(wp)))
+    sp = ShadingPoint(plugin.nested, ctx, si_g, to_upper_hemisphere(g.to_local(wp)))
     if plugin.tangent_attr is not None and rotation is not None:
         tangent, sign = plugin._vertex_tangent(si, active)
         rotation = tangent_rotation(si_g.sh_frame, tangent, sign)
