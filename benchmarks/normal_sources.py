@@ -16,7 +16,8 @@ normal, skewed dp/du, dp/dv) with, besides the reference ``normalmap`` (a 256² 
 Warm kernels only (one untimed call first), process CPU time (all threads; tracing
 included); the configurations are interleaved
 (reference, config, reference, config, ...) and each ratio is the median over ``reps``
-pairs, so the drift of a shared machine cancels. Writes ``normal_sources.json`` and
+pairs, so the drift of a shared machine cancels; beside it the operation count of the JIT
+kernels (deterministic). Writes ``normal_sources.json`` and
 ``normal_sources.md`` into ``--out``. Acceptance (issue 17): ``heightmap`` and ``geometric``
 within 10 % of the normal-map path (ratio ≤ 1.10).
 """
@@ -108,6 +109,19 @@ def timed(fn):
     return time.process_time() - t
 
 
+def op_count(fn) -> int:
+    """Operations in the JIT kernels one call launches (Dr.Jit's kernel history): a deterministic
+    cost measure beside the timings."""
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    try:
+        dr.kernel_history()                          # clear
+        timed(fn)
+        hist = dr.kernel_history()
+    finally:
+        dr.set_flag(dr.JitFlag.KernelHistory, False)
+    return int(sum(k.get("operation_count", 0) for k in hist if k.get("type") == dr.KernelType.JIT))
+
+
 def calls(bsdf, q):
     si, wo, s1, s2 = q
     ctx = mi.BSDFContext()
@@ -127,12 +141,15 @@ def main(argv=None):
     mfnormal.register()
     normalmap, heightmap = textures()
     q = queries(1 << args.queries)
+    q_ops = queries(1 << 10, seed=12)
     rows = []
     for model in args.models.split(","):
         for nested in NESTED:
-            ref = calls(plugin(model, nested, "normalmap", normalmap, heightmap), q)
+            ref_bsdf = plugin(model, nested, "normalmap", normalmap, heightmap)
+            ref, ref_small = calls(ref_bsdf, q), calls(ref_bsdf, q_ops)
             for config in CONFIGS:
-                other = calls(plugin(model, nested, config, normalmap, heightmap), q)
+                other_bsdf = plugin(model, nested, config, normalmap, heightmap)
+                other, other_small = calls(other_bsdf, q), calls(other_bsdf, q_ops)
                 for what in ("eval", "eval_pdf", "sample"):
                     timed(ref[what])
                     timed(other[what])                      # warm kernels
@@ -141,11 +158,15 @@ def main(argv=None):
                         t_ref.append(timed(ref[what]))
                         t_other.append(timed(other[what]))
                     ratio = statistics.median(b / a for a, b in zip(t_ref, t_other))
+                    ops = (op_count(ref_small[what]), op_count(other_small[what]))
                     rows.append({"model": model, "nested": nested, "config": config, "call": what,
+                                 "ref_ops": ops[0], "ops": ops[1], "ops_ratio": ops[1] / max(ops[0], 1),
+                                 "ratio_q1": float(np.quantile([b / a for a, b in zip(t_ref, t_other)], 0.25)),
+                                 "ratio_q3": float(np.quantile([b / a for a, b in zip(t_ref, t_other)], 0.75)),
                                  "ref_ns_per_query": 1e9 * statistics.median(t_ref) / (1 << args.queries),
                                  "ns_per_query": 1e9 * statistics.median(t_other) / (1 << args.queries),
                                  "ratio": ratio})
-                    print(f"{model:12s} {nested:12s} {config:20s} {what:8s} ratio {ratio:.3f} "
+                    print(f"{model:12s} {nested:12s} {config:20s} {what:8s} ratio {ratio:.3f} ops {ops[1]}/{ops[0]} "
                           f"({rows[-1]['ns_per_query']:.0f} vs {rows[-1]['ref_ns_per_query']:.0f} ns/query)", flush=True)
     out = {"queries": 1 << args.queries, "reps": args.reps, "rows": rows,
            "command": "benchmarks/normal_sources.py " + " ".join(sys.argv[1:] if argv is None else argv)}
@@ -153,7 +174,9 @@ def main(argv=None):
     for model in args.models.split(","):
         for config in CONFIGS:
             r = [x["ratio"] for x in rows if x["model"] == model and x["config"] == config]
-            summary[f"{model}/{config}"] = {"max": max(r), "geomean": float(np.exp(np.mean(np.log(r))))}
+            o = [x["ops_ratio"] for x in rows if x["model"] == model and x["config"] == config]
+            summary[f"{model}/{config}"] = {"max": max(r), "geomean": float(np.exp(np.mean(np.log(r)))),
+                                            "ops_max": max(o), "ops_geomean": float(np.exp(np.mean(np.log(o))))}
     out["summary"] = summary
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "normal_sources.json").write_text(json.dumps(out, indent=1))
@@ -161,14 +184,19 @@ def main(argv=None):
           f"`{out['command']}`: {out['queries']} queries, median of {args.reps} interleaved pairs; ratio = "
           "time with the option / time of the same model on the normal map (eval, eval_pdf, sample; "
           "diffuse and roughplastic). Acceptance: ≤ 1.10.", "",
-          "| model | config | geomean ratio | max ratio |", "|---|---|---|---|"]
+          "*ops*: operations in the JIT kernels of one call (Dr.Jit's kernel history), the same ratio "
+          "without timing noise.", "",
+          "| model | config | time ratio geomean | time ratio max | ops ratio geomean | ops ratio max |",
+          "|---|---|---|---|---|---|"]
     for k, v in summary.items():
         m, c = k.split("/")
-        md.append(f"| {m} | {c} | {v['geomean']:.3f} | {v['max']:.3f} |")
-    md += ["", "| model | nested | config | call | ns/query | normal map ns/query | ratio |", "|---|---|---|---|---|---|---|"]
+        md.append(f"| {m} | {c} | {v['geomean']:.3f} | {v['max']:.3f} | {v['ops_geomean']:.3f} | {v['ops_max']:.3f} |")
+    md += ["", "| model | nested | config | call | ns/query | normal map ns/query | ratio (IQR) | ops | normal map ops |",
+           "|---|---|---|---|---|---|---|---|---|"]
     for x in rows:
         md.append(f"| {x['model']} | {x['nested']} | {x['config']} | {x['call']} | {x['ns_per_query']:.0f} | "
-                  f"{x['ref_ns_per_query']:.0f} | {x['ratio']:.3f} |")
+                  f"{x['ref_ns_per_query']:.0f} | {x['ratio']:.3f} ({x['ratio_q1']:.2f}–{x['ratio_q3']:.2f}) | "
+                  f"{x['ops']} | {x['ref_ops']} |")
     (args.out / "normal_sources.md").write_text("\n".join(md) + "\n")
     print(f"wrote {args.out / 'normal_sources'}.{{json,md}}")
     return 0

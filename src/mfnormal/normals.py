@@ -25,8 +25,8 @@ give the flat normal; normals are clamped to cosθ_p ≥ ``COS_P_MIN`` as decode
 **The macro normal** (``macro_normal``): ``shading`` (default) keeps the base frame
 ``si.sh_frame``. ``geometric`` makes the true triangle normal ``si.n`` (oriented to the shading
 normal's side) the microsurface's macro normal, and the interpolated shading normal, with the
-map on top of it, the facet ω_p: the base frame G has n = si.n and s = ``sh_frame.s`` made
-orthogonal to it (:func:`geometric_frame`). Then
+map on top of it, the facet ω_p: the base frame G has n = si.n and s, t = ``sh_frame``'s s, t
+turned by the smallest rotation that takes the shading normal to n (:class:`Macro`). Then
 
 - ``eval`` returns f·⟨ω_o, si.n⟩: the cosine of the surface the light actually falls on. Mitsuba's
   path tracer multiplies the throughput by ``eval`` as is, so radiance is right with it;
@@ -120,22 +120,21 @@ def texture_space_normal(grad, frame, dp_du, dp_dv):
     return unit_normal(_scaled(mi.Vector3f(-grad.x * lb, grad.y * la, la * lb)))
 
 
-def geometric_frame(si):
-    """G, the frame of the true triangle normal in ``si.sh_frame``'s local coordinates: n = si.n
-    turned to the shading normal's side, s = the shading frame's s made orthogonal to n (its n
-    for an s parallel to n). A degenerate si.n (|si.n|² not finite or ≤ ``NORMAL_MIN2``: zero,
-    NaN, or so long that float32 overflows) gives the shading frame itself. Written for few
-    operations: it runs on every query (benchmarks/normal_sources.py)."""
+def triangle_normal(si):
+    """si.n in ``si.sh_frame``'s local coordinates, unit, turned to the shading normal's side
+    (z ≥ 0); (0, 0, 1) where it is degenerate (|si.n|² not finite or ≤ ``NORMAL_MIN2``: zero,
+    NaN, or so long that float32 overflows)."""
     n = si.sh_frame.to_local(mi.Vector3f(si.n))
     len2 = dr.squared_norm(n)
     ok = dr.isfinite(len2) & (len2 > NORMAL_MIN2)
-    n = dr.select(ok, n * dr.mulsign(dr.rsqrt(len2), n.z), mi.Vector3f(0, 0, 1))
-    # Gram-Schmidt of the shading frame's s = x (its n = z where n is within ~0.1° of ±x).
-    alt = dr.abs(n.x) > 1.0 - 1e-6
-    c = dr.select(alt, n.z, n.x)
-    s = mi.Vector3f(dr.select(alt, 0.0, 1.0), 0.0, dr.select(alt, 1.0, 0.0)) - c * n
-    s = s * dr.rsqrt(dr.maximum(dr.fma(-c, c, 1.0), 1e-12))
-    return mi.Frame3f(s, dr.cross(n, s), n)
+    return dr.select(ok, n * dr.mulsign(dr.rsqrt(len2), n.z), mi.Vector3f(0, 0, 1))
+
+
+def geometric_frame(si):
+    """G, the frame of the true triangle normal in ``si.sh_frame``'s local coordinates: n =
+    :func:`triangle_normal`, s and t the shading frame's x and y turned by the smallest rotation
+    that takes its normal (z) to n (:class:`Macro`)."""
+    return Macro(triangle_normal(si)).frame()
 
 
 def to_upper_hemisphere(n):
@@ -148,16 +147,35 @@ def to_upper_hemisphere(n):
 
 
 class Macro:
-    """The geometric macro frame at a batch of shading points (``macro_normal="geometric"``)."""
+    """The geometric macro frame G at a batch of shading points (``macro_normal="geometric"``):
+    the rotation R by the smallest angle that takes z (the shading normal) to the triangle's
+    normal n = (x, y, z), z ≥ 0, in the shading frame's local coordinates. With k = 1/(1 + z),
+    R's columns are s = (1 − k x², −k x y, −x), t = (−k x y, 1 − k y², −y) and n; R and Rᵀ
+    apply in 6-7 operations (they run on every query: benchmarks/normal_sources.py)."""
 
-    def __init__(self, frame):
-        self.frame = frame            # G in si.sh_frame's local coordinates
+    def __init__(self, n):
+        self.n = n
+        self.k = dr.rcp(1.0 + n.z)
+
+    def frame(self):
+        x, y, k = self.n.x, self.n.y, self.k
+        kxy = -k * x * y
+        return mi.Frame3f(mi.Vector3f(dr.fma(-k * x, x, 1.0), kxy, -x),
+                          mi.Vector3f(kxy, dr.fma(-k * y, y, 1.0), -y), self.n)
 
     def to_macro(self, w):
-        return self.frame.to_local(w)
+        """Rᵀ w: ``w`` (shading frame) in G."""
+        x, y, z = self.n.x, self.n.y, self.n.z
+        p = dr.fma(x, w.x, y * w.y)
+        e = dr.fma(self.k, p, w.z)
+        return mi.Vector3f(dr.fma(-x, e, w.x), dr.fma(-y, e, w.y), dr.fma(z, w.z, p))
 
     def from_macro(self, w):
-        return self.frame.to_world(w)
+        """R w: ``w`` (in G) in the shading frame."""
+        x, y, z = self.n.x, self.n.y, self.n.z
+        p = dr.fma(x, w.x, y * w.y)
+        e = dr.fma(-self.k, p, w.z)
+        return mi.Vector3f(dr.fma(x, e, w.x), dr.fma(y, e, w.y), dr.fma(z, w.z, -p))
 
     def adjoint(self, ctx, sp, b, b_m):
         """The factor of ``eval`` in light tracing (module docstring), None in radiance mode:
@@ -209,16 +227,17 @@ def shading_point(plugin, ctx, si, active=True):
         sp.map_rotation = rotation
         sp.macro = None
         return sp
-    g = geometric_frame(si)
+    macro = Macro(triangle_normal(si))
+    g = macro.frame()
     si_g = mi.SurfaceInteraction3f(si)
     si_g.sh_frame = mi.Frame3f(si.to_world(g.s), si.to_world(g.t), si.to_world(g.n))
-    si_g.wi = g.to_local(si.wi)
-    sp = ShadingPoint(plugin.nested, ctx, si_g, to_upper_hemisphere(g.to_local(wp)))
+    si_g.wi = macro.to_macro(si.wi)
+    sp = ShadingPoint(plugin.nested, ctx, si_g, to_upper_hemisphere(macro.to_macro(wp)))
     if plugin.tangent_attr is not None and rotation is not None:
         tangent, sign = plugin._vertex_tangent(si, active)
         rotation = tangent_rotation(si_g.sh_frame, tangent, sign)
     sp.map_rotation = rotation
-    sp.macro = Macro(g)
+    sp.macro = macro
     return sp
 
 
