@@ -47,6 +47,8 @@ the interpolated normal on its triangle (the shadow-terminator case).
 
 from __future__ import annotations
 
+import math
+
 import drjit as dr
 import mitsuba as mi
 import numpy as np
@@ -141,7 +143,7 @@ def to_upper_hemisphere(n):
     """A unit vector with cosθ below COS_P_MIN raised to it, keeping the azimuth (the clamp of
     decoded maps; straight up where it has no azimuth)."""
     xy2 = dr.fma(n.x, n.x, n.y * n.y)
-    scale = dr.sqrt((1.0 - COS_P_MIN * COS_P_MIN) / dr.maximum(xy2, 1e-30))
+    scale = math.sqrt(1.0 - COS_P_MIN * COS_P_MIN) * dr.rsqrt(dr.maximum(xy2, 1e-30))
     clamped = dr.select(xy2 > 1e-30, mi.Vector3f(n.x * scale, n.y * scale, COS_P_MIN), mi.Vector3f(0, 0, 1))
     return dr.select(n.z < COS_P_MIN, clamped, n)
 

@@ -163,7 +163,11 @@ nested BSDF with both diffuse and other components), 1 nested ``sample`` more pe
 1 nested ``sample`` + 3 nested ``eval_pdf`` per ``sample``. Random walks: per
 bounce 1 nested ``sample`` and (``eval`` only) 1 nested ``eval``, 2 with a mirror
 tangent facet, plus 1 (2 with a mirror) for the first vertex's other start facet;
-plus the MIS pdf (3-5 nested ``pdf``).
+plus the MIS pdf (3-5 nested ``pdf``). A ``heightmap`` costs what a normal map
+does (one gradient lookup instead of a colour lookup); ``macro_normal="geometric"``
+adds a frame change of ω_i, ω_o and ω_p (about 60 kernel operations per query),
+and without a map it is cheaper than the normal-map path
+(``benchmarks/normal_sources.py``).
 
 .. tabs::
     .. code-tab:: xml
