@@ -40,7 +40,7 @@ N_SCALAR = 48
 N_NAIVE = 1 << 16
 TEX = 64   # the normal map (and the principled BSDF's textures) are TEX × TEX texels
 
-MODELS = [("analytic", "specular"), ("separable", "specular"), ("separable", "same"),
+MODELS = [("faithful", "specular"), ("analytic", "specular"), ("separable", "specular"), ("separable", "same"),
           ("nonseparable", "specular"), ("nonseparable", "same")]
 
 
@@ -75,7 +75,11 @@ EXTRA = [
     ("nonseparable", "same", "ggx03", {"rr_depth": 0, "max_bounces": 3000}),
     ("separable", "specular", "diffuse", {"max_bounces": 1, "rr_depth": 1}),
     ("analytic", "specular", "ggx03", {"strength": 0.7, "normalmap_convention": "directx"}),
+    ("faithful", "specular", "roughplastic", {"strength": 0.7, "normalmap_convention": "directx"}),
+    (None, None, "roughplastic", {}),              # the plugin's defaults (no model given)
 ]
+#: Configurations also answered in TransportMode.Importance (keys ".../importance_*").
+IMPORTANCE = ("faithful-specular-", "analytic-specular-", "default-")
 
 
 def configurations():
@@ -86,7 +90,8 @@ def configurations():
             out[f"{model}-{tf}-{name}"] = (model, tf, spec, {})
     for model, tf, name, extra in EXTRA:
         tag = ",".join(f"{k}={v}" for k, v in extra.items())
-        out[f"{model}-{tf}-{name}-{tag}"] = (model, tf, nested[name], extra)
+        key = f"{model}-{tf}-{name}-{tag}" if model else f"default-{name}"
+        out[key] = (model, tf, nested[name], extra)
     return out
 
 
@@ -159,8 +164,10 @@ def interaction(q):
 
 
 def plugin(model, tf, nested, extra, tex):
-    d = {"type": "normalmap_microfacet", "model": model, "normalmap": _texture(tex), "bsdf": nested, **extra}
-    if model != "analytic":
+    d = {"type": "normalmap_microfacet", "normalmap": _texture(tex), "bsdf": nested, **extra}
+    if model is not None:
+        d["model"] = model
+    if model not in (None, "analytic", "faithful"):
         d["tangent_facet"] = tf
     return mi.load_dict(d)
 
@@ -169,8 +176,8 @@ def _np(x, dtype=np.float32):
     return np.array(x, dtype=dtype)
 
 
-def run_jit(bsdf, q):
-    ctx = mi.BSDFContext()
+def run_jit(bsdf, q, mode=mi.TransportMode.Radiance):
+    ctx = mi.BSDFContext(mode)
     si = interaction(q)
     wo = mi.Vector3f(*(_f(q["wo"][:, i]) for i in range(3)))
     out = {"eval": _np(bsdf.eval(ctx, si, wo)), "pdf": _np(bsdf.pdf(ctx, si, wo))}
@@ -236,8 +243,12 @@ def record(only=None):
     for name, (model, tf, nested, extra) in configurations().items():
         if only and only not in f"llvm/{name}":
             continue
-        for what, a in run_jit(plugin(model, tf, nested, extra, tex), q).items():
+        bsdf = plugin(model, tf, nested, extra, tex)
+        for what, a in run_jit(bsdf, q).items():
             out[f"llvm/{name}/{what}"] = a
+        if name.startswith(IMPORTANCE):
+            for what, a in run_jit(bsdf, q, mi.TransportMode.Importance).items():
+                out[f"llvm/{name}/importance_{what}"] = a
         print(f"  llvm {name}", flush=True)
     qn = queries(N_NAIVE, seed=2)
     for tf in ("specular", "same"):

@@ -47,3 +47,17 @@ def test_quick_benchmark_writes_markdown_table_with_every_method(quick_run):
     assert "## Targets" in text and "benchmarks/run.py --quick" in text
     for method in METHODS:
         assert f"| {method} |" in text, method
+
+
+def test_normal_sources_benchmark_runs_and_reports_every_config(tmp_path):
+    """``benchmarks/normal_sources.py`` at a tiny size (2^10 queries, one rep, one model): every
+    option × nested × call has a finite positive ratio (its timings mean nothing here)."""
+    proc = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "normal_sources.py"), "--queries", "10",
+                           "--reps", "1", "--models", "analytic", "--out", str(tmp_path)], cwd=ROOT,
+                          capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
+    rows = json.loads((tmp_path / "normal_sources.json").read_text())["rows"]
+    assert {(r["config"], r["call"]) for r in rows} == {
+        (c, w) for c in ("heightmap", "geometric", "geometric_heightmap", "geometric_nomap")
+        for w in ("eval", "eval_pdf", "sample")}
+    assert all(r["ratio"] > 0 for r in rows)

@@ -79,7 +79,7 @@ def _flag(text: str) -> bool:
 
 # -- D options of a glTF file: load_gltf's keyword arguments, parsed from text, with their ranges.
 GLTF_OPTIONS = {"width": int, "height": int, "spp": int, "max_depth": int, "model": str,
-                "tangents": str, "normal_maps": _flag, "lights": _flag}
+                "tangents": str, "normal_maps": _flag, "lights": _flag, "macro_normal": str}
 _GLTF_RANGES = {"width": (1, None), "height": (1, None), "spp": (1, None), "max_depth": (-1, None)}
 
 
@@ -434,7 +434,7 @@ def _add_render(sub):
     r = sub.add_parser("render", help="render a Mitsuba 3 scene (XML) that may use normalmap_microfacet, "
                                       "or a glTF 2.0 model (.gltf, .glb)")
     r.add_argument("scene", help="scene file (.xml), or a glTF 2.0 file (.gltf, .glb: -D sets width, "
-                                 "height, spp, max_depth, model, tangents, normal_maps, lights)")
+                                 "height, spp, max_depth, model, tangents, normal_maps, lights, macro_normal)")
     r.add_argument("-o", "--output", help="output path without extension (writes .exr and .png)")
     r.add_argument("--spp", type=int, help="samples per pixel (default: the scene's)")
     r.add_argument("--chunks", type=int, help="split the samples into N passes with seeds derived "

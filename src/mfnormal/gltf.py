@@ -47,11 +47,18 @@ from .messages import one_line
 from .tangents import mikktspace, split_vertices
 from .validate import DEFAULT_LIMITS, Limits
 
-__all__ = ["load_gltf", "GLTF_SUFFIXES", "TANGENT_MODES", "GLTFError"]
+__all__ = ["load_gltf", "GLTF_SUFFIXES", "TANGENT_MODES", "MACRO_NORMALS", "GLTFError", "is_smooth_shaded"]
 
 GLTF_SUFFIXES = (".gltf", ".glb")
 TANGENT_MODES = ("auto", "mikktspace", "mitsuba")
 TANGENT_ATTR = "vertex_tangent"
+#: ``load_gltf(macro_normal=...)``: ``shading`` (the interpolated normal is the macro surface, as
+#: without the option) or ``geometric`` (every smooth-shaded mesh gets the true triangle as the
+#: macro surface: ``normalmap_microfacet`` with ``macro_normal="geometric"``, map or not).
+MACRO_NORMALS = ("shading", "geometric")
+#: A mesh is smooth-shaded where some vertex normal is more than this many degrees off its
+#: triangle's normal (glTF writers store flat shading as split vertices with face normals).
+SMOOTH_MIN_DEG = 0.5
 
 _COMPONENT = {5120: np.int8, 5121: np.uint8, 5122: np.int16, 5123: np.uint16, 5125: np.uint32,
               5126: np.float32}
@@ -210,8 +217,9 @@ def _channels(arr, n):
 class _Materials:
     """glTF materials → Mitsuba BSDF dicts, textures decoded once."""
 
-    def __init__(self, f: _File, model: str, tangents: str, normal_maps: bool):
+    def __init__(self, f: _File, model: str, tangents: str, normal_maps: bool, macro_normal: str = "shading"):
         self.f, self.model, self.tangents, self.normal_maps = f, model, tangents, normal_maps
+        self.macro_normal = macro_normal
         self._warned = set()
 
     def _warn_once(self, key, msg):
@@ -296,15 +304,21 @@ class _Materials:
                     self._warn_once(ext, f"material extension {ext} is ignored")
         return bsdf
 
-    def bsdf(self, index, has_uv: bool, has_tangents: bool):
-        """The Mitsuba BSDF dict of material ``index`` (None: the default material)."""
+    def bsdf(self, index, has_uv: bool, has_tangents: bool, smooth: bool = False):
+        """The Mitsuba BSDF dict of material ``index`` (None: the default material) on a mesh
+        (``smooth``: smooth-shaded, which ``macro_normal="geometric"`` wraps even without a map)."""
         mat = self.f.gltf.materials[index] if index is not None else None
         bsdf = self.principled(mat)
         normalmap, strength = self.normal_texture(mat) if has_uv else (None, None)
+        geometric = smooth and self.macro_normal == "geometric"
         if normalmap is not None:
             bsdf = {"type": "normalmap_microfacet", "normalmap": normalmap, "bsdf": bsdf,
                     "strength": strength, "model": self.model,
                     "tangents": TANGENT_ATTR if has_tangents else "mitsuba"}
+            if geometric:
+                bsdf["macro_normal"] = "geometric"
+        elif geometric:
+            bsdf = {"type": "normalmap_microfacet", "macro_normal": "geometric", "bsdf": bsdf, "model": self.model}
         if mat is not None and mat.doubleSided:
             bsdf = {"type": "twosided", "bsdf": bsdf}
         return bsdf
@@ -377,6 +391,21 @@ def _primitive_arrays(f: _File, prim, want_tangents: bool, tangents_mode: str, w
     if not want_tangents:
         tangents = None
     return positions, normals, uvs, tangents, faces.astype(np.uint32)
+
+
+def is_smooth_shaded(positions, normals, faces, min_deg: float = SMOOTH_MIN_DEG) -> bool:
+    """Whether some vertex normal of the mesh is more than ``min_deg`` off its triangle's normal
+    (degenerate triangles are left out)."""
+    p = np.asarray(positions, np.float64)[faces]
+    n = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+    length = np.linalg.norm(n, axis=1)
+    ok = length > 1e-12 * np.maximum(np.abs(p).max(axis=(1, 2)) ** 2, 1e-30)
+    if not ok.any():
+        return False
+    n = n[ok] / length[ok, None]
+    vn = np.asarray(normals, np.float64)[faces[ok]]
+    cos = np.einsum("fd,fkd->fk", n, vn) / np.maximum(np.linalg.norm(vn, axis=2), 1e-30)
+    return bool(np.any(np.abs(cos) < np.cos(np.radians(min_deg))))
 
 
 def _mitsuba_mesh(name, bsdf, positions, normals, uvs, tangents, faces):
@@ -544,10 +573,10 @@ def _punctual_lights(gltf, nodes):
 
 # The scene
 
-def _meshes(f: _File, materials: _Materials, nodes, tangents: str):
+def _meshes(f: _File, materials: _Materials, nodes, tangents: str, macro_normal: str):
     """({shape id: Mitsuba mesh}, lo, hi): every triangle primitive of the scene's nodes in
-    world space, and their bounding box; one BSDF per (material, uv, tangents) shared by its
-    meshes."""
+    world space, and their bounding box; one BSDF per (material, uv, tangents, smooth-shaded under
+    ``macro_normal="geometric"``) shared by its meshes."""
     import mitsuba as mi
 
     gltf, shapes, bsdfs = f.gltf, {}, {}
@@ -576,9 +605,10 @@ def _meshes(f: _File, materials: _Materials, nodes, tangents: str):
             if placed is None:
                 continue
             positions, normals, tan, faces = placed
-            key = (prim.material, uvs is not None, tan is not None)
+            smooth = macro_normal == "geometric" and is_smooth_shaded(positions, normals, faces)
+            key = (prim.material, uvs is not None, tan is not None, smooth)
             if key not in bsdfs:
-                bsdfs[key] = mi.load_dict(materials.bsdf(prim.material, uvs is not None, tan is not None))
+                bsdfs[key] = mi.load_dict(materials.bsdf(prim.material, uvs is not None, tan is not None, smooth))
             name = f"{mesh.name or f'mesh{node.mesh}'}/{k}"
             shapes[f"mesh_{len(shapes)}"] = _mitsuba_mesh(name, bsdfs[key], positions, normals, uvs,
                                                           tan, faces)
@@ -632,7 +662,7 @@ def _emitters(gltf, nodes, lights: bool) -> dict:
 
 def load_gltf(path, *, width: int = 640, height: int = 480, spp: int = 64, max_depth: int = 8,
               model: str = "faithful", tangents: str = "auto", normal_maps: bool = True,
-              lights: bool = True, limits: Limits = DEFAULT_LIMITS) -> dict:
+              lights: bool = True, macro_normal: str = "shading", limits: Limits = DEFAULT_LIMITS) -> dict:
     """A Mitsuba scene dict of the glTF 2.0 file ``path`` (``.gltf`` or ``.glb``).
 
     Needs an active Mitsuba variant (the meshes are built in it). Options:
@@ -641,7 +671,12 @@ def load_gltf(path, *, width: int = 640, height: int = 480, spp: int = 64, max_d
     ``TANGENT``, else MikkTSpace), ``mikktspace`` (always computed) or
     ``mitsuba`` (Mitsuba's per-triangle frame, for comparison);
     ``normal_maps=False`` drops the normal maps; ``lights=False`` ignores the
-    file's lights for the generated sky; ``limits``: the caps on what the file
+    file's lights for the generated sky; ``macro_normal``: ``shading`` (default) or
+    ``geometric``: every smooth-shaded mesh (:func:`is_smooth_shaded`) gets the true triangle
+    as its microsurface's macro normal, its interpolated normal (and normal map, if any) as the
+    facet: ``normalmap_microfacet`` with ``macro_normal="geometric"``, wrapping also the
+    materials without a normal map (the shadow-terminator fix; flat-shaded meshes are left
+    as they are); ``limits``: the caps on what the file
     may make the loader allocate (:class:`mfnormal.validate.Limits`).
 
     The file is validated first (:mod:`mfnormal.gltf_validate`); anything the
@@ -652,6 +687,8 @@ def load_gltf(path, *, width: int = 640, height: int = 480, spp: int = 64, max_d
 
     if tangents not in TANGENT_MODES:
         raise ValueError(f"tangents must be one of {', '.join(TANGENT_MODES)}, got '{tangents}'")
+    if macro_normal not in MACRO_NORMALS:
+        raise ValueError(f"macro_normal must be one of {', '.join(MACRO_NORMALS)}, got '{macro_normal}'")
     for name, value, lo in (("width", width, 1), ("height", height, 1), ("spp", spp, 1),
                             ("max_depth", max_depth, -1)):
         if isinstance(value, bool) or not isinstance(value, int) or not lo <= value < 1 << 31:
@@ -663,7 +700,8 @@ def load_gltf(path, *, width: int = 640, height: int = 480, spp: int = 64, max_d
         raise FileNotFoundError(f"glTF file not found: {path}")
     f = _File(path, limits)
     nodes = list(_walk_nodes(f.gltf, f.model.scene_roots))
-    shapes, lo, hi = _meshes(f, _Materials(f, model, tangents, normal_maps), nodes, tangents)
+    shapes, lo, hi = _meshes(f, _Materials(f, model, tangents, normal_maps, macro_normal), nodes, tangents,
+                             macro_normal)
     return {"type": "scene", "integrator": {"type": "path", "max_depth": int(max_depth)}, **shapes,
             "sensor": _sensor(f.gltf, nodes, lo, hi, width, height, spp, limits),
             **_emitters(f.gltf, nodes, lights)}

@@ -67,7 +67,7 @@ __all__ = [
     "bitmap_texture", "displaced_arrays", "displaced_mesh", "plane_mesh",
     "View", "Lighting", "Magnification", "VIEWS", "LIGHTINGS", "MAGNIFICATIONS", "MATERIALS",
     "scene_dict", "footprint", "Method", "METHODS", "DEFAULT_METHODS",
-    "plugin_method", "method_from_spec", "metrics", "near_black_threshold", "Cell", "render",
+    "plugin_method", "heightmap_method", "method_from_spec", "metrics", "near_black_threshold", "Cell", "render",
     "render_cell", "cell_seed", "cell_metrics", "block_mean", "exposure_scale", "EXPOSURE_MEAN", "rel_mse", "luminance", "REL_MSE_EPS", "LN_FLOOR", "BLACK_FRACTION",
 ]
 
@@ -643,6 +643,21 @@ def _bumpmap(nested, normalmap, maps):
     return {"type": "bumpmap", "bsdf": nested, "scale": 1.0, "texture": maps["heightmap"]}
 
 
+def heightmap_method(model: str | None = None, key: str | None = None, **params) -> Method:
+    """``normalmap_microfacet`` on the baked *height* map (``heightmap``, ``height_scale`` 1: the
+    heights are in world units on the plane, whose dp/du, dp/dv have unit length), ``model``
+    None: the plugin's default."""
+    extra = {"model": model} if model is not None else {}
+    extra.update(params)
+
+    def wrap(nested, normalmap, maps):
+        return {"type": "normalmap_microfacet", "heightmap": maps["heightmap"], "height_scale": 1.0,
+                "bsdf": nested, **extra}
+
+    name = key or ("heightmap" + (f"_{model}" if model else "") + "".join(f"_{k}{v}" for k, v in params.items()))
+    return Method(name, name.replace("_", " "), wrap, f"normalmap_microfacet on the height map {extra}")
+
+
 def _catalogued(key: str, about: str, new_key: str | None = None, label: str | None = None) -> Method:
     """A method of :mod:`mfnormal.methods` with this harness's description (and key, label)."""
     m = METHOD_BY_KEY[key]
@@ -658,6 +673,10 @@ METHODS = {m.key: m for m in (
                 "Mitsuba normalmap, flip_invalid_normals / use_shadowing_function on (its defaults)"),
     *(plugin_method(**m.plugin_params()) for m in CATALOGUE if m.kind == "microfacet"),
     Method("bumpmap", "bumpmap", _bumpmap, "Mitsuba bumpmap on the baked height map (scale 1)"),
+    heightmap_method(),
+    heightmap_method("analytic"),
+    heightmap_method("separable"),
+    heightmap_method("nonseparable"),
 )}
 
 #: The methods of the default grid.

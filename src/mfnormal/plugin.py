@@ -11,6 +11,27 @@ Microfacet-based normal mapping (:monosp:`normalmap_microfacet`)
    - Tangent-space normal map, decoded as :math:`n = 2\,\mathrm{rgb} - 1` in the
      base shading frame (like Mitsuba's built-in ``normalmap``). Give a
      ``bitmap`` texture with ``raw=true``, or a file name (loaded raw).
+ * - heightmap
+   - |texture| or |string|
+   - Instead of ``normalmap``: a height map (a ``bitmap``, ``raw=true``,
+     bilinear: ω_p comes from its uv gradient ``eval_1_grad``). ω_p is the
+     normal of the surface displaced along its normal by
+     ``height_scale · strength · h(u, v)``, exactly Mitsuba ``bumpmap``'s
+     perturbed normal for the same texture and ``scale`` (tested), mapped
+     through the tangent frame (``tangents`` respected). docs/normal_sources.md.
+ * - height_scale
+   - |float|
+   - Height map only: the heights' scale, Mitsuba ``bumpmap``'s ``scale``
+     (world units per texture unit where dp/du, dp/dv have unit length).
+     Default: 1; any finite number (negative inverts the relief).
+ * - macro_normal
+   - |string|
+   - ``shading`` (default): the microsurface's macro normal is the shading
+     normal ``si.sh_frame.n``. ``geometric``: it is the true triangle normal
+     ``si.n``, and ω_p is the interpolated shading normal with the map (if any)
+     applied on top of it. Without a map this is the shadow-terminator fix for
+     smooth-shaded low-poly meshes (``eval`` then returns f·⟨ω_o, si.n⟩;
+     directions stay in ``si.sh_frame`` for the integrator).
  * - (nested bsdf)
    - |bsdf|
    - The material of the microfacets: any Mitsuba BSDF (its reflection part).
@@ -95,7 +116,9 @@ like the true geometry the map was baked from.
 Contracts (each one is tested):
 
 - ``eval`` returns :math:`f\cdot\langle\omega_o,\omega_g\rangle` in the base
-  shading frame (:math:`\omega_g` = +z of ``si.sh_frame``), zero below it;
+  shading frame (:math:`\omega_g` = +z of ``si.sh_frame``; with
+  ``macro_normal="geometric"`` :math:`\omega_g` = ``si.n`` turned to the shading
+  normal's side, directions still in ``si.sh_frame``), zero below it;
 - ``eval_pdf`` equals ``(eval, pdf)``; ``pdf`` is a deterministic function of
   (wi, wo): for ``faithful`` and ``analytic`` the exact density of ``sample``, for
   the random walks a function for MIS (below);
@@ -103,6 +126,10 @@ Contracts (each one is tested):
   lobes the unbiased path weight), or the walk's throughput, an unbiased estimate of it;
 - ``faithful`` in ``TransportMode.Importance`` (light tracing) returns its adjoint,
   eval*(a, b) = eval(b, a)·⟨b,ω_g⟩/⟨a,ω_g⟩; the other models are reciprocal;
+  with ``macro_normal="geometric"`` every model's ``TransportMode.Importance``
+  eval is divided by the shading-normal correction Mitsuba's ``ptracer``
+  applies (the microsurface lies on the true triangle and needs none), so light
+  tracing matches path tracing;
 - normals that are NaN, infinite, zero, or point below the horizon never
   produce NaN: they decode to the flat normal, or are clamped to
   :math:`\cos\theta_p \ge 0.02`. A flat map reproduces the nested BSDF.
@@ -136,7 +163,11 @@ nested BSDF with both diffuse and other components), 1 nested ``sample`` more pe
 1 nested ``sample`` + 3 nested ``eval_pdf`` per ``sample``. Random walks: per
 bounce 1 nested ``sample`` and (``eval`` only) 1 nested ``eval``, 2 with a mirror
 tangent facet, plus 1 (2 with a mirror) for the first vertex's other start facet;
-plus the MIS pdf (3-5 nested ``pdf``).
+plus the MIS pdf (3-5 nested ``pdf``). A ``heightmap`` costs what a normal map
+does (one gradient lookup instead of a colour lookup); ``macro_normal="geometric"``
+adds a frame change of ω_i, ω_o and ω_p (about 60 kernel operations per query),
+and without a map it is cheaper than the normal-map path
+(``benchmarks/normal_sources.py``).
 
 .. tabs::
     .. code-tab:: xml
@@ -163,7 +194,7 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from . import analytic, faithful, walk
+from . import analytic, faithful, normals, walk
 from .microsurface import COS_P_MIN, decode_normal
 from .shading import ShadingPoint, from_tangent_frame, tangent_rotation
 
@@ -199,9 +230,10 @@ class NormalMapMicrofacet:
     def __init__(self, props: mi.Properties):
         type(self).__mro__[1].__init__(self, props)   # the variant's mi.BSDF
 
-        # Nested BSDF and normal map
+        # Nested BSDF and normal map (or height map)
         self.nested = None
         self.normalmap = None
+        self.heightmap = None
         for name, obj in props.objects():
             if isinstance(obj, mi.BSDF):
                 if self.nested is not None:
@@ -209,15 +241,33 @@ class NormalMapMicrofacet:
                 self.nested = obj
             elif isinstance(obj, mi.Texture) and name == "normalmap":
                 self.normalmap = obj
+            elif isinstance(obj, mi.Texture) and name == "heightmap":
+                self.heightmap = obj
         if self.normalmap is None and "normalmap" in props.keys():
             value = props["normalmap"]
             if isinstance(value, str):
                 self.normalmap = mi.load_dict({"type": "bitmap", "filename": value, "raw": True})
+        if self.heightmap is None and "heightmap" in props.keys():
+            value = props["heightmap"]
+            if isinstance(value, str):
+                self.heightmap = mi.load_dict({"type": "bitmap", "filename": value, "raw": True})
         if self.nested is None:
             _fail("needs a nested BSDF (e.g. <bsdf type=\"diffuse\"/> inside it)")
-        if self.normalmap is None:
+        self.macro_normal = props.get("macro_normal", "shading")
+        if self.macro_normal not in normals.MACRO_NORMALS:
+            _fail(f"unknown macro_normal '{self.macro_normal}'; use 'shading' or 'geometric'")
+        self.macro_geometric = self.macro_normal == "geometric"
+        if self.normalmap is not None and self.heightmap is not None:
+            _fail("takes a 'normalmap' or a 'heightmap', not both")
+        if self.normalmap is None and self.heightmap is None and not self.macro_geometric:
             _fail("needs a texture named 'normalmap' (a raw bitmap: <texture name=\"normalmap\" "
-                  "type=\"bitmap\"> with <boolean name=\"raw\" value=\"true\"/>)")
+                  "type=\"bitmap\"> with <boolean name=\"raw\" value=\"true\"/>) or 'heightmap' "
+                  "(or macro_normal=\"geometric\" for a smooth-shaded mesh without a map)")
+        self.height_scale = float(props.get("height_scale", 1.0))
+        if not (abs(self.height_scale) < float("inf")):
+            _fail(f"height_scale must be a finite number, got {self.height_scale}")
+        if self.heightmap is not None:
+            self._check_heightmap()
 
         # Model parameters
         self.model = props.get("model", DEFAULT_MODEL)
@@ -242,6 +292,8 @@ class NormalMapMicrofacet:
         convention = props.get("normalmap_convention", "opengl")
         if convention not in CONVENTIONS:
             _fail(f"unknown normalmap_convention '{convention}'; use 'opengl' or 'directx'")
+        if convention != "opengl" and self.normalmap is None:
+            _fail("normalmap_convention applies to normal maps only (a height map has no channel order)")
         self.directx = convention == "directx"
         strength = _checked_strength(float(props.get("strength", 1.0)))[0]
         self.strength = mi.Float(strength)
@@ -272,7 +324,10 @@ class NormalMapMicrofacet:
 
     def traverse(self, callback):
         callback.put("nested_bsdf", self.nested, mi.ParamFlags.Differentiable)
-        callback.put("normalmap", self.normalmap, mi.ParamFlags.Differentiable)
+        if self.normalmap is not None:
+            callback.put("normalmap", self.normalmap, mi.ParamFlags.Differentiable)
+        if self.heightmap is not None:
+            callback.put("heightmap", self.heightmap, mi.ParamFlags.Differentiable)
         callback.put("strength", self.strength, mi.ParamFlags.NonDifferentiable)
 
     def parameters_changed(self, keys):
@@ -288,7 +343,7 @@ class NormalMapMicrofacet:
                 mi.set_property(self.strength, mi.Float(values))
             self._strength_ok = values
             dr.make_opaque(self.strength)
-        if self.faithful is not None and (not keys or any(k == "strength" or k.startswith("normalmap")
+        if self.faithful is not None and (not keys or any(k == "strength" or k.startswith(("normalmap", "heightmap"))
                                                           for k in keys)):
             self.faithful.set_slopes(self._map_slopes())
 
@@ -297,6 +352,8 @@ class NormalMapMicrofacet:
         from its decoded texels (faithful.principal_slopes)."""
         import numpy as np
         res = 256 if dr.is_jit_v(mi.Float) else 32
+        if self.normalmap is None:
+            return self._height_map_slopes(res)
         params = mi.traverse(self.normalmap)
         if "data" in params.keys():
             shape = params["data"].shape
@@ -317,8 +374,33 @@ class NormalMapMicrofacet:
                 normals.append([n.x, n.y, n.z])
         return faithful.principal_slopes(np.array(normals))
 
+    def _height_map_slopes(self, res):
+        """_map_slopes of a height map (on the unit square: normals.height_map_normals, twice the
+        texel resolution: the bilinear gradient is linear across a cell); no map: flat (σ = 0)."""
+        if self.heightmap is None:
+            return 0.0, 0.0, 0.0
+        params = mi.traverse(self.heightmap)
+        if "data" in params.keys():
+            shape = params["data"].shape
+            res = min(2 * res, 2 * max(shape[0], shape[1]))
+        scale = self.height_scale * float(dr.slice(self.strength, 0) if dr.is_jit_v(mi.Float) else self.strength)
+        return faithful.principal_slopes(normals.height_map_normals(self.heightmap, scale, res))
+
+    def _check_heightmap(self):
+        """A height map needs the texture's uv gradient (``eval_1_grad``: bitmaps, whose gradient is
+        zero with nearest filtering)."""
+        si = dr.zeros(mi.SurfaceInteraction3f)
+        try:
+            self.heightmap.eval_1_grad(si)
+        except Exception as e:  # noqa: BLE001  (Mitsuba raises RuntimeError / NotImplementedError)
+            _fail(f"heightmap needs a texture with a uv gradient (eval_1_grad: a bitmap, raw=true), "
+                  f"{str(self.heightmap).split('[')[0]} has none ({str(e).strip().splitlines()[-1][:120]})")
+
     def shading_point(self, ctx, si, active=True):
-        """The microsurface at ``si``: ω_p from the normal map, in the base shading frame."""
+        """The microsurface at ``si``: ω_p from the normal map, in the base shading frame
+        (a height map or macro_normal="geometric": normals.shading_point)."""
+        if self.heightmap is not None or self.macro_geometric:
+            return normals.shading_point(self, ctx, si, active)
         rgb = self.normalmap.eval_3(si, active)
         wp = decode_normal(rgb, self.strength, self.directx)
         if self.tangent_attr is not None:
@@ -327,6 +409,19 @@ class NormalMapMicrofacet:
             sp.map_rotation = rotation
             return sp
         return ShadingPoint(self.nested, ctx, si, wp)
+
+    def _vertex_tangent(self, si, active):
+        """(T, sign) of the vertex tangent frame at ``si`` (world space), (None, None) where a scalar
+        variant's shape has no such attribute (JIT variants: T = 0 there, which from_tangent_frame and
+        tangent_rotation treat as missing)."""
+        name, shape = self.tangent_attr, si.shape
+        if not dr.is_jit_v(mi.Float) and (shape is None or not shape.is_mesh()
+                                          or not shape.has_attribute(name)):
+            return None, None
+        tangent = mi.Vector3f(shape.eval_attribute_3(name, si, active))
+        sign = shape.eval_attribute_1(name + "_sign", si, active) if (
+            dr.is_jit_v(mi.Float) or shape.has_attribute(name + "_sign")) else 1.0
+        return tangent, sign
 
     def _from_vertex_tangents(self, si, wp, active):
         """(ω_p decoded in the mesh's vertex tangent frame and re-expressed in ``si.sh_frame``,
@@ -356,6 +451,43 @@ class NormalMapMicrofacet:
 
     def sample(self, ctx, si, sample1, sample2, active=True):
         sp = self.shading_point(ctx, si, active)
+        macro = normals.macro_of(sp)
+        if macro is None:
+            return self._sample_sp(ctx, sp, sample1, sample2, active)
+        # macro_normal="geometric": the model samples in the triangle's frame G (normals.py).
+        bs, weight = self._sample_sp(ctx, sp, sample1, sample2, active)
+        wo_m = mi.Vector3f(bs.wo)          # a copy: assigning bs.wo writes into the struct
+        bs.wo = macro.from_macro(wo_m)
+        k = macro.adjoint(ctx, sp, bs.wo, wo_m)
+        return bs, weight if k is None else weight * k
+
+    def eval(self, ctx, si, wo, active=True):
+        sp = self.shading_point(ctx, si, active)
+        macro = normals.macro_of(sp)
+        if macro is None:
+            return self._eval_sp(ctx, sp, wo, active)
+        wo_m = macro.to_macro(wo)
+        value = self._eval_sp(ctx, sp, wo_m, active)
+        k = macro.adjoint(ctx, sp, wo, wo_m)
+        return value if k is None else value * k
+
+    def pdf(self, ctx, si, wo, active=True):
+        sp = self.shading_point(ctx, si, active)
+        macro = normals.macro_of(sp)
+        return self._pdf_sp(ctx, sp, wo if macro is None else macro.to_macro(wo), active)
+
+    def eval_pdf(self, ctx, si, wo, active=True):
+        sp = self.shading_point(ctx, si, active)
+        macro = normals.macro_of(sp)
+        if macro is None:
+            return self._eval_pdf_sp(ctx, sp, wo, active)
+        wo_m = macro.to_macro(wo)
+        value, pdf = self._eval_pdf_sp(ctx, sp, wo_m, active)
+        k = macro.adjoint(ctx, sp, wo, wo_m)
+        return (value if k is None else value * k), pdf
+
+    # The models on a shading point, ω_o and sampled directions in its base frame.
+    def _sample_sp(self, ctx, sp, sample1, sample2, active):
         if self.model == "faithful":
             if ctx.mode == mi.TransportMode.Importance:
                 return self.faithful.sample_adjoint(sp, self._texel(sp), sample1, sample2, mi.Bool(active),
@@ -365,24 +497,21 @@ class NormalMapMicrofacet:
             return analytic.sample(sp, sample1, sample2, mi.Bool(active))
         return walk.sample(sp, self.walk_params, sample1, sample2, mi.Bool(active))
 
-    def eval(self, ctx, si, wo, active=True):
-        sp = self.shading_point(ctx, si, active)
+    def _eval_sp(self, ctx, sp, wo, active):
         if self.model == "faithful":
             return self._faithful_eval_pdf(ctx, sp, wo, mi.Bool(active), want_pdf=False)[0]
         if self.model == "analytic":
             return analytic.eval_pdf(sp, wo, mi.Bool(active), want_pdf=False)[0]
         return walk.eval(sp, self.walk_params, wo, mi.Bool(active))
 
-    def pdf(self, ctx, si, wo, active=True):
-        sp = self.shading_point(ctx, si, active)
+    def _pdf_sp(self, ctx, sp, wo, active):
         if self.model == "faithful":
             return self._faithful_eval_pdf(ctx, sp, wo, mi.Bool(active), want_value=False)[1]
         if self.model == "analytic":
             return analytic.eval_pdf(sp, wo, mi.Bool(active), want_value=False)[1]
         return walk.mis_pdf(sp, self.walk_params, wo, mi.Bool(active))
 
-    def eval_pdf(self, ctx, si, wo, active=True):
-        sp = self.shading_point(ctx, si, active)
+    def _eval_pdf_sp(self, ctx, sp, wo, active):
         if self.model == "faithful":
             return self._faithful_eval_pdf(ctx, sp, wo, mi.Bool(active))
         if self.model == "analytic":
@@ -394,8 +523,10 @@ class NormalMapMicrofacet:
         return (f"NormalMapMicrofacet[model={self.model}, tangent_facet={self.tangent_facet}, "
                 f"rr_depth={self.rr_depth}, mis_boost_max={self.mis_boost_max}, strength={self.strength}, "
                 f"convention={'directx' if self.directx else 'opengl'}, "
-                f"tangents={self.tangent_attr or MITSUBA_TANGENTS},\n"
-                f"  normalmap={self.normalmap},\n  bsdf={self.nested}]")
+                f"tangents={self.tangent_attr or MITSUBA_TANGENTS}, macro_normal={self.macro_normal},\n"
+                + (f"  heightmap={self.heightmap}, height_scale={self.height_scale},\n" if self.heightmap is not None
+                   else f"  normalmap={self.normalmap},\n")
+                + f"  bsdf={self.nested}]")
 
 
 _classes: dict[str, type] = {}
