@@ -230,44 +230,7 @@ class NormalMapMicrofacet:
     def __init__(self, props: mi.Properties):
         type(self).__mro__[1].__init__(self, props)   # the variant's mi.BSDF
 
-        # Nested BSDF and normal map (or height map)
-        self.nested = None
-        self.normalmap = None
-        self.heightmap = None
-        for name, obj in props.objects():
-            if isinstance(obj, mi.BSDF):
-                if self.nested is not None:
-                    _fail("expects exactly one nested BSDF, got several")
-                self.nested = obj
-            elif isinstance(obj, mi.Texture) and name == "normalmap":
-                self.normalmap = obj
-            elif isinstance(obj, mi.Texture) and name == "heightmap":
-                self.heightmap = obj
-        if self.normalmap is None and "normalmap" in props.keys():
-            value = props["normalmap"]
-            if isinstance(value, str):
-                self.normalmap = mi.load_dict({"type": "bitmap", "filename": value, "raw": True})
-        if self.heightmap is None and "heightmap" in props.keys():
-            value = props["heightmap"]
-            if isinstance(value, str):
-                self.heightmap = mi.load_dict({"type": "bitmap", "filename": value, "raw": True})
-        if self.nested is None:
-            _fail("needs a nested BSDF (e.g. <bsdf type=\"diffuse\"/> inside it)")
-        self.macro_normal = props.get("macro_normal", "shading")
-        if self.macro_normal not in normals.MACRO_NORMALS:
-            _fail(f"unknown macro_normal '{self.macro_normal}'; use 'shading' or 'geometric'")
-        self.macro_geometric = self.macro_normal == "geometric"
-        if self.normalmap is not None and self.heightmap is not None:
-            _fail("takes a 'normalmap' or a 'heightmap', not both")
-        if self.normalmap is None and self.heightmap is None and not self.macro_geometric:
-            _fail("needs a texture named 'normalmap' (a raw bitmap: <texture name=\"normalmap\" "
-                  "type=\"bitmap\"> with <boolean name=\"raw\" value=\"true\"/>) or 'heightmap' "
-                  "(or macro_normal=\"geometric\" for a smooth-shaded mesh without a map)")
-        self.height_scale = float(props.get("height_scale", 1.0))
-        if not (abs(self.height_scale) < float("inf")):
-            _fail(f"height_scale must be a finite number, got {self.height_scale}")
-        if self.heightmap is not None:
-            self._check_heightmap()
+        self._load_inputs(props)
 
         # Model parameters
         self.model = props.get("model", DEFAULT_MODEL)
@@ -321,6 +284,47 @@ class NormalMapMicrofacet:
                    "but the microsurface only reflects: its transmission is dropped (that light is "
                    "absorbed) and only its reflection is normal-mapped. For a refracting surface use "
                    "Mitsuba's 'normalmap' BSDF.")
+
+    def _load_inputs(self, props):
+        """The nested BSDF and the normal source: a normal map, a height map, or (with
+        ``macro_normal="geometric"``) the interpolated shading normal alone."""
+        self.nested = None
+        self.normalmap = None
+        self.heightmap = None
+        for name, obj in props.objects():
+            if isinstance(obj, mi.BSDF):
+                if self.nested is not None:
+                    _fail("expects exactly one nested BSDF, got several")
+                self.nested = obj
+            elif isinstance(obj, mi.Texture) and name == "normalmap":
+                self.normalmap = obj
+            elif isinstance(obj, mi.Texture) and name == "heightmap":
+                self.heightmap = obj
+        if self.normalmap is None and "normalmap" in props.keys():
+            value = props["normalmap"]
+            if isinstance(value, str):
+                self.normalmap = mi.load_dict({"type": "bitmap", "filename": value, "raw": True})
+        if self.heightmap is None and "heightmap" in props.keys():
+            value = props["heightmap"]
+            if isinstance(value, str):
+                self.heightmap = mi.load_dict({"type": "bitmap", "filename": value, "raw": True})
+        if self.nested is None:
+            _fail("needs a nested BSDF (e.g. <bsdf type=\"diffuse\"/> inside it)")
+        self.macro_normal = props.get("macro_normal", "shading")
+        if self.macro_normal not in normals.MACRO_NORMALS:
+            _fail(f"unknown macro_normal '{self.macro_normal}'; use 'shading' or 'geometric'")
+        self.macro_geometric = self.macro_normal == "geometric"
+        if self.normalmap is not None and self.heightmap is not None:
+            _fail("takes a 'normalmap' or a 'heightmap', not both")
+        if self.normalmap is None and self.heightmap is None and not self.macro_geometric:
+            _fail("needs a texture named 'normalmap' (a raw bitmap: <texture name=\"normalmap\" "
+                  "type=\"bitmap\"> with <boolean name=\"raw\" value=\"true\"/>) or 'heightmap' "
+                  "(or macro_normal=\"geometric\" for a smooth-shaded mesh without a map)")
+        self.height_scale = float(props.get("height_scale", 1.0))
+        if not (abs(self.height_scale) < float("inf")):
+            _fail(f"height_scale must be a finite number, got {self.height_scale}")
+        if self.heightmap is not None:
+            self._check_heightmap()
 
     def traverse(self, callback):
         callback.put("nested_bsdf", self.nested, mi.ParamFlags.Differentiable)
