@@ -95,10 +95,10 @@ def principal_slopes(normals: np.ndarray):
 
 # -- The blocked share of a Lambertian facet's light: B(cosθ_p, φ_p, G1(ω_i)) -------------------
 
-TABLE_COS = 32      # cosθ_p from COS_P_MIN to 1
+TABLE_COS = 40      # θ_p from 0 to acos(COS_P_MIN), uniform in the angle (B changes fastest near 90°)
 TABLE_PHI = 9       # the facet's azimuth in the slopes' principal frame, folded into [0, π/2]
-TABLE_G = 32        # √G1(ω_i), G1 = 1/(1 + Λ(ω_i)), from 0 to 1 (B is close to linear in √G1)
-_QUAD = 32          # quadrature: _QUAD² stratified cosine-weighted directions on the facet
+TABLE_G = 40        # G1(ω_i)^⅓, G1 = 1/(1 + Λ(ω_i)), from 0 to 1 (B changes fastest as G1 → 0)
+_QUAD = 48          # quadrature: _QUAD² stratified cosine-weighted directions on the facet
 
 
 def _quadrature():
@@ -110,15 +110,15 @@ def _quadrature():
 
 
 def blocked_table(sigma1: float, sigma2: float, cos_min: float) -> np.ndarray:
-    """B[i, j, k]: 1 − ∫ (1/π)⟨ω,ω_p⟩ S(ω|ω_i) dω for a white Lambertian facet at cosθ_p = c_i
-    (TABLE_COS steps from ``cos_min`` to 1), azimuth φ_j (TABLE_PHI steps over [0, π/2]) in the
-    slopes' principal frame, and G1(ω_i) = g_k² (g_k: TABLE_G steps from 0 to 1)."""
+    """B[i, j, k]: 1 − ∫ (1/π)⟨ω,ω_p⟩ S(ω|ω_i) dω for a white Lambertian facet at θ_p = θ_i
+    (TABLE_COS steps from 0 to acos(``cos_min``)), azimuth φ_j (TABLE_PHI steps over [0, π/2])
+    in the slopes' principal frame, and G1(ω_i) = g_k³ (g_k: TABLE_G steps from 0 to 1)."""
     local = _quadrature()
-    g = np.linspace(0.0, 1.0, TABLE_G) ** 2
+    g = np.linspace(0.0, 1.0, TABLE_G) ** 3
     lam_i = np.where(g > 0, 1.0 / np.maximum(g, 1e-30) - 1.0, 1e30)[:, None]
     table = np.zeros((TABLE_COS, TABLE_PHI, TABLE_G))
-    for i, c in enumerate(np.linspace(cos_min, 1.0, TABLE_COS)):
-        s = math.sqrt(max(1.0 - c * c, 0.0))
+    for i, theta in enumerate(np.linspace(0.0, math.acos(cos_min), TABLE_COS)):
+        c, s = math.cos(theta), math.sin(theta)
         for j, phi in enumerate(np.linspace(0.0, 0.5 * math.pi, TABLE_PHI)):
             # The facet's frame: n = ω_p, t1 = the up-slope direction in its plane, t2 = n × t1.
             wp = np.array([s * math.cos(phi), s * math.sin(phi), c])
@@ -139,14 +139,14 @@ def _gather(table, index):
 
 
 def lookup(table, cos_min, cos_p, phi, g):
-    """Trilinear lookup of B(cosθ_p, φ ∈ [0, π/2], G1 = g) in the table (flat, G innermost)."""
+    """Trilinear lookup of B(θ_p, φ ∈ [0, π/2], G1 = g) in the table (flat, G innermost)."""
     def axis(x, n):
         x = dr.clip(x, 0.0, 1.0) * (n - 1)
         x0 = dr.minimum(mi.UInt32(x), n - 2)
         return x0, x - mi.Float(x0)
-    xc, fc = axis((cos_p - cos_min) / (1.0 - cos_min), TABLE_COS)
+    xc, fc = axis(dr.acos(dr.clip(cos_p, cos_min, 1.0)) * (1.0 / math.acos(cos_min)), TABLE_COS)
     xp, fp = axis(phi * (2.0 / math.pi), TABLE_PHI)
-    xg, fg = axis(dr.sqrt(dr.clip(g, 0.0, 1.0)), TABLE_G)
+    xg, fg = axis(dr.cbrt(dr.clip(g, 0.0, 1.0)), TABLE_G)
     acc = mi.Float(0.0)
     for dc, wc in ((0, 1.0 - fc), (1, fc)):
         for dp, wph in ((0, 1.0 - fp), (1, fp)):
@@ -222,8 +222,6 @@ class Texel:
         p_e = self.principal(wp)
         phi = dr.atan2(dr.abs(p_e.y), dr.abs(p_e.x))
         self.blocked = lookup(model.table, model.cos_min, wp.z, phi, g1_i)
-        # The neighbour that blocks the texel's light: the mirror image of ω_p (a V-groove).
-        self.wq = mi.Vector3f(-wp.x, -wp.y, wp.z)
 
     def principal(self, w):
         """``w`` (base frame) in the principal frame of the map's slopes."""
@@ -242,12 +240,13 @@ class Texel:
         return dr.select(up, (1.0 + self.lam_i) / (1.0 + self.lam_i + lam), 0.0)
 
     def _mirror(self, w):
-        return w - 2.0 * dr.dot(w, self.wq) * self.wq
+        return 2.0 * dr.dot(w, self.sp.wp) * self.sp.wp - w
 
     def bounce(self, d):
-        """M(d): where blocked light travelling along d leaves after the neighbour ω_q mirrors it
-        (and, if it still heads down, the macro plane does): a piecewise isometry onto ω_g's
-        hemisphere, so it keeps energy exactly."""
+        """M(d): where blocked light travelling along d leaves: back the way the facet's mirror
+        lobe came (d mirrored about ω_p, which takes the lobe's centre to ω_i: the cavity's
+        retro-reflection), folded above the macro plane if it heads down. A piecewise isometry
+        onto ω_g's hemisphere, so it keeps energy exactly."""
         r = self._mirror(d)
         return mi.Vector3f(r.x, r.y, dr.abs(r.z))
 
