@@ -40,7 +40,7 @@ N_SCALAR = 48
 N_NAIVE = 1 << 16
 TEX = 64   # the normal map (and the principled BSDF's textures) are TEX × TEX texels
 
-MODELS = [("analytic", "specular"), ("separable", "specular"), ("separable", "same"),
+MODELS = [("faithful", "specular"), ("analytic", "specular"), ("separable", "specular"), ("separable", "same"),
           ("nonseparable", "specular"), ("nonseparable", "same")]
 
 
@@ -75,6 +75,9 @@ EXTRA = [
     ("nonseparable", "same", "ggx03", {"rr_depth": 0, "max_bounces": 3000}),
     ("separable", "specular", "diffuse", {"max_bounces": 1, "rr_depth": 1}),
     ("analytic", "specular", "ggx03", {"strength": 0.7, "normalmap_convention": "directx"}),
+    ("faithful", "specular", "roughplastic", {"strength": 0.0}),
+    ("analytic", "specular", "diffuse", {"strength": 0.0}),
+    ("nonseparable", "same", "ggx03", {"strength": 0.0}),
 ]
 
 

@@ -164,7 +164,7 @@ import drjit as dr
 import mitsuba as mi
 
 from . import analytic, faithful, walk
-from .microsurface import COS_P_MIN, decode_normal
+from .microsurface import COS_P_MIN, SIN_P_EPS, decode_normal, negate, replace_grad
 from .shading import ShadingPoint, from_tangent_frame, tangent_rotation
 
 MODELS = ("faithful", "analytic", "separable", "nonseparable")
@@ -176,6 +176,11 @@ MITSUBA_TANGENTS = "mitsuba"
 
 
 STRENGTH_MAX = 1e6
+# Derivatives at a flat normal (docs/model.md §9): the tilt of the nudged normals whose
+# one-sided derivatives are averaged, and the strength at which strength = 0 is differentiated.
+FLAT_NUDGE = 1e-3
+STRENGTH_NUDGE = 1e-3
+NUDGES = ((0, 1.0), (0, -1.0), (1, 1.0), (1, -1.0))   # (axis, sign): ±x, ±y of the map's frame
 
 
 def _fail(msg: str):
@@ -245,7 +250,7 @@ class NormalMapMicrofacet:
         self.directx = convention == "directx"
         strength = _checked_strength(float(props.get("strength", 1.0)))[0]
         self.strength = mi.Float(strength)
-        self._strength_ok = strength
+        self._strength_ok = [strength]
         dr.make_opaque(self.strength)
         tangents = props.get("tangents", MITSUBA_TANGENTS)
         if tangents != MITSUBA_TANGENTS and not tangents.startswith("vertex_"):
@@ -255,7 +260,8 @@ class NormalMapMicrofacet:
         self.walk_params = None if self.model in ("analytic", "faithful") else walk.WalkParams(
             separable=self.model == "separable", specular_tangent=self.tangent_facet == "specular",
             max_bounces=self.max_bounces, rr_depth=self.rr_depth, mis_boost_max=self.mis_boost_max)
-        self.faithful = (faithful.Model(self.nested, self._map_slopes(), COS_P_MIN)
+        self._flat_texels = self._has_flat_texels()
+        self.faithful = (faithful.Model(self.nested, self._map_slopes()[0], COS_P_MIN)
                          if self.model == "faithful" else None)
 
         # The nested BSDF's components; the microsurface only reflects.
@@ -271,9 +277,10 @@ class NormalMapMicrofacet:
                    "Mitsuba's 'normalmap' BSDF.")
 
     def traverse(self, callback):
+        # None of them moves geometry, so none is discontinuous in Mitsuba's sense (visibility).
         callback.put("nested_bsdf", self.nested, mi.ParamFlags.Differentiable)
         callback.put("normalmap", self.normalmap, mi.ParamFlags.Differentiable)
-        callback.put("strength", self.strength, mi.ParamFlags.NonDifferentiable)
+        callback.put("strength", self.strength, mi.ParamFlags.Differentiable)
 
     def parameters_changed(self, keys):
         if "strength" in keys:
@@ -288,13 +295,33 @@ class NormalMapMicrofacet:
                 mi.set_property(self.strength, mi.Float(values))
             self._strength_ok = values
             dr.make_opaque(self.strength)
-        if self.faithful is not None and (not keys or any(k == "strength" or k.startswith("normalmap")
-                                                          for k in keys)):
-            self.faithful.set_slopes(self._map_slopes())
+        if not keys or any(k == "strength" or k.startswith("normalmap") for k in keys):
+            self._flat_texels = self._has_flat_texels()
+            if self.faithful is not None:
+                self.faithful.set_slopes(*self._map_slopes(attached=True))
 
-    def _map_slopes(self):
-        """The map's principal rms slopes about the macro normal and their axis (σ1, σ2, φ_e),
-        from its decoded texels (faithful.principal_slopes)."""
+    def _has_flat_texels(self) -> bool:
+        """Whether the map may decode to the flat normal somewhere (then AD takes the flat
+        normal's derivatives from nudged normals, docs/model.md §9): a bitmap is checked texel
+        by texel, any other texture is assumed to."""
+        import numpy as np
+        params = mi.traverse(self.normalmap)
+        if "data" not in params.keys():
+            return True
+        data = np.array(params["data"], dtype=np.float64)
+        if data.ndim != 3 or data.shape[-1] < 3:
+            return True
+        n = 2.0 * data[..., :3] - 1.0
+        with np.errstate(invalid="ignore"):
+            xy = np.hypot(n[..., 0], n[..., 1]) * min(self._strength_ok)
+            flat = ~(xy > 2.0 * SIN_P_EPS * np.abs(n[..., 2]))    # NaN texels included
+        return bool(flat.any())
+
+    def _map_slopes(self, attached=False):
+        """(σ1, σ2, φ_e), the map's principal rms slopes about the macro normal and their axis,
+        from its decoded texels (faithful.principal_slopes); and, where the map or ``strength``
+        carry derivatives and ``attached``, the same as Dr.Jit values that carry them
+        (faithful.attached_slopes), else None."""
         import numpy as np
         res = 256 if dr.is_jit_v(mi.Float) else 32
         params = mi.traverse(self.normalmap)
@@ -306,8 +333,15 @@ class NormalMapMicrofacet:
         if dr.is_jit_v(mi.Float):
             si = dr.zeros(mi.SurfaceInteraction3f, res * res)
             si.uv = mi.Point2f(mi.Float(uu.ravel()), mi.Float(vv.ravel()))
-            wp = decode_normal(self.normalmap.eval_3(si), self.strength, self.directx)
+            rgb = self.normalmap.eval_3(si)
+            wp = decode_normal(rgb, self.strength, self.directx)
             normals = np.stack([np.array(wp.x), np.array(wp.y), np.array(wp.z)], -1)
+            slopes = faithful.principal_slopes(normals)
+            if not (attached and dr.grad_enabled(wp)):
+                return slopes, None
+            if max(self._strength_ok) > 0:
+                return slopes, faithful.attached_slopes(wp)
+            return slopes, faithful.attached_slopes(decode_normal(rgb, 1.0, self.directx), self.strength)
         else:
             normals = []
             for x, y in zip(uu.ravel(), vv.ravel()):
@@ -315,18 +349,60 @@ class NormalMapMicrofacet:
                 s1.uv = mi.Point2f(float(x), float(y))
                 n = decode_normal(self.normalmap.eval_3(s1), self.strength, self.directx)
                 normals.append([n.x, n.y, n.z])
-        return faithful.principal_slopes(np.array(normals))
+        return faithful.principal_slopes(np.array(normals)), None
 
-    def shading_point(self, ctx, si, active=True):
-        """The microsurface at ``si``: ω_p from the normal map, in the base shading frame."""
+    def shading_point(self, ctx, si, active=True, nudge=None):
+        """The microsurface at ``si``: ω_p from the normal map, in the base shading frame.
+
+        ``nudge`` (derivatives at a flat normal, :meth:`_differentiable`): ``"strength"``: ω_p
+        at strength + STRENGTH_NUDGE, the texel detached; ``(axis, sign)``: ω_p tilted by
+        FLAT_NUDGE along ±x or ±y of the map's frame, the other axis detached."""
         rgb = self.normalmap.eval_3(si, active)
-        wp = decode_normal(rgb, self.strength, self.directx)
+        strength = self.strength
+        if nudge == "strength":
+            rgb, strength = dr.detach(rgb), strength + STRENGTH_NUDGE
+        wp = decode_normal(rgb, strength, self.directx)
+        attached = dr.grad_enabled(wp)
+        if nudge is not None and nudge != "strength":
+            axis, sign = nudge
+            x = wp.x + sign * FLAT_NUDGE if axis == 0 else dr.detach(wp.x)
+            y = wp.y + sign * FLAT_NUDGE if axis == 1 else dr.detach(wp.y)
+            wp = dr.normalize(mi.Vector3f(x, y, wp.z))
+        rotation = None
         if self.tangent_attr is not None:
             wp, rotation = self._from_vertex_tangents(si, wp, active)
-            sp = ShadingPoint(self.nested, ctx, si, wp)
-            sp.map_rotation = rotation
-            return sp
-        return ShadingPoint(self.nested, ctx, si, wp)
+        sp = ShadingPoint(self.nested, ctx, si, wp)
+        sp.map_rotation = rotation
+        sp.attached = attached
+        return sp
+
+    def _differentiable(self, ctx, si, active, fn):
+        """``fn(sp)`` (a tuple of Dr.Jit arrays) at the microsurface of ``si``, with the
+        derivatives of the normal at a flat ω_p (docs/model.md §9).
+
+        A flat normal is where the models are not differentiable: the tangent facet grows like
+        |tilt|, its direction jumps with the tilt's. Where the map or ``strength`` carry
+        derivatives, they are taken (values unchanged) from nudged normals instead: at
+        ``strength`` = 0 from ω_p at strength STRENGTH_NUDGE (the one-sided derivative, the
+        texels' being 0); at a flat texel per axis of the map's frame, from the mean of ω_p
+        tilted by ±FLAT_NUDGE along it (the central derivative of each channel, what central
+        differences measure). Primal kernels never trace the nudges."""
+        sp = self.shading_point(ctx, si, active)
+        out = fn(sp)
+        if not sp.attached or not dr.is_diff_v(mi.Float):
+            return out
+        if max(self._strength_ok) == 0.0:
+            grad = fn(self.shading_point(ctx, si, active, "strength"))
+            return tuple(replace_grad(o, g) for o, g in zip(out, grad))
+        if not self._flat_texels:
+            return out
+        flat = sp.sin_p == 0.0
+        nudged = [fn(self.shading_point(ctx, si, active, n)) for n in NUDGES]
+        out_ = []
+        for k, o in enumerate(out):
+            grad = 0.5 * (nudged[0][k] + nudged[1][k] + nudged[2][k] + nudged[3][k]) - o
+            out_.append(dr.select(flat, replace_grad(o, grad), o))
+        return tuple(out_)
 
     def _from_vertex_tangents(self, si, wp, active):
         """(ω_p decoded in the mesh's vertex tangent frame and re-expressed in ``si.sh_frame``,
@@ -354,41 +430,48 @@ class NormalMapMicrofacet:
                                                   lambda b: self._texel(sp, b), want_value, want_pdf)
         return self.faithful.eval_pdf(sp, self._texel(sp), wo, active, want_value, want_pdf)
 
+    def _eval_pdf(self, ctx, sp, wo, active, want_value=True, want_pdf=True):
+        """(eval, pdf) of the model at the microsurface ``sp`` (what is not wanted is 0)."""
+        active = mi.Bool(active)
+        if self.model == "faithful":
+            return self._faithful_eval_pdf(ctx, sp, wo, active, want_value, want_pdf)
+        if self.model == "analytic":
+            return analytic.eval_pdf(sp, wo, active, want_value, want_pdf)
+        return (walk.eval(sp, self.walk_params, wo, active) if want_value else mi.Spectrum(0.0),
+                walk.mis_pdf(sp, self.walk_params, wo, active) if want_pdf else mi.Float(0.0))
+
     def sample(self, ctx, si, sample1, sample2, active=True):
         sp = self.shading_point(ctx, si, active)
-        if self.model == "faithful":
-            if ctx.mode == mi.TransportMode.Importance:
-                return self.faithful.sample_adjoint(sp, self._texel(sp), sample1, sample2, mi.Bool(active),
-                                                    lambda b: self._texel(sp, b))
-            return self.faithful.sample(sp, self._texel(sp), sample1, sample2, mi.Bool(active))
+        if self.model != "faithful" and self.model != "analytic":
+            return walk.sample(sp, self.walk_params, sample1, sample2, mi.Bool(active))
         if self.model == "analytic":
-            return analytic.sample(sp, sample1, sample2, mi.Bool(active))
-        return walk.sample(sp, self.walk_params, sample1, sample2, mi.Bool(active))
+            bs, weight = analytic.sample(sp, sample1, sample2, mi.Bool(active))
+        elif ctx.mode == mi.TransportMode.Importance:
+            bs, weight = self.faithful.sample_adjoint(sp, self._texel(sp), sample1, sample2, mi.Bool(active),
+                                                      lambda b: self._texel(sp, b))
+        else:
+            bs, weight = self.faithful.sample(sp, self._texel(sp), sample1, sample2, mi.Bool(active))
+        if sp.attached and (self._flat_texels or max(self._strength_ok) == 0.0):
+            # A smooth lobe's weight eval/detach(pdf) and its pdf, with the flat normal's
+            # derivatives (_differentiable) at the sample's (detached) direction.
+            smooth = mi.Bool(active) & negate(mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)) & (bs.pdf > 0)
+            wo = dr.detach(bs.wo)
+            value, pdf = self._differentiable(ctx, si, active, lambda at: self._eval_pdf(ctx, at, wo, smooth))
+            grad = value / dr.detach(dr.select(pdf > 0, pdf, 1.0))
+            weight = dr.select(smooth, replace_grad(weight, grad), weight)
+            bs.pdf = dr.select(smooth, replace_grad(bs.pdf, pdf), bs.pdf)
+        return bs, weight
 
     def eval(self, ctx, si, wo, active=True):
-        sp = self.shading_point(ctx, si, active)
-        if self.model == "faithful":
-            return self._faithful_eval_pdf(ctx, sp, wo, mi.Bool(active), want_pdf=False)[0]
-        if self.model == "analytic":
-            return analytic.eval_pdf(sp, wo, mi.Bool(active), want_pdf=False)[0]
-        return walk.eval(sp, self.walk_params, wo, mi.Bool(active))
+        return self._differentiable(ctx, si, active,
+                                    lambda sp: self._eval_pdf(ctx, sp, wo, active, want_pdf=False)[:1])[0]
 
     def pdf(self, ctx, si, wo, active=True):
-        sp = self.shading_point(ctx, si, active)
-        if self.model == "faithful":
-            return self._faithful_eval_pdf(ctx, sp, wo, mi.Bool(active), want_value=False)[1]
-        if self.model == "analytic":
-            return analytic.eval_pdf(sp, wo, mi.Bool(active), want_value=False)[1]
-        return walk.mis_pdf(sp, self.walk_params, wo, mi.Bool(active))
+        return self._differentiable(ctx, si, active,
+                                    lambda sp: self._eval_pdf(ctx, sp, wo, active, want_value=False)[1:])[0]
 
     def eval_pdf(self, ctx, si, wo, active=True):
-        sp = self.shading_point(ctx, si, active)
-        if self.model == "faithful":
-            return self._faithful_eval_pdf(ctx, sp, wo, mi.Bool(active))
-        if self.model == "analytic":
-            return analytic.eval_pdf(sp, wo, mi.Bool(active))
-        return (walk.eval(sp, self.walk_params, wo, mi.Bool(active)),
-                walk.mis_pdf(sp, self.walk_params, wo, mi.Bool(active)))
+        return self._differentiable(ctx, si, active, lambda sp: self._eval_pdf(ctx, sp, wo, active))
 
     def to_string(self):
         return (f"NormalMapMicrofacet[model={self.model}, tangent_facet={self.tangent_facet}, "
