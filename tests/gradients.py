@@ -36,10 +36,11 @@ class Check:
     fd_se: float
     se: float
 
-    def agrees(self, n_se=4.0, rel=0.03):
-        """|AD − FD| within n_se paired standard errors plus rel × |FD| (and the same for reverse
-        mode, whose value is the forward mean's up to float rounding)."""
-        tol = n_se * self.se + rel * abs(self.fd) + 1e-7
+    def agrees(self, n_se=4.0, rel=0.03, atol=1e-7):
+        """|AD − FD| within n_se paired standard errors plus rel × |FD| plus atol (float32
+        rounding of the FD: ~ulp(L)/h; 0 where a tiny derivative must itself be checked), and the
+        same for reverse mode, whose value is the forward mean's up to float rounding."""
+        tol = n_se * self.se + rel * abs(self.fd) + atol
         return abs(self.ad - self.fd) <= tol and abs(self.rev - self.fd) <= tol + 1e-6 * abs(self.fd)
 
     def __str__(self):

@@ -354,16 +354,16 @@ class NormalMapMicrofacet:
     def shading_point(self, ctx, si, active=True, nudge=None):
         """The microsurface at ``si``: ω_p from the normal map, in the base shading frame.
 
-        ``nudge`` (derivatives at a flat normal, :meth:`_differentiable`): ``"strength"``: ω_p
-        at strength + STRENGTH_NUDGE, the texel detached; ``(axis, sign)``: ω_p tilted by
+        ``nudge`` (derivatives at a flat normal, :meth:`_differentiable`): ``"strength"``
+        (``"strength2"``): ω_p at strength + STRENGTH_NUDGE (+ twice it), the texel detached; ``(axis, sign)``: ω_p tilted by
         FLAT_NUDGE along ±x or ±y of the map's frame, the other axis detached."""
         rgb = self.normalmap.eval_3(si, active)
         strength = self.strength
-        if nudge == "strength":
-            rgb, strength = dr.detach(rgb), strength + STRENGTH_NUDGE
+        if isinstance(nudge, str):          # "strength", "strength2": at STRENGTH_NUDGE, twice it
+            rgb, strength = dr.detach(rgb), strength + STRENGTH_NUDGE * (2.0 if nudge == "strength2" else 1.0)
         wp = decode_normal(rgb, strength, self.directx)
         attached = dr.grad_enabled(wp)
-        if nudge is not None and nudge != "strength":
+        if nudge is not None and not isinstance(nudge, str):
             axis, sign = nudge
             x = wp.x + sign * FLAT_NUDGE if axis == 0 else dr.detach(wp.x)
             y = wp.y + sign * FLAT_NUDGE if axis == 1 else dr.detach(wp.y)
@@ -383,8 +383,8 @@ class NormalMapMicrofacet:
         A flat normal is where the models are not differentiable: the tangent facet grows like
         |tilt|, its direction jumps with the tilt's. Where the map or ``strength`` carry
         derivatives, they are taken (values unchanged) from nudged normals instead: at
-        ``strength`` = 0 from ω_p at strength STRENGTH_NUDGE (the one-sided derivative, the
-        texels' being 0); at a flat texel per axis of the map's frame, from the mean of ω_p
+        ``strength`` = 0 the one-sided derivative extrapolated from ω_p at strengths h and 2h
+        (h = STRENGTH_NUDGE: 2f'(h) − f'(2h), second order; the texels' derivatives are 0); at a flat texel per axis of the map's frame, from the mean of ω_p
         tilted by ±FLAT_NUDGE along it (the central derivative of each channel, what central
         differences measure). Primal kernels never trace the nudges."""
         sp = self.shading_point(ctx, si, active)
@@ -392,8 +392,11 @@ class NormalMapMicrofacet:
         if not sp.attached or not dr.is_diff_v(mi.Float):
             return out
         if max(self._strength_ok) == 0.0:
-            grad = fn(self.shading_point(ctx, si, active, "strength"))
-            return tuple(replace_grad(o, g) for o, g in zip(out, grad))
+            # f'(0) = 2 f'(h) − f'(2h) + O(h²): the specular-tangent models' f'(0) is ~0, and
+            # f'(h) alone would be off by f''·h.
+            g1 = fn(self.shading_point(ctx, si, active, "strength"))
+            g2 = fn(self.shading_point(ctx, si, active, "strength2"))
+            return tuple(replace_grad(o, 2.0 * a - b) for o, a, b in zip(out, g1, g2))
         if not self._flat_texels:
             return out
         flat = sp.sin_p == 0.0

@@ -1,0 +1,123 @@
+"""Render-level derivatives: Mitsuba's ``prb`` and ``prb_projective`` against finite differences.
+
+In the style of Mitsuba's own ``test_ad_integrators.py``: a parameter θ moves the scene
+(here ``strength``, or one channel of one texel of the normal map, θ added to it), the AD
+integrator's forward-mode image ∂I/∂θ is compared pixel by pixel with the central finite
+difference of two ``path`` renders at θ ± h (same seed and sample count: common random
+numbers), and its reverse-mode gradient of the mean image with the FD image's mean.
+
+The scene: a plane under a 4×4 normal map (nearest filtering), seen from above by a
+perspective camera, lit by one directional sun at 40° elevation (direct light only,
+max_depth 2: the image is the BSDF's eval, so the FD is exact up to float rounding for the
+deterministic models and shares the walks' hashed random numbers). h = 1e-3 for the
+deterministic models (float32 rounding ~1e-4 relative; truncation O(h²)), 0.02 for the walk
+(its decisions flip between θ ± h; the FD's noise ∝ 1/h, see tests/test_gradients.py).
+
+Tolerances (stated per case below): the mean relative error of the forward image, relative to
+max(|FD|, 10 % of max |FD|), and the relative error of the reverse-mode gradient.
+"""
+
+import mfnormal  # noqa: F401  (first: selects a working libLLVM)
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+import pytest
+
+mi.set_variant("llvm_ad_rgb")
+mfnormal.register()
+
+from helpers import encode, sph  # noqa: E402
+
+RES, SPP = 24, 16
+TEXELS = encode(np.array([sph(30 + 10 * (k % 3), 0.7 * k) for k in range(16)]).reshape(4, 4, 3))
+NESTED = {"type": "roughplastic", "distribution": "ggx", "alpha": 0.2,
+          "diffuse_reflectance": {"type": "rgb", "value": [0.6, 0.6, 0.6]}}
+
+# (model, tangent facet, step h, forward tolerance, reverse tolerance)
+CASES = [("faithful", None, 1e-3, 0.02, 0.02),
+         ("analytic", None, 1e-3, 0.02, 0.02),
+         ("nonseparable", "same", 0.02, 0.25, 0.06)]
+
+
+def scene(model, facet):
+    bsdf = {"type": "normalmap_microfacet", "model": model, "bsdf": NESTED,
+            "normalmap": {"type": "bitmap", "data": mi.TensorXf(TEXELS), "raw": True,
+                          "filter_type": "nearest"}}
+    if facet is not None:
+        bsdf["tangent_facet"] = facet
+    el = np.radians(40.0)
+    return mi.load_dict({
+        "type": "scene",
+        "sensor": {"type": "perspective", "fov": 30,
+                   "to_world": mi.ScalarTransform4f().look_at(origin=[0.3, 0.2, 3.0], target=[0, 0, 0],
+                                                              up=[0, 1, 0]),
+                   "film": {"type": "hdrfilm", "width": RES, "height": RES, "rfilter": {"type": "box"},
+                            "pixel_format": "rgb"},
+                   "sampler": {"type": "independent", "sample_count": SPP}},
+        "plane": {"type": "rectangle", "bsdf": bsdf,
+                  "to_world": mi.ScalarTransform4f().scale([1.5, 1.5, 1.0])},
+        "sun": {"type": "directional", "direction": [-np.cos(el), -0.3, -np.sin(el)],
+                "irradiance": {"type": "rgb", "value": 3.0}},
+    })
+
+
+def key_of(params, what):
+    return next(k for k in params.keys() if k.endswith("normalmap.data" if what == "texel" else "." + what))
+
+
+def update(params, what, base, theta):
+    """θ added to texel (1, 2)'s x channel, or strength = 1 + θ."""
+    key = key_of(params, what)
+    if what == "texel":
+        mask = np.zeros_like(TEXELS)
+        mask[1, 2, 0] = 1.0
+        params[key] = mi.TensorXf(base) + theta * mi.TensorXf(mask)
+    else:
+        params[key] = mi.Float(1.0) + theta
+    params.update()
+
+
+def fd_image(sc, params, what, base, h):
+    path = mi.load_dict({"type": "path", "max_depth": 2})
+    out = []
+    for t in (h, -h):
+        update(params, what, base, mi.Float(t))
+        out.append(np.array(mi.render(sc, params, integrator=path, seed=0, spp=SPP), np.float64))
+    update(params, what, base, mi.Float(0.0))
+    return (out[0] - out[1]) / (2 * h)
+
+
+@pytest.mark.parametrize("integrator", ["prb", "prb_projective"])
+@pytest.mark.parametrize("what", ["texel", "strength"])
+@pytest.mark.parametrize("model, facet, h, tol_fwd, tol_bwd", CASES, ids=[c[0] for c in CASES])
+def test_render_gradient_matches_finite_differences(model, facet, h, tol_fwd, tol_bwd, what, integrator):
+    sc = scene(model, facet)
+    params = mi.traverse(sc)
+    base = np.array(params[key_of(params, "texel")])
+    ref = fd_image(sc, params, what, base, h)
+    integ = mi.load_dict({"type": integrator, "max_depth": 2})
+
+    # Forward mode: the image's derivative.
+    theta = mi.Float(0.0)
+    dr.enable_grad(theta)
+    update(params, what, base, theta)
+    img = mi.render(sc, params, integrator=integ, seed=0, spp=SPP)
+    dr.forward(theta)
+    fwd = np.array(dr.grad(img), np.float64)
+    floor = 0.1 * np.abs(ref).max()
+    err = float((np.abs(fwd - ref) / np.maximum(np.abs(ref), floor)).mean())
+
+    # Reverse mode: the mean image's gradient.
+    theta = mi.Float(0.0)
+    dr.enable_grad(theta)
+    update(params, what, base, theta)
+    img = mi.render(sc, params, integrator=integ, seed=0, spp=SPP)
+    dr.backward(dr.mean(img, axis=None))
+    bwd = float(np.array(dr.grad(theta)).ravel()[0])
+    bwd_err = abs(bwd - ref.mean()) / abs(ref.mean())
+    print(f"{model} {what} {integrator}: fwd mean {fwd.mean():+.5g} (rel. error {err:.3g}), "
+          f"rev {bwd:+.5g}, FD {ref.mean():+.5g} (rel. error {bwd_err:.3g})")
+    assert abs(ref.mean()) > 1e-4 and np.abs(ref).max() > 1e-3, "the scene must see the parameter"
+    assert err < tol_fwd, err
+    assert bwd_err < tol_bwd, (bwd, ref.mean())
