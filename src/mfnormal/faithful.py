@@ -41,7 +41,8 @@ import numpy as np
 
 from .microsurface import negate, replace_grad, score
 from .shading import to_tangent_frame
-from .rng import ONE_MINUS_EPS, SALT_FAITHFUL_SAMPLE, SLOT_FAITHFUL_BLOCKED, hash_floats, uniform
+from .rng import (ONE_MINUS_EPS, SALT_FAITHFUL_SAMPLE, SLOT_FAITHFUL_BLOCKED, SLOT_FAITHFUL_RETRO,
+                  hash_floats, uniform)
 
 INV_PI = 1.0 / math.pi
 SQRT_PI = math.sqrt(math.pi)
@@ -132,10 +133,10 @@ def principal_slopes(normals: np.ndarray):
 
 # -- The blocked share of a Lambertian facet's light: B(cosθ_p, φ_p, G1(ω_i)) -------------------
 
-TABLE_COS = 32      # cosθ_p from COS_P_MIN to 1
+TABLE_COS = 40      # θ_p from 0 to acos(COS_P_MIN), uniform in the angle (B changes fastest near 90°)
 TABLE_PHI = 9       # the facet's azimuth in the slopes' principal frame, folded into [0, π/2]
-TABLE_G = 32        # √G1(ω_i), G1 = 1/(1 + Λ(ω_i)), from 0 to 1 (B is close to linear in √G1)
-_QUAD = 32          # quadrature: _QUAD² stratified cosine-weighted directions on the facet
+TABLE_G = 40        # G1(ω_i)^⅓, G1 = 1/(1 + Λ(ω_i)), from 0 to 1 (B changes fastest as G1 → 0)
+_QUAD = 48          # quadrature: _QUAD² stratified cosine-weighted directions on the facet
 
 
 def _quadrature():
@@ -148,20 +149,20 @@ def _quadrature():
 
 @functools.lru_cache(maxsize=8)
 def blocked_table(sigma1: float, sigma2: float, cos_min: float, derivatives: bool = False):
-    """B[i, j, k]: 1 − ∫ (1/π)⟨ω,ω_p⟩ S(ω|ω_i) dω for a white Lambertian facet at cosθ_p = c_i
-    (TABLE_COS steps from ``cos_min`` to 1), azimuth φ_j (TABLE_PHI steps over [0, π/2]) in the
-    slopes' principal frame, and G1(ω_i) = g_k² (g_k: TABLE_G steps from 0 to 1).
+    """B[i, j, k]: 1 − ∫ (1/π)⟨ω,ω_p⟩ S(ω|ω_i) dω for a white Lambertian facet at θ_p = θ_i
+    (TABLE_COS steps from 0 to acos(``cos_min``)), azimuth φ_j (TABLE_PHI steps over [0, π/2])
+    in the slopes' principal frame, and G1(ω_i) = g_k³ (g_k: TABLE_G steps from 0 to 1).
 
     With ``derivatives``: (B, ∂B/∂σ1, ∂B/∂σ2) at fixed G1(ω_i) (its own σ-dependence is the
     lookup's), by the same quadrature: ∂S/∂Λ(ω) = −(1 + Λ_i)/(1 + Λ_i + Λ(ω))². Cached (scenes
     that share a map rebuild the same tables after each update): treat the arrays as read-only."""
     local = _quadrature()
-    g = np.linspace(0.0, 1.0, TABLE_G) ** 2
+    g = np.linspace(0.0, 1.0, TABLE_G) ** 3
     lam_i = np.where(g > 0, 1.0 / np.maximum(g, 1e-30) - 1.0, 1e30)[:, None]
     table = np.zeros((TABLE_COS, TABLE_PHI, TABLE_G))
     d1, d2 = np.zeros_like(table), np.zeros_like(table)
-    for i, c in enumerate(np.linspace(cos_min, 1.0, TABLE_COS)):
-        s = math.sqrt(max(1.0 - c * c, 0.0))
+    for i, theta in enumerate(np.linspace(0.0, math.acos(cos_min), TABLE_COS)):
+        c, s = math.cos(theta), math.sin(theta)
         for j, phi in enumerate(np.linspace(0.0, 0.5 * math.pi, TABLE_PHI)):
             # The facet's frame: n = ω_p, t1 = the up-slope direction in its plane, t2 = n × t1.
             wp = np.array([s * math.cos(phi), s * math.sin(phi), c])
@@ -191,14 +192,14 @@ def _gather(table, index):
 
 
 def lookup(table, cos_min, cos_p, phi, g):
-    """Trilinear lookup of B(cosθ_p, φ ∈ [0, π/2], G1 = g) in the table (flat, G innermost)."""
+    """Trilinear lookup of B(θ_p, φ ∈ [0, π/2], G1 = g) in the table (flat, G innermost)."""
     def axis(x, n):
         x = dr.clip(x, 0.0, 1.0) * (n - 1)
         x0 = dr.minimum(mi.UInt32(x), n - 2)
         return x0, x - mi.Float(x0)
-    xc, fc = axis((cos_p - cos_min) / (1.0 - cos_min), TABLE_COS)
+    xc, fc = axis(dr.acos(dr.clip(cos_p, cos_min, 1.0)) * (1.0 / math.acos(cos_min)), TABLE_COS)
     xp, fp = axis(phi * (2.0 / math.pi), TABLE_PHI)
-    xg, fg = axis(dr.sqrt(dr.clip(g, 0.0, 1.0)), TABLE_G)
+    xg, fg = axis(dr.cbrt(dr.clip(g, 0.0, 1.0)), TABLE_G)
     acc = mi.Float(0.0)
     for dc, wc in ((0, 1.0 - fc), (1, fc)):
         for dp, wph in ((0, 1.0 - fp), (1, fp)):
@@ -274,8 +275,6 @@ class Texel:
         p_e = self.principal(wp)
         phi = dr.atan2(dr.abs(p_e.y), dr.abs(p_e.x))
         self.blocked = model.blocked(wp.z, phi, g1_i)
-        # The neighbour that blocks the texel's light: the mirror image of ω_p (a V-groove).
-        self.wq = mi.Vector3f(-wp.x, -wp.y, wp.z)
 
     def principal(self, w):
         """``w`` (base frame) in the principal frame of the map's slopes."""
@@ -294,21 +293,34 @@ class Texel:
         return dr.select(up, (1.0 + self.lam_i) / (1.0 + self.lam_i + lam), 0.0)
 
     def _mirror(self, w):
-        return w - 2.0 * dr.dot(w, self.wq) * self.wq
+        return 2.0 * dr.dot(w, self.sp.wp) * self.sp.wp - w
 
-    def bounce(self, d):
-        """M(d): where blocked light travelling along d leaves after the neighbour ω_q mirrors it
-        (and, if it still heads down, the macro plane does): a piecewise isometry onto ω_g's
-        hemisphere, so it keeps energy exactly."""
-        r = self._mirror(d)
+    def retro_share(self):
+        """w(ω_i) = 1 − S(r|ω_i), r the facet's mirror direction of ω_i: how much of the glossy
+        lobe's centre the neighbours block. Blocked light of a lobe whose centre escapes (the
+        tails of mild texels' lobes) skims on past the neighbours, mirrored off the macro plane;
+        that of a lobe whose centre is blocked is trapped in a cavity and comes back (retro-
+        reflection); w blends the two (continuous in ω_i)."""
+        return 1.0 - self.seen(self._mirror(self.wi))
+
+    def bounce(self, d, retro):
+        """M(d): where blocked light travelling along d leaves: back the way the facet's mirror
+        lobe came (``retro``: d mirrored about ω_p, which takes the lobe's centre to ω_i) or on
+        (d as it is); either folded above the macro plane if it heads down. Piecewise
+        isometries onto ω_g's hemisphere, so the bounced light keeps its energy exactly."""
+        r = dr.select(retro, self._mirror(d), d)
         return mi.Vector3f(r.x, r.y, dr.abs(r.z))
 
     def preimages(self, w):
-        """The (up to) two blocked directions d with M(d) = ω, each with whether it lies on the facet."""
-        d1 = self._mirror(w)
-        d2 = self._mirror(mi.Vector3f(w.x, w.y, -w.z))
-        wp = self.sp.wp
-        return (d1, dr.dot(d1, wp) > 0), (d2, dr.dot(d2, wp) > 0)
+        """The blocked directions d that the bounce takes to ω, as (d, lies on the facet, the share
+        of blocked light that takes that map): two for skimming on, two for retro-reflection."""
+        wp, share = self.sp.wp, self.retro_share()
+        below = mi.Vector3f(w.x, w.y, -w.z)
+        out = []
+        for d, weight in ((w, 1.0 - share), (below, 1.0 - share),
+                          (self._mirror(w), share), (self._mirror(below), share)):
+            out.append((d, dr.dot(d, wp) > 0, weight))
+        return out
 
 
 def _nested(sp, ctx, frame, wi, wo, active, want_value=True, want_pdf=True):
@@ -426,15 +438,15 @@ class Model:
         value_t, pdf_t = f_dir * s_o, p_dir * s_o
         # Light the neighbours block, bounced toward ω_o: the glossy part in eval (the diffuse
         # part is the fill), every lobe in the sampler's pdf.
-        for d, on_facet in tx.preimages(wo):
+        for d, on_facet, share in tx.preimages(wo):
             s_d = tx.seen(d)
-            blocked = on_texel & on_facet & (s_d < 1.0)
+            blocked = on_texel & on_facet & (s_d < 1.0) & (share > 0)
             if self.lobes.glossy and want_value:
                 f_b, _ = _nested(sp, glossy, sp.frame_p, wi, d, blocked, True, False)
-                value_t += f_b * (1.0 - s_d)
+                value_t += f_b * (share * (1.0 - s_d))
             if want_pdf:
                 _, p_b = _nested(sp, full, sp.frame_p, wi, d, blocked, False, True)
-                pdf_t += p_b * (1.0 - s_d)
+                pdf_t += p_b * (share * (1.0 - s_d))
         # The neighbours, where the texel is hidden.
         f_hid, p_hid = _nested(sp, full, macro_frame(), wi, wo, active & (tx.vis < 1.0), want_value, want_pdf)
 
@@ -466,10 +478,12 @@ class Model:
         frame = _select_frame(on_tex, sp.frame_p, macro_frame())
         bs, w = sp.sample(frame, wi, s1, sample2, active & (on_tex | on_hid))
         # Texel branch: the sample leaves past the neighbours, or is blocked and bounced.
-        u = uniform(hash_floats(SALT_FAITHFUL_SAMPLE, sample1, sample2.x, sample2.y), SLOT_FAITHFUL_BLOCKED)
+        seed = hash_floats(SALT_FAITHFUL_SAMPLE, sample1, sample2.x, sample2.y)
         s_b = tx.seen(bs.wo)
-        bounced = on_tex & (u >= dr.detach(s_b))
-        wo = dr.select(bounced, tx.bounce(bs.wo), bs.wo)
+        # (Decisions with detached probabilities; the draw's prob keeps them attached: score.)
+        bounced = on_tex & (uniform(seed, SLOT_FAITHFUL_BLOCKED) >= dr.detach(s_b))
+        retro = uniform(seed, SLOT_FAITHFUL_RETRO) < dr.detach(tx.retro_share())
+        wo = dr.select(bounced, tx.bounce(bs.wo, retro), bs.wo)
         # Diffuse fill: a cosine lobe about ω_g.
         wo = dr.select(on_fill, mi.warp.square_to_cosine_hemisphere(sample2), wo)
         # A nested sample counts only if it is one: positive weight, on the upper side of its frame.
@@ -480,7 +494,8 @@ class Model:
         bs.sampled_component = dr.select(on_fill, mi.UInt32(0), bs.sampled_component)
         bs.wo = wo
         # The draw's probability factor for delta lobes (the nested pdf times this).
-        prob = dr.select(on_tex, b_tex * dr.select(bounced, 1.0 - s_b, s_b), b_hid)
+        share = dr.select(retro, tx.retro_share(), 1.0 - tx.retro_share())
+        prob = dr.select(on_tex, b_tex * dr.select(bounced, (1.0 - s_b) * share, s_b), b_hid)
         return _Draw(bs, w, active & ok, delta, on_tex, bounced, prob, b_tex, b_hid)
 
     def sample(self, sp, tx, sample1, sample2, active):
@@ -512,10 +527,10 @@ class Model:
         sp, a = tx_a.sp, tx_a.wi
         branches = [(mi.Float(0.05), "cosine", None, None)]
         if self.lobes.glossy:
-            for d, on_facet in tx_a.preimages(a):
+            for k, (d, on_facet, share) in enumerate(tx_a.preimages(a)):
                 s_d = tx_a.seen(d)
-                p = dr.select(on_facet & (s_d < 1.0), dr.maximum(0.2 * tx_a.vis * (1.0 - s_d), 0.05), 0.0)
-                branches.append((p, "bounce", sp.frame_p, d))
+                p = dr.select(on_facet & (s_d < 1.0), dr.maximum(0.1 * tx_a.vis * (1.0 - s_d), 0.025), 0.0)
+                branches.append((p, "retro" if k >= 2 else "skim", sp.frame_p, d))
             vis_c = texel_for(mi.Vector3f(-a.x, -a.y, a.z)).vis      # at the flat lobe's centre
             branches.append((dr.maximum(0.3 * (1.0 - vis_c), 0.05), "hidden", macro_frame(), a))
         return branches
@@ -591,9 +606,11 @@ class Model:
         prob_delta = p_rad * dw.prob
         c_delta = dr.select(on_flat, (1.0 - tx_b.vis) / dr.maximum(p_hid_x + p_rad * dw.b_hid, 1e-30), c_delta)
         prob_delta = dr.select(on_flat, p_hid_x + p_rad * dw.b_hid, prob_delta)
+        share_b = tx_b.retro_share()
         for k, (p, kind, frame, inc) in enumerate(extra):
-            if kind == "bounce":
-                c_k = tx_b.vis * (1.0 - tx_b.seen(inc)) * ratio / dr.maximum(p, 1e-30)
+            if kind in ("skim", "retro"):
+                share = share_b if kind == "retro" else 1.0 - share_b
+                c_k = tx_b.vis * share * (1.0 - tx_b.seen(inc)) * ratio / dr.maximum(p, 1e-30)
                 c_delta = dr.select(picked == k, c_k, c_delta)
                 prob_delta = dr.select(picked == k, p, prob_delta)
         weight = dr.select(delta, w * c_delta * score(prob_delta), value / dr.detach(dr.select(pdf > 0, pdf, 1.0)))
