@@ -65,6 +65,7 @@ def params(fast_walk=None):
 DIFFUSE = {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.3, 0.6, 0.9]}}
 GGX = {"type": "roughconductor", "distribution": "ggx", "alpha": 0.3}
 N = 1 << 18
+N_PDF = 1 << 17     # pdf and sample (the acceptance's 2^18 is for eval)
 # Four texels: tilts 30°, 50°, 15° at three azimuths, and one exactly flat.
 TILTED = encode(np.array([sph(30, 0.3), sph(50, 0.8), sph(15, -0.4), sph(0)]).reshape(-1, 3))
 FLAT = encode(np.array([sph(0)] * 4).reshape(-1, 3))
@@ -77,9 +78,9 @@ def walk(model):
     return model not in ("faithful", "analytic")
 
 
-def checks(model, facet, texels, keys, what="eval", one_sided=(), nested=DIFFUSE, **params):
+def checks(model, facet, texels, keys, what="eval", one_sided=(), nested=DIFFUSE, n=N, **params):
     b = make_bsdf(nested, texels, model=model, tangent_facet=facet, **params)
-    si, wo, u = G.queries(N, 4)
+    si, wo, u = G.queries(n, 4)
     out = {}
     for key, h in keys:
         c = G.check(b, key, si, wo, u, h, what, one_sided=key in one_sided)
@@ -139,9 +140,14 @@ def test_eval_derivatives_at_strength_zero(model, facet):
     keys = [("strength", 1e-3), (("texel", 0, 0), 1e-3)]
     out = checks(model, facet, TILTED, keys, one_sided=("strength",), strength=0.0)
     c = out["strength"]
-    if facet == "specular" or model == "analytic":
+    if model == "analytic":
         # Below the FD's float32 resolution (L moves by ~5e-10 over 2h; measured |FD| ~5e-7).
         assert abs(c.ad) < 1e-6 and abs(c.rev) < 1e-6 and abs(c.fd) < 2e-6, c
+    elif facet == "specular":
+        # Zero within the walk's noise (measured: nonseparable +1.1e-4 ± 1.2e-4, FD the same
+        # to 4e-8 paired; separable < 1e-8).
+        assert c.agrees(), c
+        assert abs(c.ad) < 4 * c.ad_se + 1e-6, c
     else:
         assert c.agrees(atol=0.0 if not walk(model) else 1e-7), c
         assert abs(c.ad) > 0.02, c
@@ -160,5 +166,5 @@ def test_pdf_and_sample_derivatives_match_finite_differences(model, facet):
     keys = [("strength", h), (("texel", 0, 0), h)]
     for what in ("pdf", "sample"):
         hs = keys if what == "pdf" or walk(model) else [(k, 0.01) for k, _ in keys]
-        for key, c in checks(model, facet, TILTED, hs, what).items():
+        for key, c in checks(model, facet, TILTED, hs, what, n=N_PDF).items():
             assert c.agrees(), f"{what} {key}: {c}"
