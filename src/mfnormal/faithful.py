@@ -191,15 +191,24 @@ def _gather(table, index):
     return float(table[int(index)])
 
 
+def _held(x, differentiable):
+    """x, its derivative dropped where ``differentiable`` is false (same value either way)."""
+    return dr.select(differentiable, x, dr.detach(x)) if dr.is_diff_v(x) else x
+
+
 def lookup(table, cos_min, cos_p, phi, g):
     """Trilinear lookup of B(θ_p, φ ∈ [0, π/2], G1 = g) in the table (flat, G innermost)."""
     def axis(x, n):
         x = dr.clip(x, 0.0, 1.0) * (n - 1)
         x0 = dr.minimum(mi.UInt32(x), n - 2)
         return x0, x - mi.Float(x0)
-    xc, fc = axis(dr.acos(dr.clip(cos_p, cos_min, 1.0)) * (1.0 / math.acos(cos_min)), TABLE_COS)
+    # acos at 1 and ∛ at 0 have infinite derivatives: there the axis is held (the value is the same).
+    c = dr.clip(cos_p, cos_min, 1.0)
+    theta = _held(dr.acos(c), c < 1.0)
+    g = dr.clip(g, 0.0, 1.0)
+    xc, fc = axis(theta * (1.0 / math.acos(cos_min)), TABLE_COS)
     xp, fp = axis(phi * (2.0 / math.pi), TABLE_PHI)
-    xg, fg = axis(dr.cbrt(dr.clip(g, 0.0, 1.0)), TABLE_G)
+    xg, fg = axis(_held(dr.cbrt(g), g > 0.0), TABLE_G)
     acc = mi.Float(0.0)
     for dc, wc in ((0, 1.0 - fc), (1, fc)):
         for dp, wph in ((0, 1.0 - fp), (1, fp)):
@@ -273,7 +282,8 @@ class Texel:
         proj = dr.maximum(dr.dot(wi, wp), 0.0) / (wp.z * dr.maximum(wi.z, 1e-30))
         self.vis = dr.minimum(1.0, proj * g1_i)
         p_e = self.principal(wp)
-        phi = dr.atan2(dr.abs(p_e.y), dr.abs(p_e.x))
+        # (atan2's derivative is 0/0 at a flat normal: held there.)
+        phi = _held(dr.atan2(dr.abs(p_e.y), dr.abs(p_e.x)), (p_e.x != 0.0) | (p_e.y != 0.0))
         self.blocked = model.blocked(wp.z, phi, g1_i)
 
     def principal(self, w):
