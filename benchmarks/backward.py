@@ -15,7 +15,7 @@ the extra peak of the backward phase (max RSS after minus before). The walks' lo
 reversed with Dr.Jit's sum-style reverse mode (``max_iterations=-1``): nothing is stored
 per iteration; their backward pass replays the walk (docs/model.md §9).
 
-Writes ``backward.json`` and ``backward.md`` into ``--out``.
+Writes ``backward.json`` and ``backward.md`` (``--map flat``: ``backward_flat.*``) into ``--out``.
 """
 
 from __future__ import annotations
@@ -39,7 +39,7 @@ def rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
-def worker(method, res, spp, reps):
+def worker(method, res, spp, reps, start="true"):
     sys.path.insert(0, str(ROOT / "src"))
     import mfnormal  # noqa: F401  (before mitsuba)
     import drjit as dr
@@ -52,7 +52,8 @@ def worker(method, res, spp, reps):
 
     setup = I.Setup(res=res, spp=spp, suns=((40.0, 0.0),))
     target = I.same_method_targets(setup, method)[0]
-    scene = I._plane_scenes(setup, method, I.flat_map(setup) * 0.9 + 0.05)[0]
+    texels = I.flat_map(setup) if start == "flat" else I.H.encode_normals(I.true_normals(setup))
+    scene = I._plane_scenes(setup, method, texels)[0]
     params = mi.traverse(scene)
     key = next(k for k in params.keys() if k.endswith("normalmap.data"))
 
@@ -98,15 +99,19 @@ def main(argv=None):
     p.add_argument("--spp", type=int, default=16)
     p.add_argument("--reps", type=int, default=3)
     p.add_argument("--out", type=Path, default=HERE)
+    p.add_argument("--map", choices=["true", "flat"], default="true",
+                   help="the map differentiated at: the true one, or a flat one (the optimisation's start, "
+                        "where every texel takes the flat normal's derivatives: 4 more evaluations)")
     p.add_argument("--worker", help=argparse.SUPPRESS)
     args = p.parse_args(argv)
     if args.worker:
-        print("JSON " + json.dumps(worker(args.worker, args.res, args.spp, args.reps)))
+        print("JSON " + json.dumps(worker(args.worker, args.res, args.spp, args.reps, args.map)))
         return 0
     rows = []
     for m in args.methods:
         proc = subprocess.run([sys.executable, __file__, "--worker", m, "--res", str(args.res), "--spp",
-                               str(args.spp), "--reps", str(args.reps)], capture_output=True, text=True)
+                               str(args.spp), "--reps", str(args.reps), "--map", args.map],
+                              capture_output=True, text=True)
         line = [x for x in proc.stdout.splitlines() if x.startswith("JSON ")]
         if proc.returncode != 0 or not line:
             rows.append({"method": m, "error": (proc.stderr or proc.stdout)[-500:]})
@@ -122,12 +127,14 @@ def main(argv=None):
 
 def write(args, rows):
     args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "backward.json").write_text(json.dumps({"command": " ".join(sys.argv), "res": args.res,
-                                                        "spp": args.spp, "rows": rows}, indent=1))
+    name = "backward" if args.map == "true" else "backward_flat"
+    (args.out / f"{name}.json").write_text(json.dumps({"command": " ".join(sys.argv), "res": args.res,
+                                                       "spp": args.spp, "map": args.map, "rows": rows}, indent=1))
     base = next((r for r in rows if r["method"] == "builtin" and "error" not in r), None)
     lines = ["# Reverse-mode cost per method (issue 16)", "",
-             f"`benchmarks/backward.py --res {args.res} --spp {args.spp}`: the inverse-rendering plane "
-             "(16² map, roughplastic α 0.2, one sun, `prb` max_depth 2), llvm_ad_rgb. Times: medians of "
+             f"`benchmarks/backward.py --res {args.res} --spp {args.spp} --map {args.map}`: the inverse-rendering "
+             f"plane (16² map, {'the true map' if args.map == 'true' else 'a flat map'}, roughplastic α 0.2, one "
+             "sun, `prb` max_depth 2), llvm_ad_rgb, 2 shared cores. Times: medians of "
              "warm runs; render+backward = a differentiable render and `dr.backward` of its MSE w.r.t. the "
              "texels. Memory: peak RSS of the primal phase, and the extra peak of the backward phase.", "",
              "| method | primal s | render+backward s | ×primal | ×built-in's backward | peak RSS MB | backward extra MB |",
@@ -140,7 +147,7 @@ def write(args, rows):
         lines.append(f"| {r['method']} | {r['primal_s']:.3f} | {r['backward_s']:.3f} | "
                      f"{r['backward_s'] / r['primal_s']:.1f} | {rel} | {r['rss_primal_mb']:.0f} | "
                      f"{r['backward_extra_mb']:.0f} |")
-    (args.out / "backward.md").write_text("\n".join(lines) + "\n")
+    (args.out / f"{name}.md").write_text("\n".join(lines) + "\n")
 
 
 if __name__ == "__main__":

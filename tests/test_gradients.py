@@ -65,10 +65,12 @@ def params(fast_walk=None):
 DIFFUSE = {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.3, 0.6, 0.9]}}
 GGX = {"type": "roughconductor", "distribution": "ggx", "alpha": 0.3}
 N = 1 << 18
-N_PDF = 1 << 17     # pdf and sample (the acceptance's 2^18 is for eval)
+N_PDF = 1 << 16     # pdf and sample (the acceptance's 2^18 is for eval)
 # Four texels: tilts 30°, 50°, 15° at three azimuths, and one exactly flat.
 TILTED = encode(np.array([sph(30, 0.3), sph(50, 0.8), sph(15, -0.4), sph(0)]).reshape(-1, 3))
 FLAT = encode(np.array([sph(0)] * 4).reshape(-1, 3))
+# No flat texel (pdf and sample: the flat normal's nudged evaluations are checked by eval's tests).
+TILTED4 = encode(np.array([sph(30, 0.3), sph(50, 0.8), sph(15, -0.4), sph(40, 2.5)]).reshape(-1, 3))
 # The derivatives that 2^18 queries resolve for every model (|FD| > 4 paired SE); the others
 # (the 15° texel, the flat texel of a tilted map) are resolved by the deterministic models only.
 RESOLVED = ("strength", ("texel", 1, 1), "nested_bsdf.alpha.value")
@@ -166,5 +168,5 @@ def test_pdf_and_sample_derivatives_match_finite_differences(model, facet):
     keys = [("strength", h), (("texel", 0, 0), h)]
     for what in ("pdf", "sample"):
         hs = keys if what == "pdf" or walk(model) else [(k, 0.01) for k, _ in keys]
-        for key, c in checks(model, facet, TILTED, hs, what, n=N_PDF).items():
+        for key, c in checks(model, facet, TILTED4, hs, what, n=N_PDF).items():
             assert c.agrees(), f"{what} {key}: {c}"
