@@ -77,6 +77,9 @@ EXTRA = [
     ("analytic", "specular", "ggx03", {"strength": 0.7, "normalmap_convention": "directx"}),
     ("faithful", "specular", "roughplastic", {"strength": 0.7, "normalmap_convention": "directx"}),
     (None, None, "roughplastic", {}),              # the plugin's defaults (no model given)
+    ("faithful", "specular", "roughplastic", {"strength": 0.0}),
+    ("analytic", "specular", "diffuse", {"strength": 0.0}),
+    ("nonseparable", "same", "ggx03", {"strength": 0.0}),
 ]
 #: Configurations also answered in TransportMode.Importance (keys ".../importance_*").
 IMPORTANCE = ("faithful-specular-", "analytic-specular-", "default-")

@@ -15,7 +15,7 @@ import drjit as dr
 import mitsuba as mi
 
 from . import rng
-from .microsurface import negate
+from .microsurface import negate, score
 
 
 def eval_pdf(sp, wo, active, want_value=True, want_pdf=True):
@@ -55,13 +55,17 @@ def eval_pdf(sp, wo, active, want_value=True, want_pdf=True):
 
 
 def sample(sp, sample1, sample2, active):
-    """Sample the analytic model; returns (BSDFSample3f, weight = eval/pdf)."""
+    """Sample the analytic model; returns (BSDFSample3f, weight = eval/pdf).
+
+    Derivatives: a smooth lobe's direction is detached, its weight eval(θ)/detach(pdf) and
+    its pdf attached (Mitsuba's detached sampling); a delta lobe's direction and weight are
+    differentiable functions, times the ``score`` (microsurface.score) of the facet choices that led to it."""
     wi = sp.wi
     active = active & (wi.z > 0)
 
     # Choose the first facet hit from wi; reuse sample1 for the nested BSDF.
     lp = sp.lambda_p(wi)
-    on_p, s1 = rng.choose(sample1, lp)
+    on_p, s1 = rng.choose(sample1, dr.detach(lp))
 
     # Light reaches p directly, or after mirroring off the tangent facet.
     bs, w = sp.sample(sp.frame_p, dr.select(on_p, wi, sp.flip_t(wi)), s1, sample2, active)
@@ -69,7 +73,7 @@ def sample(sp, sample1, sample2, active):
 
     # Leave after p, or hit the tangent facet and mirror (p→t→o).
     seed = rng.hash_floats(rng.SALT_ANALYTIC_SAMPLE, sample1, sample2.x, sample2.y)
-    to_t = on_p & (rng.uniform(seed, rng.SLOT_ANALYTIC_SHADOW) >= g_p)
+    to_t = on_p & (rng.uniform(seed, rng.SLOT_ANALYTIC_SHADOW) >= dr.detach(g_p))
     wo = dr.select(to_t, sp.flip_t(bs.wo), bs.wo)
     path = dr.select(to_t, sp.G1_t(wo), g_p)
     prob = dr.select(on_p, lp * dr.select(to_t, 1.0 - g_p, g_p), 1.0 - lp)
@@ -77,8 +81,9 @@ def sample(sp, sample1, sample2, active):
 
     # Smooth lobes: weight = eval/pdf with the exact pdf. Delta lobes: the path weight.
     delta = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
+    wo = dr.select(delta, wo, dr.detach(wo))
     value, pdf = eval_pdf(sp, wo, active & negate(delta))
-    weight = dr.select(delta, w * path, value / dr.select(pdf > 0, pdf, 1.0))
+    weight = dr.select(delta, w * path * score(prob), value / dr.detach(dr.select(pdf > 0, pdf, 1.0)))
     bs.pdf = dr.select(delta, bs.pdf * prob, pdf)
     active &= (bs.pdf > 0) & dr.all(dr.isfinite(weight))
 

@@ -32,13 +32,14 @@ eval*(a, b) = eval(b, a)·⟨b, ω_g⟩ / ⟨a, ω_g⟩, so path tracing and lig
 
 from __future__ import annotations
 
+import functools
 import math
 
 import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from .microsurface import negate
+from .microsurface import negate, replace_grad, score
 from .shading import to_tangent_frame
 from .rng import (ONE_MINUS_EPS, SALT_FAITHFUL_SAMPLE, SLOT_FAITHFUL_BLOCKED, SLOT_FAITHFUL_RETRO,
                   hash_floats, uniform)
@@ -73,13 +74,49 @@ def _erf_np(x):
     return 1.0 - poly * np.exp(-x * x)
 
 
-def smith_lambda_np(w, sigma1, sigma2):
-    """numpy twin of :func:`smith_lambda` (for the tables); ``w``: (..., 3)."""
-    spread = np.sqrt(sigma1 ** 2 * w[..., 0] ** 2 + sigma2 ** 2 * w[..., 1] ** 2)
-    a = np.maximum(w[..., 2], 0.0) / np.maximum(math.sqrt(2.0) * spread, 1e-30)
-    a = np.clip(a, 1e-7, 1e6)
+def smith_lambda_np(w, sigma1, sigma2, derivatives=False):
+    """numpy twin of :func:`smith_lambda` (for the tables); ``w``: (..., 3). With
+    ``derivatives``: (Λ, ∂Λ/∂σ1, ∂Λ/∂σ2), from ∂Λ/∂a = −e^(−a²)/(2a²√π) and
+    ∂a/∂σ_k = −a σ_k w_k²/(σ1²w_x² + σ2²w_y²)."""
+    spread2 = sigma1 ** 2 * w[..., 0] ** 2 + sigma2 ** 2 * w[..., 1] ** 2
+    spread = np.sqrt(spread2)
+    a_raw = np.maximum(w[..., 2], 0.0) / np.maximum(math.sqrt(2.0) * spread, 1e-30)
+    a = np.clip(a_raw, 1e-7, 1e6)
     lam = 0.5 * (np.exp(-a * a) / (a * SQRT_PI) - (1.0 - _erf_np(a)))
-    return np.where(a < A_UNMASKED, np.maximum(lam, 0.0), 0.0)
+    masked = a < A_UNMASKED
+    lam = np.where(masked, np.maximum(lam, 0.0), 0.0)
+    if not derivatives:
+        return lam
+    free = masked & (a_raw == a) & (spread2 > 0)
+    d_a = np.where(free, -np.exp(-a * a) / (2.0 * a * a * SQRT_PI), 0.0)
+    inv = np.where(free, 1.0 / np.maximum(spread2, 1e-300), 0.0)
+    return (lam, d_a * (-a * sigma1 * w[..., 0] ** 2 * inv), d_a * (-a * sigma2 * w[..., 1] ** 2 * inv))
+
+
+def attached_slopes(wp, strength=None):
+    """(σ1, σ2, φ_e) of the unit normals ``wp`` (a Dr.Jit Vector3f, e.g. the map decoded at
+    texel centres) as Dr.Jit values that carry wp's derivatives: :func:`principal_slopes`'s
+    quantities in closed form (the 2×2 eigenproblem). Where an eigenvalue or the anisotropy
+    is zero (a flat or isotropic map) their square roots have no derivative; they get the
+    central one, 0. ``strength``: wp was decoded at strength 1 and the map is used at this
+    strength, 0: the slopes are strength × those of wp (exact while no normal is clamped),
+    so that σ has its derivative at strength 0 (where √(σ²) has none)."""
+    z = dr.maximum(wp.z, 1e-3)
+    sx, sy = -wp.x / z, -wp.y / z
+    a, b, c = dr.mean(sx * sx), dr.mean(sx * sy), dr.mean(sy * sy)
+    q = dr.square(0.5 * (a - c)) + b * b
+    iso = q > 1e-24
+    r = dr.select(iso, dr.sqrt(dr.select(iso, q, 1.0)), 0.0)
+
+    def root(x):
+        ok = x > 1e-24
+        return dr.select(ok, dr.sqrt(dr.select(ok, x, 1.0)), 0.0)
+
+    s1, s2 = root(0.5 * (a + c) + r), root(0.5 * (a + c) - r)
+    phi = dr.select(iso, 0.5 * dr.atan2(dr.select(iso, 2.0 * b, 0.0), dr.select(iso, a - c, 1.0)), 0.0)
+    if strength is not None:
+        s1, s2 = s1 * strength, s2 * strength
+    return s1, s2, phi
 
 
 def principal_slopes(normals: np.ndarray):
@@ -110,14 +147,20 @@ def _quadrature():
     return np.stack([r * np.cos(phi), r * np.sin(phi), np.sqrt(np.maximum(1.0 - r * r, 0.0))], -1)
 
 
-def blocked_table(sigma1: float, sigma2: float, cos_min: float) -> np.ndarray:
+@functools.lru_cache(maxsize=8)
+def blocked_table(sigma1: float, sigma2: float, cos_min: float, derivatives: bool = False):
     """B[i, j, k]: 1 − ∫ (1/π)⟨ω,ω_p⟩ S(ω|ω_i) dω for a white Lambertian facet at θ_p = θ_i
     (TABLE_COS steps from 0 to acos(``cos_min``)), azimuth φ_j (TABLE_PHI steps over [0, π/2])
-    in the slopes' principal frame, and G1(ω_i) = g_k³ (g_k: TABLE_G steps from 0 to 1)."""
+    in the slopes' principal frame, and G1(ω_i) = g_k³ (g_k: TABLE_G steps from 0 to 1).
+
+    With ``derivatives``: (B, ∂B/∂σ1, ∂B/∂σ2) at fixed G1(ω_i) (its own σ-dependence is the
+    lookup's), by the same quadrature: ∂S/∂Λ(ω) = −(1 + Λ_i)/(1 + Λ_i + Λ(ω))². Cached (scenes
+    that share a map rebuild the same tables after each update): treat the arrays as read-only."""
     local = _quadrature()
     g = np.linspace(0.0, 1.0, TABLE_G) ** 3
     lam_i = np.where(g > 0, 1.0 / np.maximum(g, 1e-30) - 1.0, 1e30)[:, None]
     table = np.zeros((TABLE_COS, TABLE_PHI, TABLE_G))
+    d1, d2 = np.zeros_like(table), np.zeros_like(table)
     for i, theta in enumerate(np.linspace(0.0, math.acos(cos_min), TABLE_COS)):
         c, s = math.cos(theta), math.sin(theta)
         for j, phi in enumerate(np.linspace(0.0, 0.5 * math.pi, TABLE_PHI)):
@@ -126,10 +169,19 @@ def blocked_table(sigma1: float, sigma2: float, cos_min: float) -> np.ndarray:
             t1 = np.array([-c * math.cos(phi), -c * math.sin(phi), s]) if s > 1e-9 else np.array([1.0, 0, 0])
             t2 = np.cross(wp, t1)
             d = local[:, :1] * t1 + local[:, 1:2] * t2 + local[:, 2:3] * wp
-            lam_d = smith_lambda_np(d, sigma1, sigma2)[None, :]
-            seen = np.where(d[None, :, 2] > 0, (1.0 + lam_i) / (1.0 + lam_i + lam_d), 0.0)
+            lam_d, dl1, dl2 = smith_lambda_np(d, sigma1, sigma2, derivatives=True)
+            lam_d = lam_d[None, :]
+            up = d[None, :, 2] > 0
+            seen = np.where(up, (1.0 + lam_i) / (1.0 + lam_i + lam_d), 0.0)
             table[i, j] = 1.0 - seen.mean(axis=1)
-    return np.clip(table, 0.0, 1.0).astype(np.float32)
+            if derivatives:
+                d_seen = np.where(up, (1.0 + lam_i) / (1.0 + lam_i + lam_d) ** 2, 0.0)   # −∂S/∂Λ
+                d1[i, j] = (d_seen * dl1[None, :]).mean(axis=1)
+                d2[i, j] = (d_seen * dl2[None, :]).mean(axis=1)
+    out = (np.clip(table, 0.0, 1.0).astype(np.float32), d1.astype(np.float32), d2.astype(np.float32))
+    for a in out:
+        a.setflags(write=False)
+    return out if derivatives else out[0]
 
 
 def _gather(table, index):
@@ -139,15 +191,24 @@ def _gather(table, index):
     return float(table[int(index)])
 
 
+def _held(x, differentiable):
+    """x, its derivative dropped where ``differentiable`` is false (same value either way)."""
+    return dr.select(differentiable, x, dr.detach(x)) if dr.is_diff_v(x) else x
+
+
 def lookup(table, cos_min, cos_p, phi, g):
     """Trilinear lookup of B(θ_p, φ ∈ [0, π/2], G1 = g) in the table (flat, G innermost)."""
     def axis(x, n):
         x = dr.clip(x, 0.0, 1.0) * (n - 1)
         x0 = dr.minimum(mi.UInt32(x), n - 2)
         return x0, x - mi.Float(x0)
-    xc, fc = axis(dr.acos(dr.clip(cos_p, cos_min, 1.0)) * (1.0 / math.acos(cos_min)), TABLE_COS)
+    # acos at 1 and ∛ at 0 have infinite derivatives: there the axis is held (the value is the same).
+    c = dr.clip(cos_p, cos_min, 1.0)
+    theta = _held(dr.acos(c), c < 1.0)
+    g = dr.clip(g, 0.0, 1.0)
+    xc, fc = axis(theta * (1.0 / math.acos(cos_min)), TABLE_COS)
     xp, fp = axis(phi * (2.0 / math.pi), TABLE_PHI)
-    xg, fg = axis(dr.cbrt(dr.clip(g, 0.0, 1.0)), TABLE_G)
+    xg, fg = axis(_held(dr.cbrt(g), g > 0.0), TABLE_G)
     acc = mi.Float(0.0)
     for dc, wc in ((0, 1.0 - fc), (1, fc)):
         for dp, wph in ((0, 1.0 - fp), (1, fp)):
@@ -221,8 +282,9 @@ class Texel:
         proj = dr.maximum(dr.dot(wi, wp), 0.0) / (wp.z * dr.maximum(wi.z, 1e-30))
         self.vis = dr.minimum(1.0, proj * g1_i)
         p_e = self.principal(wp)
-        phi = dr.atan2(dr.abs(p_e.y), dr.abs(p_e.x))
-        self.blocked = lookup(model.table, model.cos_min, wp.z, phi, g1_i)
+        # (atan2's derivative is 0/0 at a flat normal: held there.)
+        phi = _held(dr.atan2(dr.abs(p_e.y), dr.abs(p_e.x)), (p_e.x != 0.0) | (p_e.y != 0.0))
+        self.blocked = model.blocked(wp.z, phi, g1_i)
 
     def principal(self, w):
         """``w`` (base frame) in the principal frame of the map's slopes."""
@@ -296,19 +358,46 @@ class Model:
         self.cos_min = cos_min
         self.set_slopes(slopes)
 
-    def set_slopes(self, slopes):
+    def set_slopes(self, slopes, attached=None):
         """(Re)build what depends on the map's slopes ``(σ1, σ2, φ_e)`` (principal_slopes);
-        they enter the kernels as opaque values, so a new map compiles nothing new."""
+        they enter the kernels as opaque values, so a new map compiles nothing new.
+
+        ``attached``: the same slopes as Dr.Jit values that carry derivatives (with respect to
+        the map and ``strength``: :func:`attached_slopes`), or None. σ and φ_e then carry those
+        derivatives into every query (a texel moves the map's rms slope by O(1/texels)), and the
+        table B(σ1, σ2) its own, from tables of ∂B/∂σ1 and ∂B/∂σ2 (docs/faithful.md §6). The
+        values are the numpy ones either way."""
         s1, s2, phi_e = (float(x) for x in slopes)
         self.slopes = (s1, s2, phi_e)
         self.sigma1, self.sigma2 = mi.Float(s1), mi.Float(s2)
         self.cos_e, self.sin_e = mi.Float(math.cos(phi_e)), mi.Float(math.sin(phi_e))
-        table = blocked_table(s1, s2, self.cos_min).ravel()
+        self.d_tables = None
+        if attached is not None and dr.is_jit_v(mi.Float):
+            a1, a2, phi = attached
+            phi = phi + (phi_e - dr.detach(phi))          # φ_e's value, the derivative of phi
+            self.sigma1, self.sigma2 = replace_grad(self.sigma1, a1), replace_grad(self.sigma2, a2)
+            self.cos_e, self.sin_e = replace_grad(self.cos_e, dr.cos(phi)), replace_grad(self.sin_e, dr.sin(phi))
+            table, t1, t2 = blocked_table(s1, s2, self.cos_min, derivatives=True)
+            self.d_tables = (mi.Float(t1.ravel()), mi.Float(t2.ravel()))
+            dr.make_opaque(*self.d_tables)
+        else:
+            table = blocked_table(s1, s2, self.cos_min)
+        table = table.ravel()
         if dr.is_jit_v(mi.Float):
             self.table = mi.Float(table)
             dr.make_opaque(self.sigma1, self.sigma2, self.cos_e, self.sin_e, self.table)
         else:
             self.table = table
+
+    def blocked(self, cos_p, phi, g):
+        """B(cosθ_p, φ, G1(ω_i)) from the table, with its derivative with respect to σ1, σ2 when
+        they carry one."""
+        value = lookup(self.table, self.cos_min, cos_p, phi, g)
+        if self.d_tables is None:
+            return value
+        s1, s2 = dr.detach(self.sigma1), dr.detach(self.sigma2)
+        return replace_grad(value, value + lookup(self.d_tables[0], self.cos_min, cos_p, phi, g) * (self.sigma1 - s1)
+                            + lookup(self.d_tables[1], self.cos_min, cos_p, phi, g) * (self.sigma2 - s2))
 
     def texel(self, sp, wi):
         return Texel(sp, self, wi)
@@ -386,11 +475,13 @@ class Model:
         wi = tx.wi
         active = active & (wi.z > 0)
         b_tex, b_fill, b_hid = self._branches(tx)
-        on_tex = sample1 < b_tex
-        on_fill = negate(on_tex) & (sample1 < b_tex + b_fill)
+        # The branch is chosen, and sample1 rescaled, with detached probabilities.
+        c_tex, c_fill, c_hid = dr.detach(b_tex), dr.detach(b_fill), dr.detach(b_hid)
+        on_tex = sample1 < c_tex
+        on_fill = negate(on_tex) & (sample1 < c_tex + c_fill)
         on_hid = negate(on_tex | on_fill)
-        lo = dr.select(on_tex, 0.0, dr.select(on_fill, b_tex, b_tex + b_fill))
-        width = dr.select(on_tex, b_tex, dr.select(on_fill, b_fill, b_hid))
+        lo = dr.select(on_tex, 0.0, dr.select(on_fill, c_tex, c_tex + c_fill))
+        width = dr.select(on_tex, c_tex, dr.select(on_fill, c_fill, c_hid))
         s1 = dr.clip((sample1 - lo) / dr.maximum(width, 1e-30), 0.0, ONE_MINUS_EPS)
 
         # Nested sample on the facet (texel branch) or on the macro surface (hidden branch).
@@ -399,8 +490,9 @@ class Model:
         # Texel branch: the sample leaves past the neighbours, or is blocked and bounced.
         seed = hash_floats(SALT_FAITHFUL_SAMPLE, sample1, sample2.x, sample2.y)
         s_b = tx.seen(bs.wo)
-        bounced = on_tex & (uniform(seed, SLOT_FAITHFUL_BLOCKED) >= s_b)
-        retro = uniform(seed, SLOT_FAITHFUL_RETRO) < tx.retro_share()
+        # (Decisions with detached probabilities; the draw's prob keeps them attached: score.)
+        bounced = on_tex & (uniform(seed, SLOT_FAITHFUL_BLOCKED) >= dr.detach(s_b))
+        retro = uniform(seed, SLOT_FAITHFUL_RETRO) < dr.detach(tx.retro_share())
         wo = dr.select(bounced, tx.bounce(bs.wo, retro), bs.wo)
         # Diffuse fill: a cosine lobe about ω_g.
         wo = dr.select(on_fill, mi.warp.square_to_cosine_hemisphere(sample2), wo)
@@ -417,15 +509,20 @@ class Model:
         return _Draw(bs, w, active & ok, delta, on_tex, bounced, prob, b_tex, b_hid)
 
     def sample(self, sp, tx, sample1, sample2, active):
-        """Radiance-mode sample from ``tx.wi``: (BSDFSample3f in the base frame, weight)."""
+        """Radiance-mode sample from ``tx.wi``: (BSDFSample3f in the base frame, weight).
+
+        Derivatives: a smooth lobe's direction is detached, its weight eval(θ)/detach(pdf);
+        a delta lobe's direction and weight are differentiable functions, times the score
+        p/detach(p) of the branch it took (microsurface.score)."""
         dw = self._draw(sp, tx, sample1, sample2, active)
         bs, active = dw.bs, dw.active
+        bs.wo = dr.select(dw.delta, bs.wo, dr.detach(bs.wo))
         value, pdf = self.eval_pdf(sp, tx, bs.wo, active & negate(dw.delta))
         # Delta lobes (non-diffuse, so bounced ones are the eval's too): the path weight, the
         # branch probabilities cancelling against the eval's factors.
         w_delta = dw.w * dr.select(dw.on_tex, tx.vis / dr.maximum(dw.b_tex, 1e-30),
                                    (1.0 - tx.vis) / dr.maximum(dw.b_hid, 1e-30))
-        weight = dr.select(dw.delta, w_delta, value / dr.select(pdf > 0, pdf, 1.0))
+        weight = dr.select(dw.delta, w_delta * score(dw.prob), value / dr.detach(dr.select(pdf > 0, pdf, 1.0)))
         bs.pdf = dr.select(dw.delta, bs.pdf * dw.prob, pdf)
         return _finish(bs, weight, active)
 
@@ -475,14 +572,17 @@ class Model:
         a = tx_a.wi
         extra = self._adjoint_branches(tx_a, texel_for)
         # Choose a branch: the extra ones first (consecutive intervals), then the radiance sampler.
+        # (The choice, and sample1's rescaling, with detached probabilities.)
         p_rad = 1.0 - sum((br[0] for br in extra), mi.Float(0.0))
-        picked, lo_k, width, acc = mi.UInt32(len(extra)), 1.0 - p_rad, p_rad, mi.Float(0.0)
+        c_rad = dr.detach(p_rad)
+        picked, lo_k, width, acc = mi.UInt32(len(extra)), 1.0 - c_rad, c_rad, mi.Float(0.0)
         for k, br in enumerate(extra):
-            hit = (sample1 >= acc) & (sample1 < acc + br[0])
+            p_k = dr.detach(br[0])
+            hit = (sample1 >= acc) & (sample1 < acc + p_k)
             picked = dr.select(hit, k, picked)
             lo_k = dr.select(hit, acc, lo_k)
-            width = dr.select(hit, br[0], width)
-            acc = acc + br[0]
+            width = dr.select(hit, p_k, width)
+            acc = acc + p_k
         s1 = dr.clip((sample1 - lo_k) / dr.maximum(width, 1e-30), 0.0, ONE_MINUS_EPS)
         on_rad = picked == len(extra)
         dw = self._draw(sp, tx_a, s1, sample2, active & on_rad)
@@ -500,6 +600,7 @@ class Model:
             delta = dr.select(on_k, mi.has_flag(bs_k.sampled_type, mi.BSDFFlags.Delta), delta)
             valid_k = (bs_k.pdf > 0) & dr.any(w_k > 0) & (dr.dot(bs_k.wo, frame.n) > 0) & (bs_k.wo.z > 0)
             ok = dr.select(on_k, active & valid_k, ok)
+        bs.wo = dr.select(delta, bs.wo, dr.detach(bs.wo))
         b = bs.wo
         tx_b = texel_for(b)
 
@@ -522,7 +623,7 @@ class Model:
                 c_k = tx_b.vis * share * (1.0 - tx_b.seen(inc)) * ratio / dr.maximum(p, 1e-30)
                 c_delta = dr.select(picked == k, c_k, c_delta)
                 prob_delta = dr.select(picked == k, p, prob_delta)
-        weight = dr.select(delta, w * c_delta, value / dr.select(pdf > 0, pdf, 1.0))
+        weight = dr.select(delta, w * c_delta * score(prob_delta), value / dr.detach(dr.select(pdf > 0, pdf, 1.0)))
         bs.pdf = dr.select(delta, bs.pdf * prob_delta, pdf)
         return _finish(bs, weight, ok)
 

@@ -66,6 +66,21 @@ def tangent_facet(wp):
     return wt, dr.select(flat, 0.0, sin_p)
 
 
+def replace_grad(a, b):
+    """The value of ``a`` with the derivative of ``b`` (``dr.replace_grad``) in AD variants;
+    ``a`` in the others (Dr.Jit 1.5's replace_grad crashes on scalar types). Without
+    derivatives it is ``a`` itself: the terms in ``b`` cost nothing in primal kernels."""
+    return dr.replace_grad(a, b) if dr.is_diff_v(a) and dr.is_diff_v(b) else a
+
+
+def score(p):
+    """p/detach(p): value 1, derivative dp/p. An estimator that takes a branch of probability p
+    with detached random numbers multiplies by it, so that its derivative accounts for p's
+    (the score-function term); a literal 1 without derivatives (nothing in primal kernels)."""
+    ok = p > 0
+    return replace_grad(mi.Float(1.0), dr.select(ok, p / dr.detach(dr.select(ok, p, 1.0)), 1.0))
+
+
 def negate(mask):
     """Logical not that also works on the Python bools of scalar variants."""
     return dr.select(mask, False, True)

@@ -195,7 +195,7 @@ import drjit as dr
 import mitsuba as mi
 
 from . import analytic, faithful, normals, walk
-from .microsurface import COS_P_MIN, decode_normal
+from .microsurface import COS_P_MIN, SIN_P_EPS, decode_normal, negate, replace_grad
 from .shading import ShadingPoint, from_tangent_frame, tangent_rotation
 
 MODELS = ("faithful", "analytic", "separable", "nonseparable")
@@ -207,6 +207,11 @@ MITSUBA_TANGENTS = "mitsuba"
 
 
 STRENGTH_MAX = 1e6
+# Derivatives at a flat normal (docs/model.md §9): the tilt of the nudged normals whose
+# one-sided derivatives are averaged, and the strength at which strength = 0 is differentiated.
+FLAT_NUDGE = 1e-3
+STRENGTH_NUDGE = 1e-3
+NUDGES = ((0, 1.0), (0, -1.0), (1, 1.0), (1, -1.0))   # (axis, sign): ±x, ±y of the map's frame
 
 
 def _fail(msg: str):
@@ -260,7 +265,7 @@ class NormalMapMicrofacet:
         self.directx = convention == "directx"
         strength = _checked_strength(float(props.get("strength", 1.0)))[0]
         self.strength = mi.Float(strength)
-        self._strength_ok = strength
+        self._strength_ok = [strength]
         dr.make_opaque(self.strength)
         tangents = props.get("tangents", MITSUBA_TANGENTS)
         if tangents != MITSUBA_TANGENTS and not tangents.startswith("vertex_"):
@@ -270,7 +275,8 @@ class NormalMapMicrofacet:
         self.walk_params = None if self.model in ("analytic", "faithful") else walk.WalkParams(
             separable=self.model == "separable", specular_tangent=self.tangent_facet == "specular",
             max_bounces=self.max_bounces, rr_depth=self.rr_depth, mis_boost_max=self.mis_boost_max)
-        self.faithful = (faithful.Model(self.nested, self._map_slopes(), COS_P_MIN)
+        self._flat_texels = self._has_flat_texels()
+        self.faithful = (faithful.Model(self.nested, self._map_slopes()[0], COS_P_MIN)
                          if self.model == "faithful" else None)
 
         # The nested BSDF's components; the microsurface only reflects.
@@ -327,12 +333,13 @@ class NormalMapMicrofacet:
             self._check_heightmap()
 
     def traverse(self, callback):
+        # None of them moves geometry, so none is discontinuous in Mitsuba's sense (visibility).
         callback.put("nested_bsdf", self.nested, mi.ParamFlags.Differentiable)
         if self.normalmap is not None:
             callback.put("normalmap", self.normalmap, mi.ParamFlags.Differentiable)
         if self.heightmap is not None:
             callback.put("heightmap", self.heightmap, mi.ParamFlags.Differentiable)
-        callback.put("strength", self.strength, mi.ParamFlags.NonDifferentiable)
+        callback.put("strength", self.strength, mi.ParamFlags.Differentiable)
 
     def parameters_changed(self, keys):
         if "strength" in keys:
@@ -347,17 +354,39 @@ class NormalMapMicrofacet:
                 mi.set_property(self.strength, mi.Float(values))
             self._strength_ok = values
             dr.make_opaque(self.strength)
-        if self.faithful is not None and (not keys or any(k == "strength" or k.startswith(("normalmap", "heightmap"))
-                                                          for k in keys)):
-            self.faithful.set_slopes(self._map_slopes())
+        if not keys or any(k == "strength" or k.startswith(("normalmap", "heightmap")) for k in keys):
+            self._flat_texels = self._has_flat_texels()
+            if self.faithful is not None:
+                self.faithful.set_slopes(*self._map_slopes(attached=True))
 
-    def _map_slopes(self):
-        """The map's principal rms slopes about the macro normal and their axis (σ1, σ2, φ_e),
-        from its decoded texels (faithful.principal_slopes)."""
+    def _has_flat_texels(self) -> bool:
+        """Whether the map may decode to the flat normal somewhere (then AD takes the flat
+        normal's derivatives from nudged normals, docs/model.md §9): a bitmap is checked texel
+        by texel, any other texture is assumed to."""
+        import numpy as np
+        if self.normalmap is None:          # height maps and macro_normal="geometric": no nudges
+            return False
+        params = mi.traverse(self.normalmap)
+        if "data" not in params.keys():
+            return True
+        data = np.array(params["data"], dtype=np.float64)
+        if data.ndim != 3 or data.shape[-1] < 3:
+            return True
+        n = 2.0 * data[..., :3] - 1.0
+        with np.errstate(invalid="ignore"):
+            xy = np.hypot(n[..., 0], n[..., 1]) * min(self._strength_ok)
+            flat = ~(xy > 2.0 * SIN_P_EPS * np.abs(n[..., 2]))    # NaN texels included
+        return bool(flat.any())
+
+    def _map_slopes(self, attached=False):
+        """(σ1, σ2, φ_e), the map's principal rms slopes about the macro normal and their axis,
+        from its decoded texels (faithful.principal_slopes); and, where the map or ``strength``
+        carry derivatives and ``attached``, the same as Dr.Jit values that carry them
+        (faithful.attached_slopes), else None."""
         import numpy as np
         res = 256 if dr.is_jit_v(mi.Float) else 32
         if self.normalmap is None:
-            return self._height_map_slopes(res)
+            return self._height_map_slopes(res), None
         params = mi.traverse(self.normalmap)
         if "data" in params.keys():
             shape = params["data"].shape
@@ -367,8 +396,15 @@ class NormalMapMicrofacet:
         if dr.is_jit_v(mi.Float):
             si = dr.zeros(mi.SurfaceInteraction3f, res * res)
             si.uv = mi.Point2f(mi.Float(uu.ravel()), mi.Float(vv.ravel()))
-            wp = decode_normal(self.normalmap.eval_3(si), self.strength, self.directx)
+            rgb = self.normalmap.eval_3(si)
+            wp = decode_normal(rgb, self.strength, self.directx)
             normals = np.stack([np.array(wp.x), np.array(wp.y), np.array(wp.z)], -1)
+            slopes = faithful.principal_slopes(normals)
+            if not (attached and dr.grad_enabled(wp)):
+                return slopes, None
+            if max(self._strength_ok) > 0:
+                return slopes, faithful.attached_slopes(wp)
+            return slopes, faithful.attached_slopes(decode_normal(rgb, 1.0, self.directx), self.strength)
         else:
             normals = []
             for x, y in zip(uu.ravel(), vv.ravel()):
@@ -376,7 +412,7 @@ class NormalMapMicrofacet:
                 s1.uv = mi.Point2f(float(x), float(y))
                 n = decode_normal(self.normalmap.eval_3(s1), self.strength, self.directx)
                 normals.append([n.x, n.y, n.z])
-        return faithful.principal_slopes(np.array(normals))
+        return faithful.principal_slopes(np.array(normals)), None
 
     def _height_map_slopes(self, res):
         """_map_slopes of a height map (on the unit square: normals.height_map_normals, twice the
@@ -400,19 +436,67 @@ class NormalMapMicrofacet:
             _fail(f"heightmap needs a texture with a uv gradient (eval_1_grad: a bitmap, raw=true), "
                   f"{str(self.heightmap).split('[')[0]} has none ({str(e).strip().splitlines()[-1][:120]})")
 
-    def shading_point(self, ctx, si, active=True):
-        """The microsurface at ``si``: ω_p from the normal map, in the base shading frame
-        (a height map or macro_normal="geometric": normals.shading_point)."""
+    def shading_point(self, ctx, si, active=True, nudge=None):
+        """The microsurface at ``si``: ω_p from the normal map, in the base shading frame.
+
+        ``nudge`` (derivatives at a flat normal, :meth:`_differentiable`): ``"strength"``
+        (``"strength2"``): ω_p at strength + STRENGTH_NUDGE (+ twice it), the texel detached; ``(axis, sign)``: ω_p tilted by
+        FLAT_NUDGE along ±x or ±y of the map's frame, the other axis detached.
+        A height map or macro_normal="geometric": normals.shading_point (no nudges: their
+        derivatives are the normal's own)."""
         if self.heightmap is not None or self.macro_geometric:
-            return normals.shading_point(self, ctx, si, active)
+            sp = normals.shading_point(self, ctx, si, active)
+            sp.attached = False
+            return sp
         rgb = self.normalmap.eval_3(si, active)
-        wp = decode_normal(rgb, self.strength, self.directx)
+        strength = self.strength
+        if isinstance(nudge, str):          # "strength", "strength2": at STRENGTH_NUDGE, twice it
+            rgb, strength = dr.detach(rgb), strength + STRENGTH_NUDGE * (2.0 if nudge == "strength2" else 1.0)
+        wp = decode_normal(rgb, strength, self.directx)
+        attached = dr.grad_enabled(wp)
+        if nudge is not None and not isinstance(nudge, str):
+            axis, sign = nudge
+            x = wp.x + sign * FLAT_NUDGE if axis == 0 else dr.detach(wp.x)
+            y = wp.y + sign * FLAT_NUDGE if axis == 1 else dr.detach(wp.y)
+            wp = dr.normalize(mi.Vector3f(x, y, wp.z))
+        rotation = None
         if self.tangent_attr is not None:
             wp, rotation = self._from_vertex_tangents(si, wp, active)
-            sp = ShadingPoint(self.nested, ctx, si, wp)
-            sp.map_rotation = rotation
-            return sp
-        return ShadingPoint(self.nested, ctx, si, wp)
+        sp = ShadingPoint(self.nested, ctx, si, wp)
+        sp.map_rotation = rotation
+        sp.attached = attached
+        return sp
+
+    def _differentiable(self, ctx, si, active, fn):
+        """``fn(sp)`` (a tuple of Dr.Jit arrays) at the microsurface of ``si``, with the
+        derivatives of the normal at a flat ω_p (docs/model.md §9).
+
+        A flat normal is where the models are not differentiable: the tangent facet grows like
+        |tilt|, its direction jumps with the tilt's. Where the map or ``strength`` carry
+        derivatives, they are taken (values unchanged) from nudged normals instead: at
+        ``strength`` = 0 the one-sided derivative extrapolated from ω_p at strengths h and 2h
+        (h = STRENGTH_NUDGE: 2f'(h) − f'(2h), second order; the texels' derivatives are 0); at a flat texel per axis of the map's frame, from the mean of ω_p
+        tilted by ±FLAT_NUDGE along it (the central derivative of each channel, what central
+        differences measure). Primal kernels never trace the nudges."""
+        sp = self.shading_point(ctx, si, active)
+        out = fn(sp)
+        if not sp.attached or not dr.is_diff_v(mi.Float):
+            return out
+        if max(self._strength_ok) == 0.0:
+            # f'(0) = 2 f'(h) − f'(2h) + O(h²): the specular-tangent models' f'(0) is ~0, and
+            # f'(h) alone would be off by f''·h.
+            g1 = fn(self.shading_point(ctx, si, active, "strength"))
+            g2 = fn(self.shading_point(ctx, si, active, "strength2"))
+            return tuple(replace_grad(o, 2.0 * a - b) for o, a, b in zip(out, g1, g2))
+        if not self._flat_texels:
+            return out
+        flat = sp.sin_p == 0.0
+        nudged = [fn(self.shading_point(ctx, si, active, n)) for n in NUDGES]
+        out_ = []
+        for k, o in enumerate(out):
+            grad = 0.5 * (nudged[0][k] + nudged[1][k] + nudged[2][k] + nudged[3][k]) - o
+            out_.append(dr.select(flat, replace_grad(o, grad), o))
+        return tuple(out_)
 
     def _vertex_tangent(self, si, active):
         """(T, sign) of the vertex tangent frame at ``si`` (world space), (None, None) where a scalar
@@ -453,75 +537,71 @@ class NormalMapMicrofacet:
                                                   lambda b: self._texel(sp, b), want_value, want_pdf)
         return self.faithful.eval_pdf(sp, self._texel(sp), wo, active, want_value, want_pdf)
 
+    def _eval_pdf(self, ctx, sp, wo, active, want_value=True, want_pdf=True):
+        """(eval, pdf) of the model at the microsurface ``sp`` (what is not wanted is 0)."""
+        active = mi.Bool(active)
+        if self.model == "faithful":
+            return self._faithful_eval_pdf(ctx, sp, wo, active, want_value, want_pdf)
+        if self.model == "analytic":
+            return analytic.eval_pdf(sp, wo, active, want_value, want_pdf)
+        return (walk.eval(sp, self.walk_params, wo, active) if want_value else mi.Spectrum(0.0),
+                walk.mis_pdf(sp, self.walk_params, wo, active) if want_pdf else mi.Float(0.0))
+
     def sample(self, ctx, si, sample1, sample2, active=True):
         sp = self.shading_point(ctx, si, active)
         macro = normals.macro_of(sp)
-        if macro is None:
-            return self._sample_sp(ctx, sp, sample1, sample2, active)
-        # macro_normal="geometric": the model samples in the triangle's frame G (normals.py).
         bs, weight = self._sample_sp(ctx, sp, sample1, sample2, active)
-        wo_m = mi.Vector3f(bs.wo)          # a copy: assigning bs.wo writes into the struct
-        bs.wo = macro.from_macro(wo_m)
-        k = macro.adjoint(ctx, sp, bs.wo, wo_m)
-        return bs, weight if k is None else weight * k
+        if macro is not None:
+            # macro_normal="geometric": the model samples in the triangle's frame G (normals.py).
+            wo_m = mi.Vector3f(bs.wo)          # a copy: assigning bs.wo writes into the struct
+            bs.wo = macro.from_macro(wo_m)
+            k = macro.adjoint(ctx, sp, bs.wo, wo_m)
+            return bs, weight if k is None else weight * k
+        if self.model != "faithful" and self.model != "analytic":
+            return bs, weight
+        if sp.attached and (self._flat_texels or max(self._strength_ok) == 0.0):
+            # A smooth lobe's weight eval/detach(pdf) and its pdf, with the flat normal's
+            # derivatives (_differentiable) at the sample's (detached) direction.
+            smooth = mi.Bool(active) & negate(mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)) & (bs.pdf > 0)
+            wo = dr.detach(bs.wo)
+            value, pdf = self._differentiable(ctx, si, active, lambda at: self._eval_pdf(ctx, at, wo, smooth))
+            grad = value / dr.detach(dr.select(pdf > 0, pdf, 1.0))
+            weight = dr.select(smooth, replace_grad(weight, grad), weight)
+            bs.pdf = dr.select(smooth, replace_grad(bs.pdf, pdf), bs.pdf)
+        return bs, weight
 
-    def eval(self, ctx, si, wo, active=True):
-        sp = self.shading_point(ctx, si, active)
-        macro = normals.macro_of(sp)
-        if macro is None:
-            return self._eval_sp(ctx, sp, wo, active)
-        wo_m = macro.to_macro(wo)
-        value = self._eval_sp(ctx, sp, wo_m, active)
-        k = macro.adjoint(ctx, sp, wo, wo_m)
-        return value if k is None else value * k
-
-    def pdf(self, ctx, si, wo, active=True):
-        sp = self.shading_point(ctx, si, active)
-        macro = normals.macro_of(sp)
-        return self._pdf_sp(ctx, sp, wo if macro is None else macro.to_macro(wo), active)
-
-    def eval_pdf(self, ctx, si, wo, active=True):
-        sp = self.shading_point(ctx, si, active)
-        macro = normals.macro_of(sp)
-        if macro is None:
-            return self._eval_pdf_sp(ctx, sp, wo, active)
-        wo_m = macro.to_macro(wo)
-        value, pdf = self._eval_pdf_sp(ctx, sp, wo_m, active)
-        k = macro.adjoint(ctx, sp, wo, wo_m)
-        return (value if k is None else value * k), pdf
-
-    # The models on a shading point, ω_o and sampled directions in its base frame.
     def _sample_sp(self, ctx, sp, sample1, sample2, active):
+        """The model's sample at the microsurface ``sp`` (directions in its base frame)."""
+        if self.model == "analytic":
+            return analytic.sample(sp, sample1, sample2, mi.Bool(active))
         if self.model == "faithful":
             if ctx.mode == mi.TransportMode.Importance:
                 return self.faithful.sample_adjoint(sp, self._texel(sp), sample1, sample2, mi.Bool(active),
                                                     lambda b: self._texel(sp, b))
             return self.faithful.sample(sp, self._texel(sp), sample1, sample2, mi.Bool(active))
-        if self.model == "analytic":
-            return analytic.sample(sp, sample1, sample2, mi.Bool(active))
         return walk.sample(sp, self.walk_params, sample1, sample2, mi.Bool(active))
 
-    def _eval_sp(self, ctx, sp, wo, active):
-        if self.model == "faithful":
-            return self._faithful_eval_pdf(ctx, sp, wo, mi.Bool(active), want_pdf=False)[0]
-        if self.model == "analytic":
-            return analytic.eval_pdf(sp, wo, mi.Bool(active), want_pdf=False)[0]
-        return walk.eval(sp, self.walk_params, wo, mi.Bool(active))
+    def _macro_eval_pdf(self, ctx, sp, wo, active, want_value=True, want_pdf=True):
+        """:meth:`_eval_pdf` with ``wo`` in the macro frame of ``macro_normal="geometric"``
+        (normals.py; the value times the frame change's adjoint factor), else as it is."""
+        macro = normals.macro_of(sp)
+        if macro is None:
+            return self._eval_pdf(ctx, sp, wo, active, want_value, want_pdf)
+        wo_m = macro.to_macro(wo)
+        value, pdf = self._eval_pdf(ctx, sp, wo_m, active, want_value, want_pdf)
+        k = macro.adjoint(ctx, sp, wo, wo_m) if want_value else None
+        return (value if k is None else value * k), pdf
 
-    def _pdf_sp(self, ctx, sp, wo, active):
-        if self.model == "faithful":
-            return self._faithful_eval_pdf(ctx, sp, wo, mi.Bool(active), want_value=False)[1]
-        if self.model == "analytic":
-            return analytic.eval_pdf(sp, wo, mi.Bool(active), want_value=False)[1]
-        return walk.mis_pdf(sp, self.walk_params, wo, mi.Bool(active))
+    def eval(self, ctx, si, wo, active=True):
+        return self._differentiable(ctx, si, active,
+                                    lambda sp: self._macro_eval_pdf(ctx, sp, wo, active, want_pdf=False)[:1])[0]
 
-    def _eval_pdf_sp(self, ctx, sp, wo, active):
-        if self.model == "faithful":
-            return self._faithful_eval_pdf(ctx, sp, wo, mi.Bool(active))
-        if self.model == "analytic":
-            return analytic.eval_pdf(sp, wo, mi.Bool(active))
-        return (walk.eval(sp, self.walk_params, wo, mi.Bool(active)),
-                walk.mis_pdf(sp, self.walk_params, wo, mi.Bool(active)))
+    def pdf(self, ctx, si, wo, active=True):
+        return self._differentiable(ctx, si, active,
+                                    lambda sp: self._macro_eval_pdf(ctx, sp, wo, active, want_value=False)[1:])[0]
+
+    def eval_pdf(self, ctx, si, wo, active=True):
+        return self._differentiable(ctx, si, active, lambda sp: self._macro_eval_pdf(ctx, sp, wo, active))
 
     def to_string(self):
         return (f"NormalMapMicrofacet[model={self.model}, tangent_facet={self.tangent_facet}, "

@@ -7,6 +7,9 @@ and the nested BSDF evaluated or sampled in a facet's frame.
 
 from __future__ import annotations
 
+import copy
+import dataclasses
+
 import drjit as dr
 import mitsuba as mi
 
@@ -47,12 +50,43 @@ def to_tangent_frame(w, rotation):
     return dr.select(ok, mi.Vector3f(x, y, w.z), w)
 
 
+def broadcast(tree, n):
+    """``tree`` (tuples, lists, dataclasses and Dr.Jit structs of Dr.Jit arrays) with every
+    array of one lane widened to n lanes (a differentiable gather). A loop's state must have
+    the loop's width for reverse mode (Dr.Jit 1.5 cannot store a width-1 variable's
+    trajectory), and the models' inputs mix widths (e.g. one shading frame for all queries)."""
+    if not dr.is_jit_v(mi.Float) or n <= 1 or tree is None:
+        return tree
+    if isinstance(tree, (tuple, list)):
+        return type(tree)(broadcast(x, n) for x in tree)
+    if dataclasses.is_dataclass(tree) and not isinstance(tree, type):
+        return dataclasses.replace(tree, **{f.name: broadcast(getattr(tree, f.name), n)
+                                            for f in dataclasses.fields(tree)})
+    if hasattr(type(tree), "DRJIT_STRUCT"):
+        out = type(tree)(tree)
+        for name in type(tree).DRJIT_STRUCT:
+            setattr(out, name, broadcast(getattr(tree, name), n))
+        return out
+    if dr.is_array_v(tree) and dr.depth_v(tree) > 1:
+        return type(tree)(*(broadcast(c, n) for c in tree))     # each component (a Vector3f's x, y, z)
+    if dr.is_array_v(tree) and dr.width(tree) == 1:
+        return dr.gather(type(tree), tree, dr.zeros(mi.UInt32, n))
+    return tree
+
+
 def select_frame(mask, a, b):
     return mi.Frame3f(dr.select(mask, a.s, b.s), dr.select(mask, a.t, b.t), dr.select(mask, a.n, b.n))
 
 
 class ShadingPoint:
-    """Microsurface geometry and nested-BSDF access at a batch of shading points."""
+    """Microsurface geometry and nested-BSDF access at a batch of shading points.
+
+    Its Dr.Jit arrays (``ARRAYS``) are what a model's loops read: they pass them as loop
+    state (:meth:`state`, :meth:`with_state`), so that derivatives flow through the loops
+    in both AD modes (a value a loop body captures from outside is not differentiated).
+    """
+
+    ARRAYS = ("si", "wi", "wp", "wt", "sin_p", "frame_p", "frame_t", "cot_p")
 
     def __init__(self, nested, ctx, si, wp):
         self.nested = nested
@@ -68,6 +102,29 @@ class ShadingPoint:
         self.cot_p = ms.cot_p(self.wp, self.sin_p)
         # The vertex tangent frame the map was decoded in (tangent_rotation), None: this frame.
         self.map_rotation = None
+
+    def state(self):
+        """The Dr.Jit arrays of this point, as a list (for a loop's state)."""
+        return [getattr(self, name) for name in self.ARRAYS]
+
+    def with_state(self, state):
+        """A copy of this point whose arrays are ``state`` (from :meth:`state`, inside a loop)."""
+        sp = copy.copy(self)
+        for name, value in zip(self.ARRAYS, state):
+            setattr(sp, name, value)
+        return sp
+
+    def detached(self):
+        """A copy of this point whose arrays carry no derivatives."""
+        return self.with_state([dr.detach(x) for x in self.state()])
+
+    def nested_attached(self):
+        """Whether the nested BSDF's value carries derivatives (its parameters, or textures,
+        have them enabled): a probe evaluation whose traced code is never compiled."""
+        si = dr.zeros(mi.SurfaceInteraction3f)
+        si.sh_frame = mi.Frame3f(mi.Vector3f(1, 0, 0), mi.Vector3f(0, 1, 0), mi.Vector3f(0, 0, 1))
+        si.n, si.uv, si.wi = mi.Normal3f(0, 0, 1), mi.Point2f(0.5, 0.5), mi.Vector3f(0.6, 0.0, 0.8)
+        return dr.grad_enabled(self.nested.eval(self.ctx, si, mi.Vector3f(-0.6, 0.0, 0.8)))
 
     # Masking and intersection probabilities at this point
     def lambda_p(self, w):

@@ -24,20 +24,31 @@ Both loops are built from the same steps: ``mirror_fold`` (a mirror tangent
 facet), ``add_nee`` (NEE at a vertex), ``bounce`` (nested sample, ``cross`` to
 the other facet or out, ``roulette``). Each takes a :class:`WalkParams`; each
 loop returns its :class:`Walker`, whose ``depth`` is the walk's bounce count.
+
+Derivatives (docs/model.md §9): both loops carry everything they read as loop state
+and have a ``max_iterations`` hint (``max_bounces``: no walk iterates more), so forward
+and reverse mode run through them. The estimators' derivatives are unbiased: every
+decision (start facet, escape, roulette) is taken with detached numbers, and the
+throughput carries p/detach(p) for the branch taken (value 1: ``score``), so that
+the probability's derivative is accounted for; a nested sample's direction is detached
+and its weight replaced by the attached eval over the detached pdf (Mitsuba's detached
+sampling), except for delta lobes, whose direction is a differentiable function of the
+geometry; roulette's probability is detached. None of this changes a value: in primal
+kernels the extra terms are constant-folded away.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import drjit as dr
 import mitsuba as mi
 
 from . import microsurface as ms
-from .microsurface import negate
+from .microsurface import negate, replace_grad
 from .rng import (SALT_WALK_EVAL, SALT_WALK_SAMPLE, SLOT_START_FACET, choose, hash_floats, slot_escape,
                   slot_nested, slot_roulette, uniform)
-from .shading import select_frame
+from .shading import broadcast, select_frame
 
 # Default cap of a walk's facet bounces; walks still on the microsurface after it are dropped.
 MAX_BOUNCES = 1024
@@ -71,6 +82,131 @@ class Walker:
     walking: mi.Bool        # still on the microsurface
     escaped: mi.Bool        # left it (sample() returns only escaped walks)
     nondelta: mi.Bool       # sampled a non-delta lobe on the way
+    ja: mi.Vector3f = None  # replayed non-separable walks: ∂a/∂ω_p and ∂b/∂ω_p (``Replay``)
+    jb: mi.Vector3f = None
+
+
+# -- Derivatives: the replayed walk (docs/model.md §9) -------------------------------------
+
+
+def _rel(f):
+    """f/detach(f) − 1: value 0, derivative df/f (per channel)."""
+    fd = dr.detach(f)
+    ok = fd != 0.0
+    return dr.select(ok, f / dr.select(ok, fd, 1.0) - 1.0, 0.0)
+
+
+@dataclass
+class Replay:
+    """A walk's derivative, built while the walk is replayed (loop state of the replay).
+
+    The replayed walk carries only detached values from vertex to vertex; what a vertex
+    adds or multiplies is recomputed attached to the microsurface (ω_p) and the nested
+    BSDF, and ``G`` sums zero-valued terms whose derivative is the estimate's. For eval,
+    L = Σ_k e_k N_k and dL = Σ_k e_k dN_k + Σ_j (what L gains after factor j)·df_j/f_j
+    (the reformulation of path replay backpropagation, Vicini et al. 2021), which needs
+    the walk's L from a first, primal pass (``total``) and the contributions so far
+    (``done``); for sample, de = e·Σ_j df_j/f_j. The loop's derivative is thereby a sum
+    over its iterations, which Dr.Jit reverses without storing the walk (its sum-style
+    reverse mode, ``max_iterations=-1``). The non-separable walk's interval [a, b]
+    depends on ω_p through every crossing before: the walker carries its Jacobian
+    (``Walker.ja``, ``jb``), and a vertex uses a + ja·Δ with Δ = ω_p − detach(ω_p).
+    """
+
+    G: mi.Spectrum
+    done: mi.Spectrum = None    # eval only
+    total: mi.Spectrum = None
+    exit: mi.Vector3f = None    # sample only: zero-valued, the exit direction's derivative
+
+    def leave(self, d, mask):
+        """The walk leaves along d (attached after a delta event: the mirror or a delta lobe):
+        the exit direction takes d's derivative. (Directions are detached from one vertex
+        to the next: a walk keeps the derivative of its last delta event only.)"""
+        if self.exit is not None:
+            self.exit = self.exit + dr.select(mask, d - dr.detach(d), 0.0)
+
+    def factor(self, f, mask, after_extra=0.0):
+        """e ← e·f for attached f (value detach(f)): G += (what L gains after it)·df/f."""
+        rel = _rel(f)
+        if self.total is not None:
+            rel = (self.total - self.done + after_extra) * rel
+        self.G = self.G + dr.select(mask, rel, 0.0)
+
+    def add(self, c, mask):
+        """L ← L + c for an attached contribution c (its throughput detached)."""
+        self.G = self.G + dr.select(mask, c - dr.detach(c), 0.0)
+        self.done = self.done + dr.select(mask, dr.detach(c), 0.0)
+
+
+def replays(sp):
+    """Whether a walk at ``sp`` needs its derivative: ω_p, ω_i or the nested BSDF (a probe
+    evaluation, which costs nothing in kernels) carry derivatives."""
+    if not dr.is_diff_v(mi.Float):
+        return False
+    return dr.grad_enabled(sp.wp) or dr.grad_enabled(sp.wi) or sp.nested_attached()
+
+
+def attached_interval(sp, w, rp):
+    """The walker's [a, b] with the derivative of its dependence on ω_p (replayed
+    non-separable walks), else as it is."""
+    if rp is None or w.ja is None:
+        return w.a, w.b
+    delta = sp.wp - dr.detach(sp.wp)
+    return w.a + dr.dot(w.ja, delta), w.b + dr.dot(w.jb, delta)
+
+
+def _crest_jacobian(sp, on_p, d, d_pre, sign):
+    """(∂τ/∂ω_p, ∂κ/∂ω_p) of ``sp.crest_map(on_p, d)`` for a ray along d (detached) whose
+    across-groove component is x = −⟨d, ω_t⟩ = sign·⟨d_pre, p_xy⟩/sinθ_p: d = d_pre leaving
+    a vertex (sign 1), or d = flip_t(d_pre) leaving the mirror (sign −1; d_z = d_pre_z, and
+    only ω_t moves). With r = cotθ_p d_z/|x|: toward the wall τ = r/(1 + r), κ = 1 + r;
+    from it τ = r, κ = 1/(1 − r) (microsurface.crest_map)."""
+    wp, s, cot = dr.detach(sp.wp), dr.detach(sp.sin_p), dr.detach(sp.cot_p)
+    ok = s > 0
+    inv = dr.select(ok, dr.rcp(dr.select(ok, s, 1.0)), 0.0)
+    c = d_pre.x * wp.x + d_pre.y * wp.y
+    x = sign * c * inv
+    g_x = (sign * inv) * mi.Vector3f(d_pre.x - c * wp.x * inv * inv, d_pre.y - c * wp.y * inv * inv, 0.0)
+    g_cot = mi.Vector3f(-wp.z * wp.x, -wp.z * wp.y, s * s) * (inv * inv * inv)
+    ax = dr.maximum(dr.abs(x), 1e-30)
+    raw = cot * d.z / ax
+    r = dr.clip(raw, -1e30, 1e30)
+    free = ok & (dr.abs(raw) < 1e30) & (dr.abs(x) > 1e-30)
+    g_r = dr.select(free, (d.z / ax) * g_cot - (cot * d.z * dr.sign(x) / (ax * ax)) * g_x, 0.0)
+    to_wall = on_p & (x > 0)
+    from_wall = negate(on_p) & (x < 0) & (r < 1.0)
+    k_p, k_t = 1.0 + r, 1.0 - r
+    g_tau = dr.select(to_wall & (k_p > 1e-30), g_r / (k_p * k_p), dr.select(from_wall, g_r, 0.0))
+    g_k = dr.select(to_wall & (k_p > 1e-30), g_r,
+                    dr.select(from_wall & (k_t > 1e-30), g_r / (k_t * k_t), 0.0))
+    return g_tau, g_k
+
+
+def _land_jacobian(lo, hi, j_lo, j_hi, tau, k, g_tau, g_k):
+    """The Jacobians of microsurface.land's [lo', hi'] from those of lo, hi, τ and κ."""
+    finite = k < ms.INF
+    k, tau = dr.select(finite, k, 1.0), dr.select(finite, tau, 0.0)
+    hi_raw, lo_raw = k * (hi - tau), k * (lo - tau)
+    hi_new = dr.clip(hi_raw, 0.0, 1.0)
+    g_hi = dr.select((hi_raw > 0.0) & (hi_raw < 1.0), (hi - tau) * g_k + k * (j_hi - g_tau), 0.0)
+    g_lo = dr.select(lo_raw > hi_new, g_hi, dr.select(lo_raw > 0.0, (lo - tau) * g_k + k * (j_lo - g_tau), 0.0))
+    return dr.select(finite, g_lo, 0.0), dr.select(finite, g_hi, 0.0)
+
+
+def _g1_jacobian(sp, w, on_p):
+    """∂G1(w, ω_m)/∂ω_p (microsurface.G1; ω_m = ω_p where on_p, else ω_t): the first
+    interval's, G1 = wp_z w_z / Ã(w) below 1, Ã = ⟨w, ω_p⟩₊ + ⟨w_xy, −p_xy⟩₊."""
+    wp = dr.detach(sp.wp)
+    a_p, a_t = dr.dot(w, wp), -(w.x * wp.x + w.y * wp.y)
+    total = dr.maximum(a_p, 0.0) + dr.maximum(a_t, 0.0)
+    ok = total > 0
+    inv = dr.select(ok, dr.rcp(dr.select(ok, total, 1.0)), 0.0)
+    wz = dr.maximum(w.z, 0.0)
+    g = wp.z * wz * inv
+    g_total = dr.select(a_p > 0, w, 0.0) + dr.select(a_t > 0, mi.Vector3f(-w.x, -w.y, 0.0), 0.0)
+    grad = (mi.Vector3f(0.0, 0.0, wz) - g * g_total) * inv
+    facing = dr.select(on_p, a_p > 0, a_t > 0)
+    return dr.select(facing & ok & (g < 1.0), grad, 0.0)
 
 
 # -- Steps --------------------------------------------------------------------------------
@@ -99,42 +235,65 @@ def cross(sp, params, on_p, d, a, b, ok, u):
     """A ray from depths [a, b] on facet ``on_p`` along d: leave the microsurface with the
     escape fraction (u decides), or land on the other facet (κ, docs/model.md §2.2).
 
-    Returns (leaves, stays, a, b): the depths are those on the other facet where it stays.
-    For a point interval (a = b) the escape is the binary test D < τ whatever u is.
+    Returns (leaves, stays, a, b, prob, (τ, κ)): the depths are those on the other facet where
+    it stays; prob is the probability of the branch taken (1 where not ok), with the
+    derivatives of a, b and the geometry. For a point interval (a = b) the escape is the
+    binary test D < τ whatever u is.
     """
     tau, k = sp.crest_map(on_p, d)
-    leaves = ok & (u < ms.escape_fraction(a, b, tau))
+    p_leave = ms.escape_fraction(a, b, tau)
+    leaves = ok & (u < dr.detach(p_leave))
     stays = ok & negate(leaves)
     a_new, b_new = ms.land(a, b, tau, k)
     a = dr.select(stays, 0.0 if params.separable else a_new, a)
     b = dr.select(stays, 1.0 if params.separable else b_new, b)
-    return leaves, stays, a, b
+    prob = dr.select(leaves, p_leave, dr.select(stays, 1.0 - p_leave, 1.0))
+    return leaves, stays, a, b, prob, (tau, k)
 
 
-def mirror_fold(sp, w, params, seed):
+def _moved_interval(sp, w, stays, a, b, tau, k, d, d_pre, on_p, sign):
+    """The walker's Jacobians after a crossing (replayed non-separable walks; a, b: before it)."""
+    g_tau, g_k = _crest_jacobian(sp, on_p, d, d_pre, sign)
+    ja, jb = _land_jacobian(dr.detach(a), dr.detach(b), w.ja, w.jb, dr.detach(tau), dr.detach(k), g_tau, g_k)
+    w.ja, w.jb = dr.select(stays, ja, w.ja), dr.select(stays, jb, w.jb)
+
+
+def mirror_fold(sp, w, params, seed, rp=None):
     """Reflect the walkers on a mirror t off it (flip_t) to p or out of the microsurface.
 
     A mirror vertex needs no nested call and gives no NEE: its bounce is folded into
     the iteration of the next p vertex, so a packet runs the nested calls once per p
     vertex. Its escape takes the slot of its own depth: the same random numbers, and
     the same results, as one vertex per iteration.
+
+    Returns the direction after it, with its derivative (replay), for the vertex that follows
+    in this iteration, and the probability of the escape decision's branch (1 off the mirror).
     """
     mirror = w.walking & negate(w.on_p)
     d_m = ms.flip_t(w.d, sp.wt)
-    leaves, stays, a_m, b_m = cross(sp, params, mi.Bool(False), d_m, w.a, w.b, mirror & (dr.dot(d_m, sp.wt) > 0),
-                                    uniform(seed, slot_escape(w.depth)))
-    w.d = dr.select(mirror, d_m, w.d)
-    w.a, w.b = dr.select(mirror, a_m, w.a), dr.select(mirror, b_m, w.b)
+    a, b = attached_interval(sp, w, rp)
+    leaves, stays, a_m, b_m, prob, (tau, k) = cross(sp, params, mi.Bool(False), d_m, a, b,
+                                                    mirror & (dr.dot(d_m, sp.wt) > 0),
+                                                    uniform(seed, slot_escape(w.depth)))
+    if rp is not None:
+        rp.leave(d_m, leaves)
+        if w.ja is not None:
+            _moved_interval(sp, w, stays, a, b, tau, k, dr.detach(d_m), w.d, mi.Bool(False), -1.0)
+    d_att = dr.select(mirror, d_m, w.d)
+    w.d = dr.detach(d_att)
+    w.a, w.b = dr.select(mirror, dr.detach(a_m), w.a), dr.select(mirror, dr.detach(b_m), w.b)
     w.depth = dr.select(mirror, w.depth + 1, w.depth)
     w.escaped = w.escaped | leaves
     w.on_p = w.on_p | stays
     w.walking = w.walking & (negate(mirror) | (stays & (w.depth < params.max_bounces)))
+    return d_att, dr.select(mirror, prob, 1.0)
 
 
 def roulette(e, stays, depth, rr_depth, u):
     """Russian roulette on the throughput after the bounce at ``depth`` (from ``rr_depth`` on):
     continue with probability q = min(1, max channel of e) and divide e by q. Unbiased; it
-    ends the long walks of dark materials that cost a packet most of its time. (e, stays)."""
+    ends the long walks of dark materials that cost a packet most of its time. q is a
+    detached number to the estimator, so e/q stays unbiased for e's derivative. (e, stays)."""
     q = dr.minimum(dr.max(e), 1.0)
     play = stays & (depth + 1 >= rr_depth) & (q < 1.0)
     survive = u < q
@@ -142,16 +301,33 @@ def roulette(e, stays, depth, rr_depth, u):
     return e, stays & (negate(play) | survive)
 
 
-def bounce(sp, w, params, seed, frame, s1, s2):
+def bounce(sp, w, params, seed, frame, s1, s2, d_in=None, rp=None):
     """The nested BSDF's sample at the walker's vertex (facet ``frame``, sample numbers s1, s2),
-    then cross to the other facet or out of the microsurface, then roulette."""
-    bs, weight = sp.sample(frame, -w.d, s1, s2, w.walking)
-    d_new = bs.wo
+    lit along ``d_in`` (default the walker's direction), then cross to the other facet or out
+    of the microsurface, then roulette.
+
+    Replay: the sample's direction is detached and its weight's derivative is that of the
+    attached nested eval (a delta lobe: of its weight), the escape's that of its probability."""
+    d_in = w.d if d_in is None else d_in
+    bs, weight = sp.sample(frame, -d_in, s1, s2, w.walking)
+    delta = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
+    d_new = dr.detach(bs.wo)
     ok = (w.walking & (dr.dot(d_new, frame.n) > 0) & (bs.pdf > 0) & dr.any(weight > 0)
           & dr.all(dr.isfinite(weight)))
-    w.nondelta = w.nondelta | (w.walking & negate(mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)))
-    w.e = dr.select(w.walking, w.e * weight, w.e)
-    leaves, stays, w.a, w.b = cross(sp, params, w.on_p, d_new, w.a, w.b, ok, uniform(seed, slot_escape(w.depth)))
+    if rp is not None:
+        f = sp.eval(frame, -d_in, d_new, ok & negate(delta))
+        rp.factor(dr.select(delta, weight, f), ok)
+    w.nondelta = w.nondelta | (w.walking & negate(delta))
+    w.e = dr.select(w.walking, w.e * dr.detach(weight), w.e)
+    a, b = attached_interval(sp, w, rp)
+    leaves, stays, a_new, b_new, prob, (tau, k) = cross(sp, params, w.on_p, d_new, a, b, ok,
+                                                        uniform(seed, slot_escape(w.depth)))
+    if rp is not None:
+        rp.factor(prob, ok)
+        rp.leave(bs.wo, leaves & delta)
+        if w.ja is not None:
+            _moved_interval(sp, w, stays, a, b, tau, k, d_new, d_new, w.on_p, 1.0)
+    w.a, w.b = dr.detach(a_new), dr.detach(b_new)
     if params.rr_depth > 0:
         w.e, stays = roulette(w.e, stays, w.depth, params.rr_depth, uniform(seed, slot_roulette(w.depth)))
     w.d = dr.select(w.walking, d_new, w.d)
@@ -239,27 +415,63 @@ def t_start_share(sp, params, wo, lp, active):
 # -- The loops ----------------------------------------------------------------------------
 
 
+def _first_vertex(sp, params, u, active, replay=False):
+    """A walker on the facet a ray from ω_i hits first, chosen by λ_p(ω_i) with the number u;
+    (walker, the probability of its choice, λ_p, the rest of u rescaled). ``replay``: the
+    walker's values detached, with the non-separable interval's Jacobian."""
+    lp = sp.lambda_p(sp.wi)
+    on_p, rest = choose(u, dr.detach(lp))
+    a, b = first_interval(sp, params, on_p)
+    walker = start(sp, on_p, dr.detach(a), dr.detach(b), active)
+    if replay and not params.separable:
+        walker.ja = dr.zeros(mi.Vector3f, dr.width(walker.a))
+        walker.jb = _g1_jacobian(sp, dr.detach(sp.wi), on_p) + walker.ja
+    return walker, dr.select(on_p, lp, 1.0 - lp), lp, rest
+
+
+def _loop(state, body, label):
+    """A walk loop: everything it reads is in ``state`` (broadcast to the walk's width); its
+    derivative is a sum over iterations (``Replay``), so reverse mode needs no stored walk."""
+    state = broadcast(state, dr.width(state[0].walking))
+    return dr.while_loop(state, lambda w, *_: w.walking, body, max_iterations=-1, label=label)
+
+
 def sample_walk(sp, params, sample1, sample2, active):
     """Supplemental Algorithm 1: walk from ω_i until the ray leaves; the walker at its exit.
 
     The first facet is chosen by λ_p(ω_i) with ``sample1``, whose rescaled rest and
     ``sample2`` drive the first nested sample; later numbers come from a hash of them.
     """
+    return _sample_walk(sp, params, sample1, sample2, active)[0]
+
+
+def _sample_walk(sp, params, sample1, sample2, active):
+    """:func:`sample_walk` and its Replay (the throughput's derivative; None without)."""
     active = mi.Bool(active) & (sp.wi.z > 0)
     seed = hash_floats(SALT_WALK_SAMPLE, sample1, sample2.x, sample2.y)
-    on_p, s1_first = choose(sample1, sp.lambda_p(sp.wi))
-    walker = start(sp, on_p, *first_interval(sp, params, on_p), active)
+    replay = replays(sp)
+    walker, p_start, _, s1_first = _first_vertex(sp, params, sample1, active, replay)
+    n = dr.width(active)
+    rp = Replay(dr.zeros(mi.Spectrum, n), exit=dr.zeros(mi.Vector3f, n)) if replay else None
 
-    def body(w):
+    def body(w, rp, geometry, seed, s1_first, sample2, p_start):
+        at = sp.with_state(geometry)
+        if rp is not None:
+            rp.factor(p_start, w.depth == 0)
+        d_in = w.d
         if params.specular_tangent:
-            mirror_fold(sp, w, params, seed)
+            d_in, p_fold = mirror_fold(at, w, params, seed, rp)
+            if rp is not None:
+                rp.factor(p_fold, True)
         first = w.depth == 0
         s1, s2 = nested_numbers(seed, w.depth)
-        bounce(sp, w, params, seed, vertex_frame(sp, params, w.on_p),
-               dr.select(first, s1_first, s1), dr.select(first, mi.Point2f(sample2), s2))
-        return (w,)
+        bounce(at, w, params, seed, vertex_frame(at, params, w.on_p),
+               dr.select(first, s1_first, s1), dr.select(first, sample2, s2), d_in, rp)
+        return w, rp, geometry, seed, s1_first, sample2, p_start
 
-    return dr.while_loop((walker,), lambda w: w.walking, body, label="mfnormal_sample_walk")[0]
+    w, rp = _loop((walker, rp, sp.state(), seed, s1_first, mi.Point2f(sample2), p_start), body,
+                  "mfnormal_sample_walk")[:2]
+    return w, rp
 
 
 def eval_walk(sp, params, wo, active):
@@ -270,31 +482,58 @@ def eval_walk(sp, params, wo, active):
     the first iteration adds λ_p·NEE at p lit from ω_i for every walk, whichever facet
     it started on, ``t_start_share`` the t start's share, and later iterations the
     vertices after the first nested sample. Random numbers: a hash of (ω_i, ω_o, si.p).
+    With derivatives the walk runs twice: for L, then replayed for L's derivative (Replay).
     """
     wi = sp.wi
     active = mi.Bool(active) & (wi.z > 0)
-    seed = hash_floats(SALT_WALK_EVAL, wi.x, wi.y, wo.x, wo.y, sp.si.p.x, sp.si.p.y, sp.si.p.z)
-    lp = sp.lambda_p(wi)
-    on_p, _ = choose(uniform(seed, SLOT_START_FACET), lp)
-    walker = start(sp, on_p, *first_interval(sp, params, on_p), active)
-    to = NeeTarget.toward(sp, params, wo)
-    b_p = first_interval(sp, params, True)[1]
-    L_t = t_start_share(sp, params, wo, lp, active)
+    seed = hash_floats(SALT_WALK_EVAL, dr.detach(wi.x), dr.detach(wi.y), dr.detach(wo.x), dr.detach(wo.y),
+                       sp.si.p.x, sp.si.p.y, sp.si.p.z)
 
-    def body(w, L):
-        at_start = w.depth == 0   # the first vertex (before a folded mirror bounce counts)
-        if params.specular_tangent:
-            mirror_fold(sp, w, params, seed)
-        # NEE toward ω_o from this vertex; in the first iteration, the p start's share.
-        L = add_nee(L, sp, params, to, w.on_p | at_start, dr.select(at_start, wi, -w.d),
-                    dr.select(at_start, 0.0, w.a), dr.select(at_start, b_p, w.b),
-                    dr.select(at_start, mi.Spectrum(lp), w.e), dr.select(at_start, active, w.walking))
-        bounce(sp, w, params, seed, vertex_frame(sp, params, w.on_p), *nested_numbers(seed, w.depth))
-        return w, L
+    def run(sp, rp):
+        walker, p_start, lp, _ = _first_vertex(sp, params, uniform(seed, SLOT_START_FACET), active, rp is not None)
+        to = NeeTarget.toward(sp, params, wo)
+        b_p = first_interval(sp, params, True)[1]
 
-    walker, L = dr.while_loop((walker, dr.zeros(mi.Spectrum, dr.width(wi))), lambda w, L: w.walking, body,
-                              label="mfnormal_eval_walk")
-    return L + L_t, walker
+        def body(w, L, rp, geometry, seed, to, lp, b_p, active, p_start):
+            at = sp.with_state(geometry)
+            at_start = w.depth == 0   # the first vertex (before a folded mirror bounce counts)
+            d_in, p_fold = w.d, None
+            if params.specular_tangent:
+                folded = w.walking & negate(w.on_p)
+                d_in, p_fold = mirror_fold(at, w, params, seed, rp)
+            # NEE toward ω_o from this vertex; in the first iteration, the p start's share.
+            a, b = attached_interval(at, w, rp)
+            on = dr.select(at_start, active, w.walking)
+            nee = (at, params, to, w.on_p | at_start, dr.select(at_start, at.wi, -d_in), dr.select(at_start, 0.0, a),
+                   dr.select(at_start, b_p, b), dr.select(at_start, mi.Spectrum(lp), w.e), on)
+            if rp is None:
+                L = add_nee(L, *nee)
+            else:
+                c = add_nee(mi.Spectrum(0.0), *nee)
+                rp.add(c, on)
+                # The start's choice and the mirror's escape came before this NEE, which only
+                # the latter affects (the first NEE is the start's expectation).
+                rp.factor(p_start, at_start & active)
+                if p_fold is not None:
+                    rp.factor(p_fold, folded, dr.select(at_start, 0.0, dr.detach(c)))
+            bounce(at, w, params, seed, vertex_frame(at, params, w.on_p), *nested_numbers(seed, w.depth), d_in, rp)
+            return w, L, rp, geometry, seed, to, lp, b_p, active, p_start
+
+        state = (walker, dr.zeros(mi.Spectrum, dr.width(active)), rp, sp.state(), seed, to, lp, b_p, active,
+                 p_start)
+        w, L, rp = _loop(state, body, "mfnormal_eval_walk")[:3]
+        return w, L, rp, lp
+
+    if not replays(sp):
+        walker, L, _, lp = run(sp, None)
+        return L + t_start_share(sp, params, wo, lp, active), walker
+    # (Not dr.suspend_grad(): inside a virtual call, e.g. Mitsuba's BSDF dispatch, it loses the
+    # replay's derivatives in Dr.Jit 1.5. The nested BSDF's parameters may still reach L.)
+    walker, L, _, _ = run(sp.detached(), None)
+    L = dr.detach(L)
+    _, _, rp, lp = run(sp, Replay(dr.zeros(mi.Spectrum, dr.width(active)), dr.zeros(mi.Spectrum, dr.width(active)),
+                                  L))
+    return replace_grad(L, rp.G) + t_start_share(sp, params, wo, lp, active), walker
 
 
 # -- The BSDF's sample, eval and pdf --------------------------------------------------------
@@ -302,7 +541,10 @@ def eval_walk(sp, params, wo, active):
 
 def sample(sp, params, sample1, sample2, active):
     """Walk from wi until the ray leaves: (BSDFSample3f with the MIS pdf, throughput)."""
-    w = sample_walk(sp, params, sample1, sample2, active)
+    w, rp = _sample_walk(sp, params, sample1, sample2, active)
+    if rp is not None:
+        w.e = replace_grad(w.e, w.e * rp.G)
+        w.d = replace_grad(w.d, w.d + rp.exit)
     valid = w.escaped & (w.d.z > 0) & dr.all(dr.isfinite(w.e)) & dr.all(dr.isfinite(w.d))
     bs = dr.zeros(mi.BSDFSample3f, dr.width(w.d))
     bs.wo = dr.select(w.escaped & dr.all(dr.isfinite(w.d)), w.d, mi.Vector3f(0.0, 0.0, 1.0))

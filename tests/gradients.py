@@ -1,0 +1,155 @@
+"""BSDF-level derivative checks: forward and reverse AD against central finite differences.
+
+The loss is a BSDF query averaged over many queries: L(θ) = (1/n) Σ_k q_k(θ), with
+q_k = the mean over RGB of ``eval`` (or of ``pdf``, or of a sample's weight times a fixed
+test function of its direction). Every query answers with its own derivative in forward
+mode, so the AD estimate comes with a standard error; the finite difference uses the same
+queries at θ ± h (common random numbers: the walks hash their random numbers from the
+query, never from θ), and its per-query differences give it a standard error too. The
+two are paired query by query: ``se`` is the standard error of the mean of the per-query
+differences AD − FD, the right yardstick for their agreement.
+
+Parameters: ``strength``, a nested BSDF's float parameter (``nested_bsdf.alpha``), or one
+texel channel of the normal map (``("texel", index, channel)`` on an N×1 map: every stored
+row of column ``index``; Mitsuba stores a one-row bitmap as two).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from helpers import make_si, random_hemisphere, vec3
+
+
+@dataclass
+class Check:
+    """One derivative: forward AD (mean, its standard error), reverse AD, FD (mean, its
+    standard error) and the paired standard error of AD − FD."""
+    ad: float
+    ad_se: float
+    rev: float
+    fd: float
+    fd_se: float
+    se: float
+
+    def agrees(self, n_se=4.0, rel=0.03, atol=1e-7):
+        """|AD − FD| within n_se paired standard errors plus rel × |FD| plus atol (float32
+        rounding of the FD: ~ulp(L)/h; 0 where a tiny derivative must itself be checked), and the
+        same for reverse mode, whose value is the forward mean's up to float rounding."""
+        tol = n_se * self.se + rel * abs(self.fd) + atol
+        return abs(self.ad - self.fd) <= tol and abs(self.rev - self.fd) <= tol + 1e-6 * abs(self.fd)
+
+    def __str__(self):
+        return (f"AD {self.ad:+.5g} ± {self.ad_se:.2g} (rev {self.rev:+.5g}), FD {self.fd:+.5g} "
+                f"± {self.fd_se:.2g}, paired SE {self.se:.2g}")
+
+
+def queries(n, n_texels, seed=0, z_min=0.02, wi_z_max=1.0):
+    """(si, wo, u): n queries on texels k mod n_texels, random wi (cosθ_i ≤ wi_z_max) and wo,
+    distinct positions."""
+    rng = np.random.default_rng(seed)
+    wi = random_hemisphere(rng, n, z_min)
+    if wi_z_max < 1.0:
+        z = rng.uniform(z_min, wi_z_max, n)
+        r = np.sqrt(1.0 - z * z)
+        phi = np.arctan2(wi[:, 1], wi[:, 0])
+        wi = np.stack([r * np.cos(phi), r * np.sin(phi), z], -1)
+    wo = random_hemisphere(rng, n, z_min)
+    u = rng.random((n, 3)).astype(np.float32)
+    si = make_si(wi, n_texels, p_index=np.arange(n))
+    return si, vec3(wo), u
+
+
+def _with_value(params, key, value):
+    """Write θ = value into the parameter ``key``; returns the Dr.Jit array written."""
+    if isinstance(key, tuple):
+        _, index, channel = key
+        data = np.array(params["normalmap.data"]).copy()
+        data[:, index, channel] = value        # Mitsuba stores a 1-row bitmap as 2 rows
+        key = "normalmap.data"
+        arr = mi.TensorXf(data)
+    else:
+        arr = type(params[key])(value)
+    params[key] = arr
+    params.update()
+    return params[key]
+
+
+def _value(params, key):
+    if isinstance(key, tuple):
+        _, index, channel = key
+        return float(np.array(params["normalmap.data"])[0, index, channel])
+    return float(np.array(params[key]).ravel()[0])
+
+
+def test_function(w):
+    """c(ω) = 1 + ω_x + ½ω_y: weights eval by its light direction (and a sample's weight by its
+    direction), so that the loss sees where the lobes lie and not only how much energy leaves
+    (which an energy-conserving model keeps nearly constant)."""
+    return 1.0 + w.x + 0.5 * w.y
+
+
+def query_values(bsdf, si, wo, u, what="eval"):
+    """Per-query values q_k: the RGB mean of eval·c(ω_o), of pdf·c(ω_o), or of a sample's
+    weight·c(its direction) (c: :func:`test_function`)."""
+    ctx = mi.BSDFContext()
+    if what == "eval":
+        v = bsdf.eval(ctx, si, wo)
+        return (v[0] + v[1] + v[2]) / 3.0 * test_function(wo)
+    if what == "pdf":
+        return bsdf.pdf(ctx, si, wo) * test_function(wo)
+    if what == "sample":
+        bs, w = bsdf.sample(ctx, si, mi.Float(u[:, 0]), mi.Point2f(u[:, 1], u[:, 2]))
+        return (w[0] + w[1] + w[2]) / 3.0 * test_function(bs.wo)
+    raise ValueError(what)
+
+
+def check(bsdf, key, si, wo, u, h, what="eval", one_sided=False):
+    """The :class:`Check` of dL/dθ for the parameter ``key`` at its current value, FD step h
+    (``one_sided``: second-order forward difference (−3L(θ) + 4L(θ+h) − L(θ+2h))/2h, for θ on
+    the boundary of its domain, e.g. strength = 0)."""
+    params = mi.traverse(bsdf)
+    theta = _value(params, key)
+
+    # Forward mode: every query's derivative.
+    arr = _with_value(params, key, theta)
+    dr.enable_grad(arr)
+    params.update()
+    q = query_values(bsdf, si, wo, u, what)
+    if isinstance(key, tuple):
+        _, index, channel = key
+        seed = np.zeros(np.array(arr).shape, np.float32)
+        seed[:, index, channel] = 1.0
+        dr.set_grad(arr, mi.TensorXf(seed))
+    else:
+        dr.set_grad(arr, 1.0)
+    d_q = np.array(dr.forward_to(q, flags=dr.ADFlag.Default | dr.ADFlag.AllowNoGrad), np.float64)
+
+    # Reverse mode: the mean's gradient.
+    arr = _with_value(params, key, theta)
+    dr.enable_grad(arr)
+    params.update()
+    loss = dr.mean(query_values(bsdf, si, wo, u, what))
+    dr.backward(loss, flags=dr.ADFlag.Default | dr.ADFlag.AllowNoGrad)
+    g = np.array(dr.grad(arr), np.float64)
+    rev = float(g[:, key[1], key[2]].sum()) if isinstance(key, tuple) else float(g.ravel()[0])
+
+    # Finite differences with the same queries.
+    def at(x):
+        _with_value(params, key, x)
+        with dr.suspend_grad():
+            return np.array(query_values(bsdf, si, wo, u, what), np.float64)
+    if one_sided:
+        fd_q = (-3.0 * at(theta) + 4.0 * at(theta + h) - at(theta + 2 * h)) / (2 * h)
+    else:
+        fd_q = (at(theta + h) - at(theta - h)) / (2 * h)
+    _with_value(params, key, theta)
+
+    n = d_q.size
+    return Check(ad=float(d_q.mean()), ad_se=float(d_q.std() / np.sqrt(n)), rev=rev,
+                 fd=float(fd_q.mean()), fd_se=float(fd_q.std() / np.sqrt(n)),
+                 se=float((d_q - fd_q).std() / np.sqrt(n)))

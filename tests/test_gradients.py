@@ -1,0 +1,172 @@
+"""Derivatives of every model: forward and reverse AD against central finite differences.
+
+The loss is a BSDF query averaged over 2^18 queries (random ω_i, ω_o, four texels of a
+1×4 map, distinct positions; eval and pdf weighted by c(ω_o) = 1 + ω_x + ½ω_y and a sample's
+weight by c of its direction, so that the loss sees where the lobes lie and not just how
+much energy leaves). Its derivative with respect to ``strength``, the nested GGX α and
+single texel channels is taken by forward AD (every query's own derivative, hence a mean and
+a standard error), by reverse AD (the mean's gradient), and by central finite differences
+with common random numbers (the walks hash their random numbers from the query, never from
+θ). They must agree within 4 paired standard errors of AD − FD plus 3 % of FD
+(``gradients.Check.agrees``); the paired standard error is that of the per-query
+differences, so a deterministic model is held to a few float ulps and a walk to its noise.
+
+Steps, and why: the deterministic models (faithful, analytic) h = 1e-3 (float32 leaves
+FD ~1e-4 of relative rounding, the truncation error is O(h²)); the walks h = 0.02 at tilted
+texels and for α (a walk's FD noise comes from decisions that flip between θ ± h, its
+variance ∝ 1/(h·N), and smaller steps drown in it; halving h moves the FD by less than its
+noise). At a flat texel and at strength = 0 every model uses h = 1e-3: there the walks'
+eval bends sharply within tilts of ~0.04 (measured: FD at h = 0.02 is 11 % below the limit
+that h = 1e-3 reaches), while few decisions flip, so the noise stays small. Strength = 0 is
+the boundary of its domain (strength ≥ 0): its FD is one-sided, second order.
+
+The facets are Lambertian (the walks' noise is lowest there, so their checks are sharpest;
+its pdf, cosθ/π, vanishes at a facet's horizon, so every pdf is continuous in ω_p), and a GGX
+roughconductor for α (Mitsuba's roughplastic precomputes its albedo from α outside AD, so its
+own α derivative is off: AD −0.031, FD −0.065 measured). With GGX facets the pdfs jump where
+a facet's horizon crosses ω_o (the nested pdf does not vanish there): AD gives their
+derivative without that boundary term.
+"""
+
+import mfnormal  # noqa: F401  (first: selects a working libLLVM)
+
+import drjit as dr
+import mitsuba as mi
+import os
+
+import numpy as np
+import pytest
+
+mi.set_variant("llvm_ad_rgb")
+mfnormal.register()
+
+import gradients as G  # noqa: E402
+from helpers import encode, make_bsdf, sph  # noqa: E402
+
+MODELS = [("faithful", None), ("analytic", None), ("separable", "specular"), ("separable", "same"),
+          ("nonseparable", "specular"), ("nonseparable", "same")]
+IDS = ["faithful", "analytic", "separable-specular", "separable-same", "nonseparable-specular", "nonseparable-same"]
+# CI runs the deterministic models and one walk (~60 s on 2 cores); MFNORMAL_SLOW=1 runs every walk.
+SLOW = os.environ.get("MFNORMAL_SLOW") == "1"
+FAST = {"faithful", "analytic"}
+
+
+def params(fast_walk=None):
+    """The model × facet cases: every one with MFNORMAL_SLOW=1, else the deterministic models
+    (and the walk ``fast_walk``), the others marked slow (skipped)."""
+    out = []
+    for (model, facet), name in zip(MODELS, IDS):
+        marks = () if SLOW or name in FAST or name == fast_walk else (
+            pytest.mark.skip(reason="a walk: MFNORMAL_SLOW=1"),)
+        out.append(pytest.param(model, facet, id=name, marks=marks))
+    return out
+
+
+DIFFUSE = {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.3, 0.6, 0.9]}}
+GGX = {"type": "roughconductor", "distribution": "ggx", "alpha": 0.3}
+N = 1 << 18
+N_PDF = 1 << 16     # pdf and sample (the acceptance's 2^18 is for eval)
+# Four texels: tilts 30°, 50°, 15° at three azimuths, and one exactly flat.
+TILTED = encode(np.array([sph(30, 0.3), sph(50, 0.8), sph(15, -0.4), sph(0)]).reshape(-1, 3))
+FLAT = encode(np.array([sph(0)] * 4).reshape(-1, 3))
+# No flat texel (pdf and sample: the flat normal's nudged evaluations are checked by eval's tests).
+TILTED4 = encode(np.array([sph(30, 0.3), sph(50, 0.8), sph(15, -0.4), sph(40, 2.5)]).reshape(-1, 3))
+# The derivatives that 2^18 queries resolve for every model (|FD| > 4 paired SE); the others
+# (the 15° texel, the flat texel of a tilted map) are resolved by the deterministic models only.
+RESOLVED = ("strength", ("texel", 1, 1), "nested_bsdf.alpha.value")
+
+
+def walk(model):
+    return model not in ("faithful", "analytic")
+
+
+def checks(model, facet, texels, keys, what="eval", one_sided=(), nested=DIFFUSE, n=N, **params):
+    b = make_bsdf(nested, texels, model=model, tangent_facet=facet, **params)
+    si, wo, u = G.queries(n, 4)
+    out = {}
+    for key, h in keys:
+        c = G.check(b, key, si, wo, u, h, what, one_sided=key in one_sided)
+        print(f"{model}-{facet} {what} {key}: {c}")
+        out[key] = c
+    return out
+
+
+@pytest.mark.parametrize("model, facet", params("nonseparable-same"))
+def test_eval_derivatives_match_finite_differences(model, facet):
+    """d/d strength and d/d texel (tilted texels, and a flat one in a tilted map), d/dα (GGX
+    facets): forward = reverse = FD."""
+    h = 0.02 if walk(model) else 1e-3
+    out = checks(model, facet, TILTED, [("strength", h), (("texel", 0, 0), h), (("texel", 1, 1), h),
+                                        (("texel", 3, 0), 1e-3)])
+    out.update(checks(model, facet, TILTED, [("nested_bsdf.alpha.value", h)], nested=GGX))
+    for key, c in out.items():
+        assert c.agrees(), f"{key}: {c}"
+        if key in RESOLVED or not walk(model):
+            assert abs(c.fd) > 4 * c.se, f"{key}: the check must see a derivative ({c})"
+
+
+@pytest.mark.parametrize("model, facet", params())
+def test_eval_derivatives_at_a_flat_map(model, facet):
+    """At an exactly flat map (the usual start of an optimisation) every texel channel has
+    its central derivative (FD of 1e-3), not the 0 that detaching the flat normal gives;
+    strength has no effect there (0 both ways).
+
+    Measured (the loss's c(ω) weights ω_x twice ω_y): faithful +0.031, +0.016; the walks with
+    the same facet ~−0.01 (± 0.004); analytic +3.8e-5, +2.0e-5: with a mirror for tangent
+    facet, the mirror image of the tilted facet cancels the tilt to first order, and the
+    specular walks' derivatives are below float32's resolution of the FD (|·| < 1e-6): there
+    a flat map is a stationary point. The deterministic models are checked without FD slack
+    (atol 0), so analytic's small derivative must be right to 3 %."""
+    keys = [(("texel", 0, 0), 1e-3), (("texel", 1, 1), 1e-3), ("strength", 1e-3)]
+    out = checks(model, facet, FLAT, keys)
+    for key, c in out.items():
+        assert c.agrees(atol=0.0 if not walk(model) else 1e-7), f"{key}: {c}"
+    assert out["strength"].ad == 0.0 and out["strength"].fd == 0.0
+    for key in (("texel", 0, 0), ("texel", 1, 1)):
+        c = out[key]
+        if model == "faithful":
+            assert abs(c.ad) > 0.01, f"{key}: a flat map must have a texel derivative ({c})"
+        elif model == "analytic":
+            assert abs(c.ad) > 1e-5, f"{key}: a flat map must have a texel derivative ({c})"
+        elif facet == "specular":
+            assert abs(c.ad) < 1e-6 and abs(c.fd) < 1e-6, f"{key}: a stationary point ({c})"
+    if facet == "same":
+        assert abs(out[("texel", 0, 0)].ad) > 2 * out[("texel", 0, 0)].ad_se, out[("texel", 0, 0)]
+
+
+@pytest.mark.parametrize("model, facet", params())
+def test_eval_derivatives_at_strength_zero(model, facet):
+    """At strength = 0 (a flat surface from any map) strength has its one-sided derivative,
+    and the texels none (both exactly 0). As at a flat map (above), the mirror-facet models'
+    strength derivative vanishes there to first order."""
+    keys = [("strength", 1e-3), (("texel", 0, 0), 1e-3)]
+    out = checks(model, facet, TILTED, keys, one_sided=("strength",), strength=0.0)
+    c = out["strength"]
+    if model == "analytic":
+        # Below the FD's float32 resolution (L moves by ~5e-10 over 2h; measured |FD| ~5e-7).
+        assert abs(c.ad) < 1e-6 and abs(c.rev) < 1e-6 and abs(c.fd) < 2e-6, c
+    elif facet == "specular":
+        # Zero within the walk's noise (measured: nonseparable +1.1e-4 ± 1.2e-4, FD the same
+        # to 4e-8 paired; separable < 1e-8).
+        assert c.agrees(), c
+        assert abs(c.ad) < 4 * c.ad_se + 1e-6, c
+    else:
+        assert c.agrees(atol=0.0 if not walk(model) else 1e-7), c
+        assert abs(c.ad) > 0.02, c
+    assert out[("texel", 0, 0)].ad == 0.0 and out[("texel", 0, 0)].rev == 0.0 and out[("texel", 0, 0)].fd == 0.0
+
+
+@pytest.mark.parametrize("model, facet", params())
+def test_pdf_and_sample_derivatives_match_finite_differences(model, facet):
+    """pdf (a deterministic function) and a sample's weight × c(its direction) (the sampled
+    direction detached where it has a density, Mitsuba's detached sampling; the walks'
+    throughput carries p/detach(p) for every decision): d/d strength and d/d texel.
+
+    For the sample, FD with common sample numbers sees branch changes (samples that jump
+    between lobes as θ moves), which makes it noisy; the paired SE measures that."""
+    h = 0.02 if walk(model) else 1e-3
+    keys = [("strength", h), (("texel", 0, 0), h)]
+    for what in ("pdf", "sample"):
+        hs = keys if what == "pdf" or walk(model) else [(k, 0.01) for k, _ in keys]
+        for key, c in checks(model, facet, TILTED4, hs, what, n=N_PDF).items():
+            assert c.agrees(), f"{what} {key}: {c}"
