@@ -511,7 +511,7 @@ def wavy_plane(bsdf, n=24, amp=0.35):
     i, j = np.meshgrid(np.arange(n - 1), np.arange(n - 1), indexing="xy")
     a = (j * n + i).ravel()
     faces = np.concatenate([np.stack([a, a + 1, a + n + 1], 1), np.stack([a, a + n + 1, a + n], 1)])
-    return H._mesh("wavy", pos, nrm, uv, faces, bsdf)
+    return H.triangle_mesh("wavy", pos, nrm, uv, faces, bsdf)
 
 
 def ptracer_scene(integrator, bsdf):

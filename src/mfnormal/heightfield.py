@@ -64,7 +64,7 @@ from .rendering import render_rgb
 __all__ = [
     "Heightfield", "bumps", "egg_crate", "noise", "make_heightfield", "KINDS", "STEEPNESS",
     "tilt_stats", "texel_centres", "normal_map", "height_map", "texel_normals", "encode_normals",
-    "bitmap_texture", "displaced_arrays", "displaced_mesh", "plane_mesh",
+    "bitmap_texture", "displaced_arrays", "displaced_mesh", "plane_mesh", "triangle_mesh",
     "View", "Lighting", "Magnification", "VIEWS", "LIGHTINGS", "MAGNIFICATIONS", "MATERIALS",
     "scene_dict", "footprint", "Method", "METHODS", "DEFAULT_METHODS",
     "plugin_method", "heightmap_method", "method_from_spec", "metrics", "near_black_threshold", "Cell", "render",
@@ -388,7 +388,9 @@ def displaced_arrays(hf: Heightfield, extent, verts_per_period: int = 32):
     return out
 
 
-def _mesh(name, positions, normals, uvs, faces, bsdf):
+def triangle_mesh(name, positions, normals, uvs, faces, bsdf):
+    """A Mitsuba mesh of these vertex arrays (positions, unit normals, uvs) and faces, with ``bsdf``
+    (a dict or a loaded BSDF; None: Mitsuba's default)."""
     props = mi.Properties()
     if bsdf is not None:
         props["bsdf"] = mi.load_dict(bsdf) if isinstance(bsdf, dict) else bsdf
@@ -407,7 +409,7 @@ def displaced_mesh(hf: Heightfield, extent, verts_per_period: int = 32, bsdf=Non
                    name: str = "true_surface") -> "mi.Mesh":
     """The true surface as a Mitsuba mesh (see :func:`displaced_arrays`); ``bsdf``: a dict or
     a loaded BSDF."""
-    return _mesh(name, *displaced_arrays(hf, extent, verts_per_period), bsdf)
+    return triangle_mesh(name, *displaced_arrays(hf, extent, verts_per_period), bsdf)
 
 
 def plane_mesh(extent=(0.0, 1.0, 0.0, 1.0), z: float = 0.0, bsdf=None, name: str = "plane") -> "mi.Mesh":
@@ -418,7 +420,7 @@ def plane_mesh(extent=(0.0, 1.0, 0.0, 1.0), z: float = 0.0, bsdf=None, name: str
     nrm = np.tile([0.0, 0.0, 1.0], (4, 1))
     uv = np.stack([pos[:, 0], 1.0 - pos[:, 1]], axis=1)
     faces = np.array([[0, 1, 2], [0, 2, 3]])
-    return _mesh(name, pos, nrm, uv, faces, bsdf)
+    return triangle_mesh(name, pos, nrm, uv, faces, bsdf)
 
 
 # ---------------------------------------------------------------------------

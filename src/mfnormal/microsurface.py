@@ -37,9 +37,16 @@ def decode_normal(rgb, strength, directx):
     n.y = dr.select(directx, -n.y, n.y)
     n.x *= strength
     n.y *= strength
+    return upper_unit(n, 1e-20)
+
+
+def upper_unit(n, min_norm2):
+    """``n`` normalised and clamped into the upper hemisphere as decoded normals are: NaN/Inf
+    vectors and those with |n|² ≤ ``min_norm2`` give (0, 0, 1); cosθ below COS_P_MIN is raised
+    to it, keeping the azimuth (straight down: (0, 0, 1))."""
     bad = negate(dr.isfinite(n.x) & dr.isfinite(n.y) & dr.isfinite(n.z))
     norm2 = dr.squared_norm(n)
-    bad |= negate((norm2 > 1e-20) & dr.isfinite(norm2))
+    bad |= negate((norm2 > min_norm2) & dr.isfinite(norm2))
     n = dr.select(bad, mi.Vector3f(0, 0, 1), n)
     n = n * dr.rsqrt(dr.select(bad, 1.0, norm2))
     # Clamp into the upper hemisphere: keep the azimuth, limit the tilt.

@@ -53,7 +53,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from .microsurface import COS_P_MIN, negate
+from .microsurface import COS_P_MIN, negate, upper_unit
 from .shading import ShadingPoint, from_tangent_frame, tangent_rotation
 
 MACRO_NORMALS = ("shading", "geometric")
@@ -67,17 +67,7 @@ NORMAL_MIN2 = 1e-12
 def unit_normal(n):
     """``n`` normalised and clamped into the upper hemisphere as decoded maps are: non-finite or
     zero vectors give (0, 0, 1); cosθ below COS_P_MIN is raised to it, keeping the azimuth."""
-    bad = negate(dr.isfinite(n.x) & dr.isfinite(n.y) & dr.isfinite(n.z))
-    norm2 = dr.squared_norm(n)
-    bad |= negate((norm2 > 1e-30) & dr.isfinite(norm2))
-    n = dr.select(bad, mi.Vector3f(0, 0, 1), n)
-    n = n * dr.rsqrt(dr.select(bad, 1.0, norm2))
-    xy2 = dr.fma(n.x, n.x, n.y * n.y)
-    lean = xy2 > 1e-30
-    too_steep = n.z < COS_P_MIN
-    scale = dr.sqrt((1.0 - COS_P_MIN * COS_P_MIN) / dr.select(lean, xy2, 1.0))
-    n = dr.select(too_steep & lean, mi.Vector3f(n.x * scale, n.y * scale, COS_P_MIN), n)
-    return dr.select(too_steep & negate(lean), mi.Vector3f(0, 0, 1), n)
+    return upper_unit(n, 1e-30)
 
 
 def _scaled(n):

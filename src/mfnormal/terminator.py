@@ -36,6 +36,8 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from .heightfield import triangle_mesh
+
 __all__ = ["icosphere", "lowpoly_mesh", "ChiangTerminator", "register", "METHODS", "MATERIALS",
            "Case", "scene_dict", "render", "render_case", "band_mask", "BAND_DEG", "chiang_G"]
 
@@ -102,17 +104,7 @@ def lowpoly_mesh(level: int, bsdf, smooth: bool = True, name: str = "lowpoly") -
         nrm = pos / np.linalg.norm(pos, axis=1, keepdims=True)
     uv = np.stack([0.5 + np.arctan2(pos[:, 1], pos[:, 0]) / (2 * np.pi),
                    np.arccos(np.clip(pos[:, 2], -1, 1)) / np.pi], 1)
-    props = mi.Properties()
-    if bsdf is not None:
-        props["bsdf"] = mi.load_dict(bsdf) if isinstance(bsdf, dict) else bsdf
-    mesh = mi.Mesh(name, len(pos), len(faces), props, has_vertex_normals=True, has_vertex_texcoords=True)
-    params = mi.traverse(mesh)
-    params["vertex_positions"] = mi.Float(np.ascontiguousarray(pos, np.float32).ravel())
-    params["vertex_normals"] = mi.Float(np.ascontiguousarray(nrm, np.float32).ravel())
-    params["vertex_texcoords"] = mi.Float(np.ascontiguousarray(uv, np.float32).ravel())
-    params["faces"] = mi.UInt32(np.ascontiguousarray(faces, np.uint32).ravel())
-    params.update()
-    return mesh
+    return triangle_mesh(name, pos, nrm, uv, faces, bsdf)
 
 
 # -- The Chiang-style reference term ------------------------------------------------------------
