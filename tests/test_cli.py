@@ -428,8 +428,11 @@ DISK_FULL, SLOW = "'disk_full'", "'slow'"
 def driver(mode, args, cwd, env=None, wait=True):
     code = textwrap.dedent(DRIVER).replace("MODE", mode)
     full_env = dict(os.environ, PYTHONPATH=str(ROOT / "src"), **(env or {}))
+    # SIGINT at its default in the child: a test run started in the background (a shell's `&`)
+    # inherits it ignored, and the signal test would then wait out the driver's 60 s sleep.
     proc = subprocess.Popen([sys.executable, "-c", code, *map(str, args)], cwd=cwd, env=full_env,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     if wait:
         out, err = proc.communicate(timeout=300)
         return subprocess.CompletedProcess(proc.args, proc.returncode, out, err)
