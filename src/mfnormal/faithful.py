@@ -492,7 +492,8 @@ class Model:
         s_b = tx.seen(bs.wo)
         # (Decisions with detached probabilities; the draw's prob keeps them attached: score.)
         bounced = on_tex & (uniform(seed, SLOT_FAITHFUL_BLOCKED) >= dr.detach(s_b))
-        retro = uniform(seed, SLOT_FAITHFUL_RETRO) < dr.detach(tx.retro_share())
+        w_retro = tx.retro_share()
+        retro = uniform(seed, SLOT_FAITHFUL_RETRO) < dr.detach(w_retro)
         wo = dr.select(bounced, tx.bounce(bs.wo, retro), bs.wo)
         # Diffuse fill: a cosine lobe about ω_g.
         wo = dr.select(on_fill, mi.warp.square_to_cosine_hemisphere(sample2), wo)
@@ -504,7 +505,7 @@ class Model:
         bs.sampled_component = dr.select(on_fill, mi.UInt32(0), bs.sampled_component)
         bs.wo = wo
         # The draw's probability factor for delta lobes (the nested pdf times this).
-        share = dr.select(retro, tx.retro_share(), 1.0 - tx.retro_share())
+        share = dr.select(retro, w_retro, 1.0 - w_retro)
         prob = dr.select(on_tex, b_tex * dr.select(bounced, (1.0 - s_b) * share, s_b), b_hid)
         return _Draw(bs, w, active & ok, delta, on_tex, bounced, prob, b_tex, b_hid)
 

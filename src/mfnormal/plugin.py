@@ -514,15 +514,10 @@ class NormalMapMicrofacet:
     def _from_vertex_tangents(self, si, wp, active):
         """(ω_p decoded in the mesh's vertex tangent frame and re-expressed in ``si.sh_frame``,
         that frame's turn against ``si.sh_frame``: shading.tangent_rotation or None)."""
-        name, shape = self.tangent_attr, si.shape
-        if not dr.is_jit_v(mi.Float) and (shape is None or not shape.is_mesh()
-                                          or not shape.has_attribute(name)):
+        tangent, sign = self._vertex_tangent(si, active)
+        if tangent is None:
             return wp, None      # scalar variants: a shape without tangents
-        # JIT variants: a shape without the attribute evaluates to 0, i.e. no tangent.
         # (T and its sign are two attributes: Mitsuba 3.9.1's eval_attribute_x returns zeros.)
-        tangent = mi.Vector3f(shape.eval_attribute_3(name, si, active))
-        sign = shape.eval_attribute_1(name + "_sign", si, active) if (
-            dr.is_jit_v(mi.Float) or shape.has_attribute(name + "_sign")) else 1.0
         return (from_tangent_frame(wp, si.sh_frame, tangent, sign),
                 tangent_rotation(si.sh_frame, tangent, sign))
 
