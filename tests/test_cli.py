@@ -190,7 +190,17 @@ def hard(tmp_path_factory):
     (d / "inc_self.xml").write_text('<scene version="3.0.0"><include filename="inc_self.xml"/></scene>')
     doc, blobs = base_document()
     write_gltf(d / "model", doc, blobs)
+    (d / "huge.png").write_bytes(png_header(16000, 16000))
     return d
+
+
+def png_header(width, height):
+    """The signature and IHDR chunk of an 8-bit RGB PNG of width × height, and no pixels."""
+    import struct
+    import zlib
+
+    ihdr = b"IHDR" + struct.pack(">IIBBBBB", width, height, 8, 2, 0, 0, 0)
+    return b"\x89PNG\r\n\x1a\n" + struct.pack(">I", 13) + ihdr + struct.pack(">I", zlib.crc32(ihdr))
 
 
 def assert_error_line(result, *needles):
@@ -240,6 +250,14 @@ REJECTED = [
     ("compare_seed_negative", ["compare", "good.xml", "--quick", "--seed", "-3"], ["--seed"]),
     ("compare_spp_2_32", ["compare", "good.xml", "--quick", "--spp", "4294967296"], ["--spp", "too large"]),
     ("compare_output_is_a_file", ["compare", "good.xml", "--quick", "-o", "good.xml"], ["good.xml", "is a file"]),
+    ("xml_texture_declares_16000_squared", ["render", "good.xml", "-D", "nm=huge.png"],
+     ["good.xml", "huge.png", "16000x16000", "image_pixels"]),
+    ("xml_texture_over_image_limit", ["render", "good.xml", "--limit", "image_pixels=63"],
+     ["normalmap.png", "8x8", "--limit image_pixels"]),
+    ("xml_textures_over_texture_limit", ["render", "good.xml", "--limit", "texture_pixels=63"],
+     ["normalmap.png", "--limit texture_pixels"]),
+    ("compare_xml_texture_declares_16000_squared", ["compare", "good.xml", "--quick", "-D", "nm=huge.png"],
+     ["huge.png", "16000x16000", "image_pixels"]),
     ("output_name_too_long", ["render", "good.xml", "-o", "x" * 300], ["too long"]),
     ("scene_name_too_long", ["render", "y" * 300 + ".xml"], ["too long"]),
 ]
@@ -503,9 +521,9 @@ def test_passes_bound_the_paths_per_pass_and_keep_the_seeds():
 
 
 def test_image_headers_give_the_size_without_decoding(tmp_path):
-    """gltf_validate.image_header reads a PNG's IHDR and a JPEG's frame header (after APPn
+    """image_headers.image_header reads a PNG's IHDR and a JPEG's frame header (after APPn
     segments such as EXIF) as Mitsuba writes them, and refuses anything else."""
-    from mfnormal.gltf_validate import image_header
+    from mfnormal.image_headers import image_header
 
     img = (np.random.default_rng(3).random((37, 53, 3)) * 255).astype(np.uint8)
     for fmt, name in [(mi.Bitmap.FileFormat.PNG, "png"), (mi.Bitmap.FileFormat.JPEG, "jpeg")]:
@@ -517,3 +535,55 @@ def test_image_headers_give_the_size_without_decoding(tmp_path):
     assert image_header(jpeg[:2] + exif + jpeg[2:]) == ("jpeg", 53, 37)
     for junk in [b"", b"\x89PNG\r\n\x1a\n", jpeg[:40], b"GIF89a" + b"\0" * 20, (tmp_path / "x.png").read_bytes()[:20]]:
         assert image_header(junk) is None
+
+
+def _bmp(rgb):
+    """An uncompressed 24-bit BMP (bottom-up rows padded to 4 bytes)."""
+    import struct
+
+    h, w, _ = rgb.shape
+    row = (3 * w + 3) // 4 * 4
+    data = b"".join(rgb[y, :, ::-1].tobytes().ljust(row, b"\0") for y in range(h - 1, -1, -1))
+    info = struct.pack("<IiiHHIIiiII", 40, w, h, 1, 24, 0, len(data), 2835, 2835, 0, 0)
+    return b"BM" + struct.pack("<IHHI", 14 + len(info) + len(data), 0, 0, 14 + len(info)) + info + data
+
+
+def _tga(rgb):
+    """An uncompressed true-colour TGA (image type 2, bottom-up, BGR) with the TGA 2.0 footer,
+    by which Mitsuba recognises the format."""
+    import struct
+
+    h, w, _ = rgb.shape
+    return (struct.pack("<BBBHHBHHHHBB", 0, 0, 2, 0, 0, 0, 0, 0, w, h, 24, 0) + rgb[::-1, :, ::-1].tobytes()
+            + struct.pack("<II", 0, 0) + b"TRUEVISION-XFILE.\0")
+
+
+def test_file_image_size_reads_every_format_mitsuba_reads(tmp_path):
+    """image_headers.file_image_size gives the width and height of each format Mitsuba's
+    Bitmap reads (written by Mitsuba itself, BMP and TGA by hand; each decoded by Mitsuba to
+    the same size), from the header alone, and None
+    for a broken or unknown file; the XML scene check relies on it."""
+    from mfnormal.image_headers import file_image_size
+
+    F = mi.Bitmap.FileFormat
+    u8 = (np.random.default_rng(3).random((37, 53, 3)) * 255).astype(np.uint8)
+    f32 = np.random.default_rng(4).random((37, 53, 3)).astype(np.float32)
+    cases = [(F.PNG, "png", u8, "png"), (F.JPEG, "jpg", u8, "jpeg"), (F.OpenEXR, "exr", f32, "exr"),
+             (F.RGBE, "hdr", f32, "hdr"), (F.PFM, "pfm", f32, "pfm"), (F.PPM, "ppm", u8, "ppm"),
+             ("bmp", "bmp", u8, "bmp"), ("tga", "tga", u8, "tga")]
+    for fmt, ext, pixels, name in cases:
+        path = tmp_path / f"x.{ext}"
+        if isinstance(fmt, str):            # Mitsuba reads BMP and TGA but does not write them
+            path.write_bytes(_bmp(u8) if fmt == "bmp" else _tga(u8))
+        else:
+            mi.Bitmap(pixels).write(str(path), fmt)
+        assert file_image_size(path) == (name, 53, 37), ext
+        decoded = mi.Bitmap(str(path))                          # what Mitsuba decodes
+        assert tuple(decoded.size()) == (53, 37)
+        if ext in ("bmp", "tga"):
+            assert np.array_equal(np.array(decoded), u8), ext
+    exr = (tmp_path / "x.exr").read_bytes()
+    (tmp_path / "cut.exr").write_bytes(exr[:12])
+    (tmp_path / "x.gif").write_bytes(b"GIF89a" + b"\0" * 20)
+    for broken in ["cut.exr", "x.gif"]:
+        assert file_image_size(tmp_path / broken) is None, broken

@@ -227,6 +227,31 @@ def test_rel_mse_and_near_black_fraction():
     assert metrics.near_black_fraction(img, mask, 0.01) == pytest.approx(1 / 16)
 
 
+
+def test_compare_counts_and_reports_the_pixels_it_writes_as_zero(tmp_path):
+    """A negative or NaN pixel of a method's render is written and scored as 0, and said so:
+    counted per method (the report's columns) and warned about in the log, not clamped silently."""
+    img = np.full((2, 3, 3), 0.25, np.float32)
+    img[0, 0, 1] = -0.5
+    img[1, 2, 0] = np.nan
+    ref = np.full((2, 3, 3), 0.25, np.float32)
+    ref[1, 1, 2] = -1e-3
+    lines = []
+    r = compare._record(0, 1, METHODS[0], img, ref, (1.0, 2.0), compare.QUICK, tmp_path, lines.append)
+    assert (r["nonfinite"], r["negative"]) == (1, 2)
+    assert r["image"].min() == 0.0 and np.isfinite(r["image"]).all() and r["ref"].min() == 0.0
+    warnings = [line for line in lines if "warning" in line]
+    assert len(warnings) == 2
+    assert "1 pixel(s)" in warnings[0] and "NaN/Inf" in warnings[0]
+    assert "2 pixel(s)" in warnings[1] and "negative" in warnings[1]
+    written = mi.TensorXf(mi.Bitmap(str(tmp_path / f"{METHODS[0].key}.exr")))
+    assert np.array(written).min() == 0.0
+    before = len(lines)
+    clean = compare._record(0, 1, METHODS[0], ref.clip(0), ref.clip(0), (1.0, 2.0), compare.QUICK,
+                            tmp_path, lines.append)
+    assert (clean["nonfinite"], clean["negative"]) == (0, 0)
+    assert not any("warning" in line for line in lines[before:])
+
 # ---------------------------------------------------------------------------
 # Scene (b): the torus knot
 # ---------------------------------------------------------------------------

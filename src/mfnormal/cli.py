@@ -29,7 +29,7 @@ from .messages import one_line
 from .rendering import render_scene
 from .validate import (CLIError, DEFAULT_LIMITS, LIMIT_HELP, Limits, Terminated, check_int32,
                        check_output, check_render_size, check_scene_before_render, check_seed,
-                       check_spp, check_xml_integers, parse_limits, raise_on_sigterm)
+                       check_spp, check_xml_scene, parse_limits, raise_on_sigterm)
 
 __all__ = ["CLIError", "main", "demo_main", "build_parser", "load_scene", "setup_variant",
            "parse_defines", "run_command"]
@@ -117,7 +117,7 @@ def load_scene(mi, path, params: dict[str, str], limits: Limits = DEFAULT_LIMITS
         raise CLIError(f"scene file not found: {path}")
     gltf = path.suffix.lower() in GLTF_SUFFIXES
     if not gltf:
-        check_xml_integers(path, params)
+        check_xml_scene(path, params, limits)
     try:
         if gltf:
             scene = _gltf_scene(mi, path, params, limits)
@@ -360,7 +360,7 @@ def cmd_compare(args) -> int:
         if scene not in BUNDLED and not Path(scene).is_file():
             raise CLIError(f"scene file not found: {scene} (bundled scenes: {', '.join(BUNDLED)})")
         if scene not in BUNDLED:
-            check_xml_integers(scene, params)
+            check_xml_scene(scene, params, limits)
     command = "mfnormal " + " ".join(shlex.quote(a) for a in getattr(args, "argv", []))
     try:
         if target is None:

@@ -38,7 +38,7 @@ from . import report
 from .assets import BUNDLED
 from .bsdf_checks import bsdf_checks
 from .coverage import choose_crops, surface_maps
-from .images import atomic_write, png_bytes, sanitize, save_render, tonemap
+from .images import atomic_write, png_bytes, sanitize_counts, save_render, tonemap
 from .messages import one_line
 from .methods import METHOD_BY_KEY, METHODS, PLUGIN, Method
 from .metrics import luminance, near_black_fraction, rel_mse
@@ -195,14 +195,18 @@ def _seeds(settings: Settings) -> tuple:
 
 def _record(i, n, method, img, ref, times, settings, out_dir, log) -> dict:
     """One method's result, its render and reference written as EXR/PNG pairs."""
-    img32, bad = sanitize(img.astype(np.float32))
-    ref32, bad_ref = sanitize(ref.astype(np.float32))
+    img32, bad, neg = sanitize_counts(img.astype(np.float32))
+    ref32, bad_ref, neg_ref = sanitize_counts(ref.astype(np.float32))
     save_render(img32, out_dir / method.key)
     save_render(ref32, out_dir / f"{method.key}_ref")
     log(f"  [{i + 1}/{n}] {method.key:<22} {times[0]:6.1f} s ({settings.spp} spp), "
         f"reference {times[1]:6.1f} s ({settings.ref_spp} spp)")
+    for what, count in (("NaN/Inf", bad + bad_ref), ("negative", neg + neg_ref)):
+        if count:
+            log(f"  warning: {method.key}: {count} pixel(s) of its render and reference had "
+                f"{what} values and were written and scored as 0")
     return {"method": method, "image": img32, "ref": ref32, "time": times[0],
-            "ref_time": times[1], "nonfinite": bad + bad_ref}
+            "ref_time": times[1], "nonfinite": bad + bad_ref, "negative": neg + neg_ref}
 
 
 def _render_methods(src, root, values, methods, settings, out_dir, notes, log) -> list:

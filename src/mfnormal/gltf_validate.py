@@ -53,6 +53,7 @@ from dataclasses import dataclass, field
 from pathlib import Path, PureWindowsPath
 from urllib.parse import unquote
 
+from .image_headers import image_header
 from .validate import DEFAULT_LIMITS, Limits
 
 __all__ = ["GLTFError", "Model", "ImageData", "read_model", "image_header", "COMPONENT_SIZE",
@@ -259,46 +260,6 @@ def _parse_json(text: str) -> dict:
     if not isinstance(doc, dict):
         raise GLTFError("not a valid glTF 2.0 file (the JSON is not an object)")
     return doc
-
-
-# -- Image headers -----------------------------------------------------------------------------------
-
-_SOF = {0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF}
-
-
-def image_header(data: bytes) -> tuple[str, int, int] | None:
-    """('png' | 'jpeg', width, height) from a PNG's IHDR or a JPEG's SOF marker, without
-    decoding; None if the bytes are neither (or the header is broken)."""
-    if data[:8] == b"\x89PNG\r\n\x1a\n":
-        if len(data) < 24 or data[12:16] != b"IHDR":
-            return None
-        w, h = struct.unpack_from(">II", data, 16)
-        return ("png", w, h) if w > 0 and h > 0 else None
-    if data[:2] == b"\xff\xd8":
-        i = 2
-        while i + 4 <= len(data):
-            if data[i] != 0xFF:
-                return None
-            marker = data[i + 1]
-            if marker == 0xFF:              # fill byte
-                i += 1
-                continue
-            if marker == 0x01 or 0xD0 <= marker <= 0xD8:
-                i += 2
-                continue
-            if marker in (0xD9, 0xDA):      # end of image or start of scan before a frame header
-                return None
-            seg = struct.unpack_from(">H", data, i + 2)[0]
-            if marker in _SOF:
-                if i + 9 > len(data) or seg < 7:
-                    return None
-                h, w = struct.unpack_from(">HH", data, i + 5)
-                return ("jpeg", w, h) if w > 0 and h > 0 else None
-            if seg < 2:
-                return None
-            i += 2 + seg
-        return None
-    return None
 
 
 # -- The document ---------------------------------------------------------------------------------

@@ -83,16 +83,6 @@ def sanitize_counts(img: np.ndarray, names=None) -> tuple[np.ndarray, int, int]:
     return img, nonfinite, negative
 
 
-def sanitize(rgb: np.ndarray) -> tuple[np.ndarray, int]:
-    """Replace NaN/Inf (and negative) values by 0; return the image and how many pixels had NaN/Inf.
-
-    (Kept for :mod:`mfnormal.compare`; :func:`sanitize_counts` also counts the negative pixels.)"""
-    rgb = np.asarray(rgb, dtype=np.float32)
-    bad = ~np.isfinite(rgb).all(axis=-1)
-    out = np.where(np.isfinite(rgb), np.maximum(rgb, 0.0), 0.0).astype(np.float32)
-    return out, int(bad.sum())
-
-
 def tonemap(rgb: np.ndarray, exposure: float = 0.0) -> np.ndarray:
     """Linear RGB → 8-bit sRGB (exposure in stops, clipped)."""
     x = np.clip(np.asarray(rgb, np.float32) * (2.0 ** exposure), 0.0, 1.0)

@@ -177,7 +177,8 @@ def _metrics_table(section, checks_by_key) -> str:
             "<th>near-black<br>(render)</th><th>near-black<br>(reference)</th>"
             "<th>darkened<br>(reference)</th>"
             f"<th>albedo θ<sub>p</sub>={tilt:g}°<br>θ<sub>i</sub>=0° / 60° / 85°</th>"
-            "<th>reciprocity<br>error (max θ<sub>p</sub>)</th><th>NaN/Inf<br>pixels</th></tr>")
+            "<th>reciprocity<br>error (max θ<sub>p</sub>)</th><th>NaN/Inf<br>pixels</th>"
+            "<th>negative<br>pixels</th></tr>")
     rows = []
     for r in section["results"]:
         m = r["method"]
@@ -195,7 +196,7 @@ def _metrics_table(section, checks_by_key) -> str:
             f"<td>{_fmt(r['rel_mse'])}</td><td>{_fmt(r['rel_mse_mask'])}</td>"
             f"<td class={black_cls}>{_fmt(r['black'], pct=True)}</td><td>{_fmt(r['black_ref'], pct=True)}</td>"
             f"<td>{_fmt(r['darkened'], pct=True)}</td>"
-            f"<td>{alb}</td><td>{rec}</td><td>{r['nonfinite']}</td></tr>")
+            f"<td>{alb}</td><td>{rec}</td><td>{r['nonfinite']}</td><td>{r['negative']}</td></tr>")
     return f"<table class=metrics>{head}{''.join(rows)}</table>"
 
 

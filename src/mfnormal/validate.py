@@ -2,8 +2,8 @@
 
 Everything here raises :class:`CLIError` (one line, naming the problem and the
 fix) and has no side effect: it reads the scene's XML (and its ``<include>``\\ s)
-to find its integer parameters, probes the output folder with a temporary file
-that it removes at once, and writes nothing else.
+to find its integer parameters and the headers of the images it names, probes the
+output folder with a temporary file that it removes at once, and writes nothing else.
 
 - :class:`Limits`: the caps on what a model and a render may allocate (image
   pixels, bytes read, vertices, render pixels), overridable with
@@ -31,10 +31,11 @@ import xml.etree.ElementTree as ET
 from dataclasses import dataclass
 from pathlib import Path
 
+from .image_headers import file_image_size
 from .scene_xml import PARAMETER, substitute
 
 __all__ = ["CLIError", "Limits", "DEFAULT_LIMITS", "LIMIT_HELP", "parse_limits", "check_spp",
-           "check_seed", "check_int32", "check_xml_integers", "check_output", "check_render_size",
+           "check_seed", "check_int32", "check_xml_scene", "check_output", "check_render_size",
            "check_scene_before_render", "Terminated", "raise_on_sigterm", "INT32_MAX", "UINT32_MAX"]
 
 INT32_MIN, INT32_MAX = -(1 << 31), (1 << 31) - 1
@@ -64,9 +65,10 @@ def raise_on_sigterm() -> None:
 class Limits:
     """What a model or a render may allocate; ``--limit NAME=N`` overrides each.
 
-    - ``image_pixels``: width × height of one image of a glTF model (read from its
-      PNG/JPEG header before it is decoded); 8192² by default.
-    - ``texture_pixels``: the sum over all images of a glTF model; four 8192² maps.
+    - ``image_pixels``: width × height of one image of a glTF model or an XML scene
+      (read from its header before it is decoded); 8192² by default.
+    - ``texture_pixels``: the sum over all images of a glTF model or an XML scene;
+      four 8192² maps.
     - ``data_bytes``: bytes read for one model: the .gltf/.glb file, its buffers
       (each at most its declared ``byteLength``) and image files; 2 GiB.
     - ``vertices``: vertices of a glTF scene after instancing (a mesh used by n
@@ -149,14 +151,20 @@ def check_int32(value: int, what: str, lo: int = INT32_MIN, hi: int = INT32_MAX)
     return value
 
 
-def check_xml_integers(path, params: dict) -> None:
-    """Every ``<integer>`` value of the XML scene ``path`` (and its ``<include>``\\ s), after
-    substituting its ``<default>``\\ s and ``params`` (``-D``), is a 32-bit integer.
+def check_xml_scene(path, params: dict, limits: Limits = DEFAULT_LIMITS) -> None:
+    """Two checks of the XML scene ``path`` and its ``<include>``\\ s, after substituting
+    their ``<default>``\\ s and ``params`` (``-D``), before Mitsuba loads it:
 
-    Mitsuba stores integer properties in 64 bits, but most plugins (samplers,
-    integrators, this package's BSDF) use 32 bits, and a larger value fails deep
-    inside a kernel. Files that do not parse are left to Mitsuba's own error."""
-    seen = set()
+    - every ``<integer>`` value is a 32-bit integer: Mitsuba stores integer properties in
+      64 bits, but most plugins (samplers, integrators, this package's BSDF) use 32 bits,
+      and a larger value fails deep inside a kernel;
+    - every image a ``<texture>`` or ``<emitter>`` names (``filename``) declares at most
+      ``limits.image_pixels`` pixels in its header, and all of them together at most
+      ``limits.texture_pixels``, as for a glTF model (:mod:`mfnormal.image_headers`).
+
+    Files that do not parse, and images that are missing or of another format, are left
+    to Mitsuba's own error."""
+    seen, pixels = set(), [0]
 
     def visit(file: Path, depth: int, values: dict):
         key = str(file.resolve()) if file.exists() else str(file)
@@ -170,22 +178,49 @@ def check_xml_integers(path, params: dict) -> None:
         values = {**{d.get("name"): d.get("value") for d in root.iter("default")}, **values}
         for el in root.iter():
             if el.tag == "integer" and el.get("value") is not None:
-                raw = el.get("value")
-                text = substitute(raw, values).strip()
-                if not re.fullmatch(r"[+-]?\d+", text):
-                    continue
-                value = int(text)
-                if INT32_MIN <= value <= INT32_MAX:
-                    continue
-                names = PARAMETER.findall(raw)
-                source = next((f"-D {n}={params[n]}" for n in names if n in params), None)
-                where = f'<integer name="{el.get("name")}"> in {file.name}'
-                raise CLIError(f"{source + ': ' if source else ''}{where} is {value}, outside the "
-                               f"32-bit range ({INT32_MIN} to {INT32_MAX})")
+                _check_xml_integer(el, file, values, params)
             elif el.tag == "include" and el.get("filename"):
                 visit(file.parent / substitute(el.get("filename"), values), depth + 1, values)
+            elif el.tag in ("texture", "emitter"):
+                for prop in el.findall("string"):
+                    if prop.get("name") == "filename" and prop.get("value") is not None:
+                        image = file.parent / substitute(prop.get("value"), values)
+                        pixels[0] += _check_xml_image(image, file, limits, pixels[0])
 
     visit(Path(path), 0, dict(params))
+
+
+def _check_xml_integer(el: ET.Element, file: Path, values: dict, params: dict) -> None:
+    raw = el.get("value")
+    text = substitute(raw, values).strip()
+    if not re.fullmatch(r"[+-]?\d+", text):
+        return
+    value = int(text)
+    if INT32_MIN <= value <= INT32_MAX:
+        return
+    names = PARAMETER.findall(raw)
+    source = next((f"-D {n}={params[n]}" for n in names if n in params), None)
+    where = f'<integer name="{el.get("name")}"> in {file.name}'
+    raise CLIError(f"{source + ': ' if source else ''}{where} is {value}, outside the "
+                   f"32-bit range ({INT32_MIN} to {INT32_MAX})")
+
+
+def _check_xml_image(image: Path, file: Path, limits: Limits, so_far: int) -> int:
+    """The pixel count that ``image`` declares (0 when it cannot be read), checked."""
+    try:
+        size = file_image_size(image) if image.is_file() else None
+    except OSError:
+        size = None
+    if size is None:
+        return 0
+    fmt, w, h = size
+    if w * h > limits.image_pixels:
+        raise CLIError(f"{file.name}: the image {image.name} is {w}x{h} pixels ({fmt.upper()} header), "
+                       f"more than an image may have ({limits.hint('image_pixels')})")
+    if so_far + w * h > limits.texture_pixels:
+        raise CLIError(f"{file.name}: the image {image.name} takes the scene's textures past "
+                       f"{limits.texture_pixels} pixels ({limits.hint('texture_pixels')})")
+    return w * h
 
 
 # -- Output --------------------------------------------------------------------------------------
