@@ -13,11 +13,16 @@ normal, skewed dp/du, dp/dv) with, besides the reference ``normalmap`` (a 256² 
 - ``geometric_heightmap``: both;
 - ``geometric_nomap``: no map, ``macro_normal="geometric"`` (the terminator fix).
 
-Warm kernels only (one untimed call first), process CPU time (all threads; tracing
-included); the configurations are interleaved
-(reference, config, reference, config, ...) and each ratio is the median over ``reps``
-pairs, so the drift of a shared machine cancels; beside it the operation count of the JIT
-kernels (deterministic). Writes ``normal_sources.json`` and
+Warm kernels only (one untimed call first), process CPU time (tracing included) with the
+kernels run on the calling thread (``--threads 0``, the default: Dr.Jit's pool is
+``dr.set_thread_count(0)``). With worker threads (``--threads N``) the process clock only
+adds the other threads' time at the scheduler tick (the readings of one 2^19-query
+call, 8-50 ms, came in steps of about 4 ms), which at this size is ±10-50 % per reading; on the
+calling thread the clock is exact. The configurations are interleaved
+(reference, config, config, reference, ...: which one runs first alternates; in a fixed
+order, of two variants differing by 5 operations the later one measured 0-9 % faster) and
+each ratio is the median over ``reps`` pairs, so the drift of a shared machine cancels;
+beside it the operation count of the JIT kernels (deterministic). Writes ``normal_sources.json`` and
 ``normal_sources.md`` into ``--out``. Acceptance (issue 17): ``heightmap`` and ``geometric``
 within 10 % of the normal-map path (ratio ≤ 1.10).
 """
@@ -99,8 +104,8 @@ def queries(n, seed=11):
 
 
 def timed(fn):
-    """CPU seconds of the process (all Dr.Jit worker threads) for one call, tracing included: on
-    a machine shared with other jobs this counts the work, not the waiting."""
+    """CPU seconds of the process for one call, tracing included: on a machine shared with other
+    jobs this counts the work, not the waiting (exact with the kernels on this thread, --threads 0)."""
     dr.sync_thread()
     t = time.process_time()
     out = fn()
@@ -136,8 +141,11 @@ def main(argv=None):
     ap.add_argument("--reps", type=int, default=9)
     ap.add_argument("--models", default=",".join(MODELS))
     ap.add_argument("--out", type=Path, default=HERE)
+    ap.add_argument("--threads", type=int, default=0,
+                    help="Dr.Jit worker threads (0, the default: kernels on this thread, exact CPU clock)")
     args = ap.parse_args(argv)
     mi.set_variant("llvm_ad_rgb")
+    dr.set_thread_count(args.threads)
     mfnormal.register()
     normalmap, heightmap = textures()
     q = queries(1 << args.queries)
@@ -154,9 +162,13 @@ def main(argv=None):
                     timed(ref[what])
                     timed(other[what])                      # warm kernels
                     t_ref, t_other = [], []
-                    for _ in range(args.reps):
-                        t_ref.append(timed(ref[what]))
-                        t_other.append(timed(other[what]))
+                    for rep in range(args.reps):
+                        if rep % 2:                             # the first of a pair alternates
+                            t_other.append(timed(other[what]))
+                            t_ref.append(timed(ref[what]))
+                        else:
+                            t_ref.append(timed(ref[what]))
+                            t_other.append(timed(other[what]))
                     ratio = statistics.median(b / a for a, b in zip(t_ref, t_other))
                     ops = (op_count(ref_small[what]), op_count(other_small[what]))
                     rows.append({"model": model, "nested": nested, "config": config, "call": what,
@@ -168,7 +180,7 @@ def main(argv=None):
                                  "ratio": ratio})
                     print(f"{model:12s} {nested:12s} {config:20s} {what:8s} ratio {ratio:.3f} ops {ops[1]}/{ops[0]} "
                           f"({rows[-1]['ns_per_query']:.0f} vs {rows[-1]['ref_ns_per_query']:.0f} ns/query)", flush=True)
-    out = {"queries": 1 << args.queries, "reps": args.reps, "rows": rows,
+    out = {"queries": 1 << args.queries, "reps": args.reps, "threads": args.threads, "rows": rows,
            "command": "benchmarks/normal_sources.py " + " ".join(sys.argv[1:] if argv is None else argv)}
     summary = {}
     for model in args.models.split(","):
@@ -183,7 +195,10 @@ def main(argv=None):
     md = ["# Cost per query of the other normal sources (issue 17)", "",
           f"`{out['command']}`: {out['queries']} queries, median of {args.reps} interleaved pairs; ratio = "
           "time with the option / time of the same model on the normal map (eval, eval_pdf, sample; "
-          "diffuse and roughplastic). Acceptance: ≤ 1.10.", "",
+          "diffuse and roughplastic). Acceptance: ≤ 1.10. CPU time of the process with "
+          + ("the kernels on the calling thread (exact clock)" if args.threads == 0 else
+             f"{args.threads} worker threads (clock of the other threads quantised to the scheduler tick)")
+          + ".", "",
           "*ops*: operations in the JIT kernels of one call (Dr.Jit's kernel history), the same ratio "
           "without timing noise.", "",
           "| model | config | time ratio geomean | time ratio max | ops ratio geomean | ops ratio max |",

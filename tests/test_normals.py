@@ -600,6 +600,42 @@ def test_geometric_macro_normal_on_a_flat_mesh_is_the_shading_frame():
             np.testing.assert_allclose(np1(b.pdf(ctx, si, wo)), np1(a.pdf(ctx, si, wo)), rtol=1e-5, atol=1e-6)
 
 
+def test_facet_normal_turned_into_the_triangles_frame_is_clamped_above_its_horizon():
+    """ω_p (decoded: cosθ_p ≥ COS_P_MIN in the shading frame) turned into G (si.n within 90° of the
+    shading normal) and clamped by ``to_upper_hemisphere``, against numpy's Rodrigues rotation in
+    float64: unit, cosθ ≥ COS_P_MIN, equal to the turned ω_p above the clamp and with its azimuth
+    below it; worst cases included (ω_p on the clamp, si.n on the horizon leaning the other way),
+    where the turned ω_p is still ≥ 1.1° from straight down (sin²θ ≥ 4e-4, the premise of
+    to_upper_hemisphere having no straight-down case). Tolerance 2e-6 (float32)."""
+    from mfnormal import normals
+    from mfnormal.microsurface import COS_P_MIN
+    rng = np.random.default_rng(41)
+    k = 20_000
+    t_p = np.concatenate([np.full(k // 2, math.acos(COS_P_MIN)), np.arccos(rng.uniform(COS_P_MIN, 1, k - k // 2))])
+    f_p = rng.uniform(0, 2 * math.pi, k)
+    t_n = np.concatenate([rng.choice([0.0, 0.7, 1.5, 1.5707, math.pi / 2], k // 2), rng.uniform(0, math.pi / 2, k - k // 2)])
+    f_n = np.where(rng.random(k) < 0.5, f_p + math.pi, rng.uniform(0, 2 * math.pi, k))
+    wp = np.stack([np.sin(t_p) * np.cos(f_p), np.sin(t_p) * np.sin(f_p), np.cos(t_p)], -1)
+    n = np.stack([np.sin(t_n) * np.cos(f_n), np.sin(t_n) * np.sin(f_n), np.cos(t_n)], -1)
+    # Rodrigues: the rotation by angle θ_n about a = z × n / |z × n| takes z to n; turn by −θ_n.
+    a = np.stack([-n[:, 1], n[:, 0], np.zeros(k)], -1)
+    s = np.linalg.norm(a, axis=1, keepdims=True)
+    a = np.where(s > 0, a / np.maximum(s, 1e-300), [1.0, 0.0, 0.0])
+    c, sn = n[:, 2:], -s
+    ref = wp * c + np.cross(a, wp) * sn + a * np.sum(a * wp, 1, keepdims=True) * (1 - c)
+    assert np.min(ref[:, 0] ** 2 + ref[:, 1] ** 2) >= 4e-4
+    out = np3(normals.to_upper_hemisphere(normals.Macro(vec3(n)).to_macro(vec3(wp))))
+    np.testing.assert_allclose(np.linalg.norm(out, axis=1), 1.0, atol=2e-6)
+    assert np.all(out[:, 2] >= COS_P_MIN - 1e-7)
+    above = ref[:, 2] >= COS_P_MIN + 1e-5
+    below = ref[:, 2] < COS_P_MIN - 1e-5
+    assert above.sum() > 1000 and below.sum() > 1000
+    np.testing.assert_allclose(out[above], ref[above], atol=2e-6)
+    np.testing.assert_allclose(out[below, 2], COS_P_MIN, atol=1e-7)
+    az = (out[below, :2] * ref[below, :2]).sum(1) / np.linalg.norm(out[below, :2], axis=1) / np.linalg.norm(ref[below, :2], axis=1)
+    np.testing.assert_allclose(az, 1.0, atol=2e-6)
+
+
 def test_shadow_terminator_wedge_is_not_black():
     """Where the interpolated normal faces away from the camera but the triangle does not
     (⟨ω_i, n_s⟩ < 0 < ⟨ω_i, n_g⟩, at the silhouette of a smooth-shaded mesh), Mitsuba's BSDFs

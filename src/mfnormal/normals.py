@@ -118,7 +118,7 @@ def triangle_normal(si):
     NaN, or so long that float32 overflows)."""
     n = si.sh_frame.to_local(mi.Vector3f(si.n))
     len2 = dr.squared_norm(n)
-    ok = dr.isfinite(len2) & (len2 > NORMAL_MIN2)
+    ok = (len2 > NORMAL_MIN2) & (len2 < math.inf)     # len2 ≥ 0: the isfinite test, one op less
     return dr.select(ok, n * dr.mulsign(dr.rsqrt(len2), n.z), mi.Vector3f(0, 0, 1))
 
 
@@ -131,11 +131,14 @@ def geometric_frame(si):
 
 def to_upper_hemisphere(n):
     """A unit vector with cosθ below COS_P_MIN raised to it, keeping the azimuth (the clamp of
-    decoded maps; straight up where it has no azimuth)."""
+    decoded maps), for ``n`` not within 1e-15 of straight down (there it is not unit).
+
+    :func:`shading_point` passes ω_p turned into G: ω_p lies within 88.9° of the shading normal
+    (the clamp) and si.n within 90° of it, so ω_p is at most 178.9° from si.n and
+    sin²θ ≥ 4e-4 (the decoded maps' test for no azimuth, and its select, cannot fire here)."""
     xy2 = dr.fma(n.x, n.x, n.y * n.y)
     scale = math.sqrt(1.0 - COS_P_MIN * COS_P_MIN) * dr.rsqrt(dr.maximum(xy2, 1e-30))
-    clamped = dr.select(xy2 > 1e-30, mi.Vector3f(n.x * scale, n.y * scale, COS_P_MIN), mi.Vector3f(0, 0, 1))
-    return dr.select(n.z < COS_P_MIN, clamped, n)
+    return dr.select(n.z < COS_P_MIN, mi.Vector3f(n.x * scale, n.y * scale, COS_P_MIN), n)
 
 
 class Macro:
