@@ -122,3 +122,27 @@ def test_an_update_out_of_range_is_refused_in_one_line(key, bad, message):
     # The values before the update stay, and so does the image.
     assert values(mi.traverse(scene)) == [1024, 3, 64.0]
     np.testing.assert_array_equal(np.array(mi.render(scene, seed=SEED)), before)
+
+
+def test_a_max_bounces_update_caps_the_walk():
+    """The walk loops read the updated cap: white Lambertian facets tilted 80° (long walks), the
+    sampling walk's longest bounce count over 4096 queries is above 8, and exactly 8 after an
+    update to 8 (the walks that reach the cap stop there)."""
+    from helpers import WHITE, encode, make_bsdf, make_si, random_hemisphere, sph
+    from mfnormal import walk
+
+    rng = np.random.default_rng(3)
+    bsdf = make_bsdf(WHITE, encode(sph([80.0])), "nonseparable", "specular")
+    si = make_si(random_hemisphere(rng, 4096, z_min=0.05))
+    u = rng.random((4096, 3)).astype(np.float32)
+
+    def longest():
+        sp = bsdf.shading_point(mi.BSDFContext(), si)
+        w = walk.sample_walk(sp, bsdf.walk_params, mi.Float(u[:, 0]), mi.Point2f(u[:, 1], u[:, 2]), True)
+        return int(np.array(w.depth).max())
+
+    assert longest() > 8
+    params = mi.traverse(bsdf)
+    params["max_bounces"] = 8
+    params.update()
+    assert longest() == 8
