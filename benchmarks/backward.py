@@ -2,7 +2,7 @@
 r"""Reverse-mode cost of every method against Mitsuba's built-in ``normalmap`` (issue 16).
 
     nice .venv/bin/python benchmarks/backward.py [--methods builtin,faithful,...] [--res 64]
-        [--spp 16] [--reps 3] [--out benchmarks]
+        [--spp 16] [--reps 3] [--variant llvm_ad_rgb] [--out benchmarks]
 
 The scene is the inverse-rendering one (:mod:`mfnormal.inverse`: a plane under a 16² map,
 roughplastic α 0.2, one directional sun, ``prb`` max_depth 2). Per method, in a fresh
@@ -39,14 +39,14 @@ def rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
-def worker(method, res, spp, reps, start="true"):
+def worker(method, res, spp, reps, start="true", variant="llvm_ad_rgb"):
     sys.path.insert(0, str(ROOT / "src"))
     import mfnormal  # noqa: F401  (before mitsuba)
     import drjit as dr
     import mitsuba as mi
     import numpy as np
 
-    mi.set_variant("llvm_ad_rgb")
+    mi.set_variant(variant)
     mfnormal.register()
     from mfnormal import inverse as I
 
@@ -102,15 +102,16 @@ def main(argv=None):
     p.add_argument("--map", choices=["true", "flat"], default="true",
                    help="the map differentiated at: the true one, or a flat one (the optimisation's start, "
                         "where every texel takes the flat normal's derivatives: 4 more evaluations)")
+    p.add_argument("--variant", default="llvm_ad_rgb", help="Mitsuba variant (default llvm_ad_rgb)")
     p.add_argument("--worker", help=argparse.SUPPRESS)
     args = p.parse_args(argv)
     if args.worker:
-        print("JSON " + json.dumps(worker(args.worker, args.res, args.spp, args.reps, args.map)))
+        print("JSON " + json.dumps(worker(args.worker, args.res, args.spp, args.reps, args.map, args.variant)))
         return 0
     rows = []
     for m in args.methods:
         proc = subprocess.run([sys.executable, __file__, "--worker", m, "--res", str(args.res), "--spp",
-                               str(args.spp), "--reps", str(args.reps), "--map", args.map],
+                               str(args.spp), "--reps", str(args.reps), "--map", args.map, "--variant", args.variant],
                               capture_output=True, text=True)
         line = [x for x in proc.stdout.splitlines() if x.startswith("JSON ")]
         if proc.returncode != 0 or not line:
@@ -134,7 +135,7 @@ def write(args, rows):
     lines = ["# Reverse-mode cost per method (issue 16)", "",
              f"`benchmarks/backward.py --res {args.res} --spp {args.spp} --map {args.map}`: the inverse-rendering "
              f"plane (16² map, {'the true map' if args.map == 'true' else 'a flat map'}, roughplastic α 0.2, one "
-             "sun, `prb` max_depth 2), llvm_ad_rgb, 2 shared cores. Times: medians of "
+             f"sun, `prb` max_depth 2), {args.variant}. Times: medians of "
              "warm runs; render+backward = a differentiable render and `dr.backward` of its MSE w.r.t. the "
              "texels. Memory: peak RSS of the primal phase, and the extra peak of the backward phase.", "",
              "| method | primal s | render+backward s | ×primal | ×built-in's backward | peak RSS MB | backward extra MB |",

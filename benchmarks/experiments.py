@@ -240,7 +240,6 @@ def exp_mis_pdf(b: Bench, n: int = 1 << 21, bins=(32, 64)) -> list:
 def exp_control(b: Bench, assets, root: Path) -> list:
     """relMSE of scene (c) with its wave normal map against constant normal maps: noise of
     the estimator (constant map) versus sub-pixel detail of the image (wave map)."""
-    from mfnormal.assets import encode_normalmap
     from mfnormal.metrics import rel_se
     W, H, spp, ref_passes = 192, 144, 16, 8
     rows = []
@@ -248,10 +247,7 @@ def exp_control(b: Bench, assets, root: Path) -> list:
                           ("constant 40° across", (40, 0))):
         a = dict(assets)
         if normal:
-            t, f = np.radians(normal[0]), np.radians(normal[1])
-            n = np.array([np.sin(t) * np.cos(f), np.sin(t) * np.sin(f), np.cos(t)], np.float32)
-            path = root / f"control_{normal[1]}.png"
-            mi.Bitmap(encode_normalmap(np.tile(n, (4, 4, 1)))).write(str(path))
+            path = bench.write_constant_normalmap(root / f"control_{normal[1]}.png", *normal)
             a["plane"] = dict(assets["plane"], normalmap=str(path))
         for nested in ("ggx_0.05", "roughplastic"):
             for method in ("builtin", "analytic", "nonseparable_specular", "nonseparable_same"):

@@ -19,7 +19,7 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-VARIANT = "llvm_ad_rgb"
+from variant import VARIANT  # noqa: E402  (MFNORMAL_VARIANT, tests/variant.py)
 mi.set_variant(VARIANT)
 mfnormal.register()
 

@@ -25,8 +25,9 @@ import pytest
 
 import mfnormal  # noqa: F401  (picks a working libLLVM before mitsuba loads)
 import mitsuba as mi
+from variant import VARIANT  # noqa: E402  (MFNORMAL_VARIANT, tests/variant.py)
 
-mi.set_variant("llvm_ad_rgb")
+mi.set_variant(VARIANT)
 mfnormal.register()
 
 from gltf_writer import Material, Primitive, png_bytes, write_glb  # noqa: E402
@@ -641,11 +642,11 @@ def test_scalar_variant_reads_the_vertex_tangents(tmp_path):
     path = write_glb(tmp_path / "quad.glb", [Primitive(QUAD_P, QUAD_N, QUAD_UV, QUAD_F, material=0)],
                      [Material(normal_png=png_bytes(normals))])
     images = {}
-    for variant in ("scalar_rgb", "llvm_ad_rgb"):
+    for variant in ("scalar_rgb", VARIANT):
         mi.set_variant(variant)
         mfnormal.register()
         scene = load_gltf(path, width=12, height=9)
         scene["sky"] = {"type": "constant"}
         images[variant] = render(scene, 64, seed=3)
     assert np.all(np.isfinite(images["scalar_rgb"]))
-    assert abs(images["scalar_rgb"].mean() / images["llvm_ad_rgb"].mean() - 1) < 0.05
+    assert abs(images["scalar_rgb"].mean() / images[VARIANT].mean() - 1) < 0.05

@@ -32,12 +32,13 @@ import mfnormal  # noqa: F401  (first: selects a working libLLVM)
 
 import drjit as dr
 import mitsuba as mi
+from variant import VARIANT  # noqa: E402  (MFNORMAL_VARIANT, tests/variant.py)
 import os
 
 import numpy as np
 import pytest
 
-mi.set_variant("llvm_ad_rgb")
+mi.set_variant(VARIANT)
 mfnormal.register()
 
 import gradients as G  # noqa: E402

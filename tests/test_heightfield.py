@@ -17,8 +17,9 @@ import pytest
 import mfnormal  # noqa: F401  (picks a working libLLVM before mitsuba loads)
 import drjit as dr
 import mitsuba as mi
+from variant import VARIANT  # noqa: E402  (MFNORMAL_VARIANT, tests/variant.py)
 
-mi.set_variant("llvm_ad_rgb")
+mi.set_variant(VARIANT)
 mfnormal.register()
 
 from mfnormal import heightfield as H  # noqa: E402

@@ -48,7 +48,7 @@ import pytest
 from cli_checks import assert_one_line_error  # noqa: E402
 from helpers import xml_plugin, xml_scene  # noqa: E402
 
-VARIANT = "llvm_ad_rgb"
+from variant import VARIANT  # noqa: E402  (MFNORMAL_VARIANT, tests/variant.py)
 mi.set_variant(VARIANT)
 mfnormal.register()
 

@@ -10,9 +10,10 @@ true-geometry target: validation/inverse_rendering.py.)
 import mfnormal  # noqa: F401  (first: selects a working libLLVM)
 
 import mitsuba as mi
+from variant import VARIANT  # noqa: E402  (MFNORMAL_VARIANT, tests/variant.py)
 import pytest
 
-mi.set_variant("llvm_ad_rgb")
+mi.set_variant(VARIANT)
 mfnormal.register()
 
 from mfnormal import inverse as I  # noqa: E402

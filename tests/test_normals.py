@@ -22,10 +22,11 @@ import mfnormal  # noqa: F401  (first: selects a working libLLVM)
 
 import drjit as dr
 import mitsuba as mi
+from variant import VARIANT  # noqa: E402  (MFNORMAL_VARIANT, tests/variant.py)
 import numpy as np
 import pytest
 
-mi.set_variant("llvm_ad_rgb")
+mi.set_variant(VARIANT)
 mfnormal.register()
 
 from helpers import WHITE, encode, np1, np3, p_two_sided, random_hemisphere, sph, vec3  # noqa: E402

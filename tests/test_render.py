@@ -11,8 +11,9 @@ import pytest
 
 import mfnormal  # noqa: F401  (picks a working libLLVM before mitsuba loads)
 import mitsuba as mi
+from variant import VARIANT  # noqa: E402  (MFNORMAL_VARIANT, tests/variant.py)
 
-mi.set_variant("llvm_ad_rgb")
+mi.set_variant(VARIANT)
 mfnormal.register()
 
 from helpers import bumps_normalmap, small_scene  # noqa: E402
@@ -159,7 +160,7 @@ def test_every_model_renders_in_scalar_rgb(model, tangent_facet):
     try:
         img = np.array(mi.render(mi.load_dict(furnace_scene(model, tangent_facet, 2, 6)), seed=1))
     finally:
-        mi.set_variant("llvm_ad_rgb")
+        mi.set_variant(VARIANT)
         mfnormal.register()
     assert np.all(np.isfinite(img)) and img.min() >= 0
     assert img.mean() > 0.3

@@ -22,10 +22,11 @@ import os
 
 import drjit as dr
 import mitsuba as mi
+from variant import VARIANT  # noqa: E402  (MFNORMAL_VARIANT, tests/variant.py)
 import numpy as np
 import pytest
 
-mi.set_variant("llvm_ad_rgb")
+mi.set_variant(VARIANT)
 mfnormal.register()
 
 from helpers import encode, sph  # noqa: E402

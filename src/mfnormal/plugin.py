@@ -59,6 +59,7 @@ Microfacet-based normal mapping (:monosp:`normalmap_microfacet`)
    - Random-walk models only: bounce cap of the walk (default 1024). Paths
      still on the microsurface after it are dropped; the energy this loses is
      measured by the test suite (below 1e-4 of the albedo for θ_p ≤ 80°).
+     (Exposed, a kernel input: a new value compiles no kernel.)
  * - rr_depth
    - |int|
    - Random-walk models only: Russian roulette from this many facet bounces on
@@ -66,6 +67,7 @@ Microfacet-based normal mapping (:monosp:`normalmap_microfacet`)
      min(1, its largest throughput channel) and divides its throughput by it:
      unbiased, and dark materials (roughplastic, coloured metals) no longer run
      long walks that carry little energy. White facets are never rouletted.
+     (Exposed, a kernel input.)
  * - mis_boost_max
    - |float|
    - Random-walk models only: cap of the variance-aware MIS boost (default 64).
@@ -74,7 +76,9 @@ Microfacet-based normal mapping (:monosp:`normalmap_microfacet`)
      sharpness (1 for Lambertian, 1/(4α²) for GGX) up to this cap, weighted by
      how likely such walks are from ω_i, so that light samples of those paths
      lose MIS weight to BSDF samples. 1 turns it off: ``pdf`` is then the plain
-     density approximation. MIS stays unbiased either way.
+     density approximation. MIS stays unbiased either way. (Exposed, a kernel
+     input.) Updates through ``mi.traverse`` are checked as at load: a value out
+     of range raises the same one-line error and the values before it stay.
  * - normalmap_convention
    - |string|
    - ``opengl`` (default, +Y up, what Mitsuba's ``normalmap`` assumes) or
@@ -229,6 +233,26 @@ def _checked_strength(values) -> list:
     return [min(v, STRENGTH_MAX) for v in values]
 
 
+WALK_KEYS = ("max_bounces", "rr_depth", "mis_boost_max")
+
+
+def _checked_walk_values(max_bounces, rr_depth, mis_boost_max) -> tuple:
+    """(max_bounces, rr_depth, mis_boost_max) as int, int, float, each in its range (else ValueError)."""
+    max_bounces, rr_depth, mis_boost_max = int(max_bounces), int(rr_depth), float(mis_boost_max)
+    if not (1 <= max_bounces <= INT32_MAX):
+        _fail(f"max_bounces must be between 1 and {INT32_MAX}, got {max_bounces}")
+    if not (0 <= rr_depth <= INT32_MAX):
+        _fail(f"rr_depth must be between 0 (0 turns Russian roulette off) and {INT32_MAX}, got {rr_depth}")
+    if not (1.0 <= mis_boost_max < float("inf")):
+        _fail(f"mis_boost_max must be a finite number >= 1 (1 turns the boost off), got {mis_boost_max}")
+    return max_bounces, rr_depth, mis_boost_max
+
+
+def _scalar(x):
+    """The value of a width-1 Dr.Jit array (or a Python number) as a Python number."""
+    return dr.slice(x, 0) if dr.is_array_v(x) else x
+
+
 class NormalMapMicrofacet:
     """The plugin's methods; :func:`bsdf_class` binds them to the active variant's ``mi.BSDF``."""
 
@@ -247,16 +271,13 @@ class NormalMapMicrofacet:
         if self.model in ("analytic", "faithful") and self.tangent_facet != "specular":
             _fail(f"tangent_facet 'same' needs model='separable' or 'nonseparable'; the {self.model} "
                   "model has no tangent facet of the nested material")
-        self.max_bounces = int(props.get("max_bounces", walk.MAX_BOUNCES))
-        if not (1 <= self.max_bounces <= INT32_MAX):
-            _fail(f"max_bounces must be between 1 and {INT32_MAX}, got {self.max_bounces}")
-        self.rr_depth = int(props.get("rr_depth", walk.RR_DEPTH))
-        if not (0 <= self.rr_depth <= INT32_MAX):
-            _fail(f"rr_depth must be between 0 (0 turns Russian roulette off) and {INT32_MAX}, "
-                  f"got {self.rr_depth}")
-        self.mis_boost_max = float(props.get("mis_boost_max", walk.MIS_BOOST_MAX))
-        if not (1.0 <= self.mis_boost_max < float("inf")):
-            _fail(f"mis_boost_max must be a finite number >= 1 (1 turns the boost off), got {self.mis_boost_max}")
+        self._walk_ok = _checked_walk_values(props.get("max_bounces", walk.MAX_BOUNCES),
+                                             props.get("rr_depth", walk.RR_DEPTH),
+                                             props.get("mis_boost_max", walk.MIS_BOOST_MAX))
+        # Kernel inputs, not constants: a new value (mi.traverse) runs the kernels already compiled.
+        self.max_bounces, self.rr_depth = mi.Int32(self._walk_ok[0]), mi.Int32(self._walk_ok[1])
+        self.mis_boost_max = mi.Float(self._walk_ok[2])
+        dr.make_opaque(self.max_bounces, self.rr_depth, self.mis_boost_max)
         convention = props.get("normalmap_convention", "opengl")
         if convention not in CONVENTIONS:
             _fail(f"unknown normalmap_convention '{convention}'; use 'opengl' or 'directx'")
@@ -272,9 +293,6 @@ class NormalMapMicrofacet:
             _fail(f"tangents must be '{MITSUBA_TANGENTS}' or a vertex attribute name such as "
                   f"'vertex_tangent', got '{tangents}'")
         self.tangent_attr = None if tangents == MITSUBA_TANGENTS else tangents
-        self.walk_params = None if self.model in ("analytic", "faithful") else walk.WalkParams(
-            separable=self.model == "separable", specular_tangent=self.tangent_facet == "specular",
-            max_bounces=self.max_bounces, rr_depth=self.rr_depth, mis_boost_max=self.mis_boost_max)
         self._flat_texels = self._has_flat_texels()
         self.faithful = (faithful.Model(self.nested, self._map_slopes()[0], COS_P_MIN)
                          if self.model == "faithful" else None)
@@ -340,8 +358,33 @@ class NormalMapMicrofacet:
         if self.heightmap is not None:
             callback.put("heightmap", self.heightmap, mi.ParamFlags.Differentiable)
         callback.put("strength", self.strength, mi.ParamFlags.Differentiable)
+        if self.model not in ("analytic", "faithful"):
+            for key in WALK_KEYS:
+                callback.put(key, getattr(self, key), mi.ParamFlags.NonDifferentiable)
+
+    @property
+    def walk_params(self):
+        """The random walk's :class:`walk.WalkParams` (None for the other models); its values are
+        this BSDF's opaque arrays (cast to the walk counter's type), read when a kernel is traced."""
+        if self.model in ("analytic", "faithful"):
+            return None
+        return walk.WalkParams(separable=self.model == "separable", specular_tangent=self.tangent_facet == "specular",
+                               max_bounces=mi.UInt32(self.max_bounces), rr_depth=mi.UInt32(self.rr_depth),
+                               mis_boost_max=self.mis_boost_max)
+
+    def _walk_values_changed(self):
+        """Check the walk parameters after a ``mi.traverse`` update: out of range, the update is refused
+        (ValueError, the values before it kept), else they stay kernel inputs (opaque)."""
+        try:
+            self._walk_ok = _checked_walk_values(*(_scalar(getattr(self, k)) for k in WALK_KEYS))
+        finally:
+            for key, value in zip(WALK_KEYS, self._walk_ok):
+                mi.set_property(getattr(self, key), type(getattr(self, key))(value))
+                dr.make_opaque(getattr(self, key))
 
     def parameters_changed(self, keys):
+        if any(k in WALK_KEYS for k in keys):
+            self._walk_values_changed()
         if "strength" in keys:
             # In place: a ParameterTree from mi.traverse keeps referring to this array.
             try:
@@ -600,7 +643,7 @@ class NormalMapMicrofacet:
 
     def to_string(self):
         return (f"NormalMapMicrofacet[model={self.model}, tangent_facet={self.tangent_facet}, "
-                f"rr_depth={self.rr_depth}, mis_boost_max={self.mis_boost_max}, strength={self.strength}, "
+                f"rr_depth={self._walk_ok[1]}, mis_boost_max={self._walk_ok[2]}, strength={self.strength}, "
                 f"convention={'directx' if self.directx else 'opengl'}, "
                 f"tangents={self.tangent_attr or MITSUBA_TANGENTS}, macro_normal={self.macro_normal},\n"
                 + (f"  heightmap={self.heightmap}, height_scale={self.height_scale},\n" if self.heightmap is not None

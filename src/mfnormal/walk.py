@@ -60,7 +60,12 @@ MIS_BOOST_MAX = 64.0
 
 @dataclass(frozen=True)
 class WalkParams:
-    """What a random-walk model is: the plugin builds one per BSDF."""
+    """What a random-walk model is: the plugin builds one per BSDF.
+
+    ``separable`` and ``specular_tangent`` choose the kernel's code. The other three are
+    read as values (Python numbers, or the plugin's opaque ``mi.UInt32`` / ``mi.Float``
+    of width 1, which kernels take as inputs: a new value, e.g. from ``mi.traverse``, runs
+    the kernels already compiled)."""
 
     separable: bool                      # reset H to [0, 1] at every vertex (the main paper's model)
     specular_tangent: bool               # the tangent facet is a mirror (Algorithm 3), else the nested BSDF
@@ -290,12 +295,12 @@ def mirror_fold(sp, w, params, seed, rp=None):
 
 
 def roulette(e, stays, depth, rr_depth, u):
-    """Russian roulette on the throughput after the bounce at ``depth`` (from ``rr_depth`` on):
+    """Russian roulette on the throughput after the bounce at ``depth`` (from ``rr_depth`` on, 0: never):
     continue with probability q = min(1, max channel of e) and divide e by q. Unbiased; it
     ends the long walks of dark materials that cost a packet most of its time. q is a
     detached number to the estimator, so e/q stays unbiased for e's derivative. (e, stays)."""
     q = dr.minimum(dr.max(e), 1.0)
-    play = stays & (depth + 1 >= rr_depth) & (q < 1.0)
+    play = stays & (rr_depth > 0) & (depth + 1 >= rr_depth) & (q < 1.0)
     survive = u < q
     e = dr.select(play & survive, e / dr.maximum(q, 1e-30), e)
     return e, stays & (negate(play) | survive)
@@ -328,8 +333,7 @@ def bounce(sp, w, params, seed, frame, s1, s2, d_in=None, rp=None):
         if w.ja is not None:
             _moved_interval(sp, w, stays, a, b, tau, k, d_new, d_new, w.on_p, 1.0)
     w.a, w.b = dr.detach(a_new), dr.detach(b_new)
-    if params.rr_depth > 0:
-        w.e, stays = roulette(w.e, stays, w.depth, params.rr_depth, uniform(seed, slot_roulette(w.depth)))
+    w.e, stays = roulette(w.e, stays, w.depth, params.rr_depth, uniform(seed, slot_roulette(w.depth)))
     w.d = dr.select(w.walking, d_new, w.d)
     w.depth = dr.select(w.walking, w.depth + 1, w.depth)
     w.escaped = w.escaped | leaves
@@ -403,7 +407,7 @@ def t_start_share(sp, params, wo, lp, active):
     # The mirror sends the ray along d_m = flip_t(−ω_i), toward p or out.
     d_m = ms.flip_t(-wi, sp.wt)
     tau, k = sp.crest_map(mi.Bool(False), d_m)
-    stay = (1.0 - lp) * (1.0 - ms.escape_fraction(0.0, b_t, tau)) * (1.0 if params.max_bounces > 1 else 0.0)
+    stay = (1.0 - lp) * (1.0 - ms.escape_fraction(0.0, b_t, tau)) * dr.select(params.max_bounces > 1, 1.0, 0.0)
     a, b = (mi.Float(0.0), mi.Float(1.0)) if params.separable else ms.land(0.0, b_t, tau, k)
     wo_m, r_lo, r_hi = mirror_leg(sp, wo, g_o_t)
     w2 = stay * ms.fraction_inside(a, b, 0.0, sp.G1_p(wo))
@@ -643,14 +647,14 @@ def mis_pdf(sp, params, wo, active):
     # 1 − cosθ_p as sin²θ_p/(1 + cosθ_p): never negative (a float32 unit ω_p can have z > 1)
     # and non-zero for tilts below float32's 1 − cos resolution (θ_p ≲ 3e-4).
     rest = sp.sin_p * sp.sin_p / (1.0 + sp.wp.z) * dr.maximum(wo.z, 0.0) * dr.inv_pi
-    if params.mis_boost_max > 1.0:
-        # The longer walks' share by the chance q2 that a walk has them: a cosine lobe of
-        # weight c·q2 instead of the plain density's 1 − cosθ_p, where c > 1.
-        c = stochastic_share_boost(sp, params.mis_boost_max, active)
-        q2 = lp * second_visit(sp, params, h_p, wi) + (1.0 - lp) * second_visit(sp, params, h_tp, wi_m)
-        pdf = explicit + stochastic * c + rest + (c - 1.0) * q2 * dr.maximum(wo.z, 0.0) * dr.inv_pi
-    else:
-        pdf = explicit + stochastic + rest
+    # The longer walks' share by the chance q2 that a walk has them: a cosine lobe of weight
+    # c·q2 instead of the plain density's 1 − cosθ_p, where c > 1 (a select, not a branch:
+    # mis_boost_max is a kernel input).
+    c = stochastic_share_boost(sp, params.mis_boost_max, active)
+    q2 = lp * second_visit(sp, params, h_p, wi) + (1.0 - lp) * second_visit(sp, params, h_tp, wi_m)
+    pdf = dr.select(params.mis_boost_max > 1.0,
+                    explicit + stochastic * c + rest + (c - 1.0) * q2 * dr.maximum(wo.z, 0.0) * dr.inv_pi,
+                    explicit + stochastic + rest)
     return dr.select(active & dr.isfinite(pdf), pdf, 0.0)
 
 
@@ -666,8 +670,8 @@ def stochastic_share_boost(sp, boost_max, active):
     applied as a boost of the BSDF technique's weight on the longer walks,
     proportional to the nested lobe's sharpness: π × the nested pdf of the
     mirror direction at normal incidence (1 for Lambertian, 1/(4α²) for GGX),
-    clamped to [1, boost_max] (mis_pdf skips the boost for boost_max = 1 and keeps
-    the density approximation). Deterministic per shading point, so MIS
+    clamped to [1, boost_max] (mis_pdf selects the density approximation for
+    boost_max = 1). Deterministic per shading point, so MIS
     stays unbiased; the low-order terms, whose ``eval`` is deterministic, keep
     their exact density.
     """

@@ -59,7 +59,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-VARIANT = "llvm_ad_rgb"
+from variant import VARIANT  # noqa: E402  (MFNORMAL_VARIANT, tests/variant.py)
 # Ray origins start this far above the crest (nothing lies above Z = 1).
 START_ABOVE = 1e-2
 # Distance by which a new ray starts off its facet (crest height 1; hit points are
