@@ -80,3 +80,21 @@ def test_surface_error_closed_forms():
     assert abs(I.surface_error(plane, I.flat_map(setup)) - 20.0) < 1e-3
     centre = I.surface_error(setup, H.encode_normals(I.true_normals(setup)))
     assert 1.0 < centre < I.surface_error(setup, I.flat_map(setup))
+
+
+def test_encode_unit_keeps_the_direction_at_unit_length():
+    """inverse.encode_unit (Setup.unit_texels): every texel decodes to a unit vector along its
+    old direction 2·rgb − 1; the zero vector becomes the flat normal; a unit map is unchanged
+    to float32 rounding."""
+    import numpy as np
+    rng = np.random.default_rng(5)
+    texels = rng.random((6, 6, 3)).astype(np.float32)
+    texels[0, 0] = 0.5
+    out = I.encode_unit(texels)
+    n_old, n_new = 2.0 * texels.astype(np.float64) - 1.0, 2.0 * out.astype(np.float64) - 1.0
+    assert np.abs(np.linalg.norm(n_new, axis=-1) - 1.0).max() < 1e-6
+    keep = np.linalg.norm(n_old, axis=-1) > 1e-3
+    cos = np.sum(n_old * n_new, axis=-1)[keep] / np.linalg.norm(n_old, axis=-1)[keep]
+    assert cos.min() > 1.0 - 1e-6
+    assert np.allclose(n_new[0, 0], [0.0, 0.0, 1.0])
+    assert np.abs(I.encode_unit(out) - out).max() < 1e-6

@@ -57,6 +57,7 @@ class Setup:
     iterations: int = 120
     lr: float = 0.02
     seed: int = 0                              # iteration k renders with seed + k
+    unit_texels: bool = False                  # after each step, rescale each texel to a unit normal
     material: dict = field(default_factory=lambda: dict(MATERIAL))
 
     def __post_init__(self):
@@ -133,6 +134,16 @@ def _decode(rgb):
     return n / np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-12)
 
 
+def encode_unit(texels):
+    """Texels rescaled to unit normals n·0.5 + 0.5 (n = normalize(2·rgb − 1); a zero vector
+    becomes the flat normal): a step then turns a texel's normal by at most about its size,
+    where a texel near rgb (0.5, 0.5, 0.5) could flip across the horizon in one step."""
+    n = 2.0 * np.asarray(texels, np.float64)[..., :3] - 1.0
+    length = np.linalg.norm(n, axis=-1, keepdims=True)
+    n = np.where(length > 1e-6, n / np.maximum(length, 1e-12), np.array([0.0, 0.0, 1.0]))
+    return (n * 0.5 + 0.5).astype(np.float32)
+
+
 def bilinear_normals(texels, x, y):
     """The map's normals at world points (x, y) the way the plane shades with them: the bitmap's
     bilinear filter on the stored rgb (repeat wrap; uv = (x, 1 − y), row 0 at y ≈ 1, texel
@@ -198,6 +209,8 @@ def optimise(setup, method, targets, iterations=None, log=None):
         loss_hist.append(total)
         opt.step()
         opt[key] = dr.clip(opt[key], 0.0, 1.0)
+        if setup.unit_texels:
+            opt[key] = mi.TensorXf(encode_unit(np.array(opt[key])))
         if it == 0:
             first_step = float(np.abs(np.array(opt[key]) - before).max())
         if log is not None and (it % 20 == 0 or it == iterations - 1):
