@@ -41,3 +41,61 @@ def test_analytic_moves_from_the_flat_start_and_improves(runs):
     assert a.first_step > 0.5 * SETUP["lr"]
     assert a.error[-1] < a.error[0] - 1.0
     assert a.loss[-1] < 0.5 * a.loss[0]
+
+
+def test_bilinear_normals_match_mitsubas_bitmap_filter():
+    """inverse.bilinear_normals (what surface_error integrates) against Mitsuba's own bilinear
+    bitmap at uv = (x, 1 − y), the plane's uv (heightfield.plane_mesh), at random points
+    inside and outside the unit square (repeat wrap): equal to float32 rounding."""
+    import drjit as dr
+    import numpy as np
+    from mfnormal import heightfield as H
+    rng = np.random.default_rng(3)
+    texels = rng.random((5, 7, 3)).astype(np.float32)
+    tex = mi.load_dict(H.bitmap_texture(texels))
+    x, y = rng.uniform(-1.0, 2.0, 4096), rng.uniform(-1.0, 2.0, 4096)
+    si = dr.zeros(mi.SurfaceInteraction3f, x.size)
+    si.uv = mi.Point2f(mi.Float(x), mi.Float(1.0 - y))
+    rgb = tex.eval(si)
+    ref = I._decode(np.stack([np.array(rgb.x), np.array(rgb.y), np.array(rgb.z)], -1))
+    assert np.abs(I.bilinear_normals(texels, x, y) - ref).max() < 2e-5
+
+
+def test_surface_error_closed_forms():
+    """surface_error: 0 for a map of a tilted plane's normal (bilinear interpolation of a
+    constant is exact), the tilt for the flat map, and the centre-sampled true map's own
+    error is > 0 (a 16² map cannot follow the bumps between its centres)."""
+    import numpy as np
+    from mfnormal import heightfield as H
+    setup = I.Setup()
+    tilt = np.radians(20.0)
+    n = np.array([np.sin(tilt), 0.0, np.cos(tilt)])
+
+    class Tilted:
+        def normal(self, x, y):
+            return np.broadcast_to(n, np.shape(x) + (3,))
+    plane = I.Setup()
+    plane.heightfield = Tilted()
+    const = np.broadcast_to(H.encode_normals(n), (16, 16, 3))
+    assert I.surface_error(plane, const) < 1e-3
+    assert abs(I.surface_error(plane, I.flat_map(setup)) - 20.0) < 1e-3
+    centre = I.surface_error(setup, H.encode_normals(I.true_normals(setup)))
+    assert 1.0 < centre < I.surface_error(setup, I.flat_map(setup))
+
+
+def test_encode_unit_keeps_the_direction_at_unit_length():
+    """inverse.encode_unit (Setup.unit_texels): every texel decodes to a unit vector along its
+    old direction 2·rgb − 1; the zero vector becomes the flat normal; a unit map is unchanged
+    to float32 rounding."""
+    import numpy as np
+    rng = np.random.default_rng(5)
+    texels = rng.random((6, 6, 3)).astype(np.float32)
+    texels[0, 0] = 0.5
+    out = I.encode_unit(texels)
+    n_old, n_new = 2.0 * texels.astype(np.float64) - 1.0, 2.0 * out.astype(np.float64) - 1.0
+    assert np.abs(np.linalg.norm(n_new, axis=-1) - 1.0).max() < 1e-6
+    keep = np.linalg.norm(n_old, axis=-1) > 1e-3
+    cos = np.sum(n_old * n_new, axis=-1)[keep] / np.linalg.norm(n_old, axis=-1)[keep]
+    assert cos.min() > 1.0 - 1e-6
+    assert np.allclose(n_new[0, 0], [0.0, 0.0, 1.0])
+    assert np.abs(I.encode_unit(out) - out).max() < 1e-6

@@ -56,6 +56,8 @@ class Setup:
     irradiance: float = 3.0
     iterations: int = 120
     lr: float = 0.02
+    seed: int = 0                              # iteration k renders with seed + k
+    unit_texels: bool = False                  # after each step, rescale each texel to a unit normal
     material: dict = field(default_factory=lambda: dict(MATERIAL))
 
     def __post_init__(self):
@@ -127,6 +129,50 @@ def texel_error(texels, normals):
     return float(np.degrees(np.arccos(cos)).mean())
 
 
+def _decode(rgb):
+    n = 2.0 * np.asarray(rgb, np.float64)[..., :3] - 1.0
+    return n / np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-12)
+
+
+def encode_unit(texels):
+    """Texels rescaled to unit normals n·0.5 + 0.5 (n = normalize(2·rgb − 1); a zero vector
+    becomes the flat normal): a step then turns a texel's normal by at most about its size,
+    where a texel near rgb (0.5, 0.5, 0.5) could flip across the horizon in one step."""
+    n = 2.0 * np.asarray(texels, np.float64)[..., :3] - 1.0
+    length = np.linalg.norm(n, axis=-1, keepdims=True)
+    n = np.where(length > 1e-6, n / np.maximum(length, 1e-12), np.array([0.0, 0.0, 1.0]))
+    return (n * 0.5 + 0.5).astype(np.float32)
+
+
+def bilinear_normals(texels, x, y):
+    """The map's normals at world points (x, y) the way the plane shades with them: the bitmap's
+    bilinear filter on the stored rgb (repeat wrap; uv = (x, 1 − y), row 0 at y ≈ 1, texel
+    centres at heightfield.texel_centres), then decoded and normalised."""
+    t = np.asarray(texels, np.float64)[..., :3]
+    rows, cols = t.shape[:2]
+    c, r = np.asarray(x) * cols - 0.5, (1.0 - np.asarray(y)) * rows - 0.5
+    c0, r0 = np.floor(c).astype(int), np.floor(r).astype(int)
+    wc, wr = (c - c0)[..., None], (r - r0)[..., None]
+
+    def at(i, j):
+        return t[i % rows, j % cols]
+    rgb = ((1 - wr) * ((1 - wc) * at(r0, c0) + wc * at(r0, c0 + 1))
+           + wr * ((1 - wc) * at(r0 + 1, c0) + wc * at(r0 + 1, c0 + 1)))
+    return _decode(rgb)
+
+
+def surface_error(setup, texels, per_texel: int = 16):
+    """Mean angle in degrees between the map as rendered (:func:`bilinear_normals`) and the true
+    surface normal, over ``per_texel``² points per texel (cell centres of a fine grid over the
+    map's unit square): the error over the whole surface, where :func:`texel_error` looks only
+    at the texel centres (which a bilinear map need not match to fit the surface best)."""
+    n = np.asarray(texels).shape[0] * per_texel
+    t = (np.arange(n) + 0.5) / n
+    x, y = np.meshgrid(t, 1.0 - t, indexing="xy")
+    cos = np.clip(np.sum(bilinear_normals(texels, x, y) * setup.heightfield.normal(x, y), axis=-1), -1.0, 1.0)
+    return float(np.degrees(np.arccos(cos)).mean())
+
+
 @dataclass
 class Result:
     method: str
@@ -156,13 +202,15 @@ def optimise(setup, method, targets, iterations=None, log=None):
         for p, scene, target in zip(params, scenes, targets):
             p[key] = opt[key]
             p.update()
-            img = mi.render(scene, p, spp=setup.spp, seed=it)
+            img = mi.render(scene, p, spp=setup.spp, seed=setup.seed + it)
             loss = dr.mean(dr.square(img - target), axis=None)
             dr.backward(loss)
             total += float(np.array(loss).ravel()[0])
         loss_hist.append(total)
         opt.step()
         opt[key] = dr.clip(opt[key], 0.0, 1.0)
+        if setup.unit_texels:
+            opt[key] = mi.TensorXf(encode_unit(np.array(opt[key])))
         if it == 0:
             first_step = float(np.abs(np.array(opt[key]) - before).max())
         if log is not None and (it % 20 == 0 or it == iterations - 1):
