@@ -333,9 +333,22 @@ class Texel:
         return out
 
 
-def _nested(sp, ctx, frame, wi, wo, active, want_value=True, want_pdf=True):
-    """(f·cos, pdf) of the nested BSDF with context ``ctx`` on the facet with ``frame``."""
-    si_f, wo_f, active = sp._facet_query(frame, wi, wo, active)
+def _gated(cond, fn, otherwise, gated=True):
+    """``fn()`` where ``cond``, ``otherwise`` elsewhere, for an ``fn`` that gives ``otherwise``
+    where ``cond`` is false (its nested calls masked by it): the same values as ``fn()``, but a
+    SIMD packet in which no lane needs ``fn`` skips it (a symbolic ``dr.if_stmt``: LLVM branches
+    per packet; derivatives flow through it). ``gated`` false: ``fn()`` as it is."""
+    if not gated:
+        return fn()
+    if not dr.is_jit_v(mi.Float):
+        return fn() if cond else otherwise
+    return dr.if_stmt((), cond, fn, lambda: otherwise)
+
+
+def _nested(sp, ctx, frame, wi, wo, active, want_value=True, want_pdf=True, si_f=None):
+    """(f·cos, pdf) of the nested BSDF with context ``ctx`` on the facet with ``frame``
+    (``si_f``: ``sp.facet_si(frame, wi)``, if the caller has it)."""
+    si_f, wo_f, active = sp._facet_query(frame, wi, wo, active, si_f)
     if want_value and want_pdf:
         v, p = sp.nested.eval_pdf(ctx, si_f, wo_f, active)
     elif want_value:
@@ -433,8 +446,14 @@ class Model:
             p_fill = mi.Float(0.0)
         return tx.vis - p_fill, p_fill, 1.0 - tx.vis
 
-    def eval_pdf(self, sp, tx, wo, active, want_value=True, want_pdf=True):
-        """(eval, pdf) in radiance mode: camera side ``tx.wi``, light side ``wo``."""
+    def eval_pdf(self, sp, tx, wo, active, want_value=True, want_pdf=True, gated=False):
+        """(eval, pdf) in radiance mode: camera side ``tx.wi``, light side ``wo``.
+
+        ``gated``: terms that no lane of a SIMD packet needs are skipped (:func:`_gated`, the
+        same values). Only for a call that ends its query (the sampler's): a symbolic branch
+        opens a new scope, and Dr.Jit shares no common subexpression across it, so a later
+        call at the same point (the path tracer's ``sample`` after its ``eval_pdf``) would
+        recompute the texel."""
         wi = tx.wi
         active = active & (wi.z > 0) & (wo.z > 0)
         full = mi.BSDFContext(RADIANCE)
@@ -444,21 +463,36 @@ class Model:
 
         # Lit directly past the neighbours.
         s_o = tx.seen(wo)
-        f_dir, p_dir = _nested(sp, full, sp.frame_p, wi, wo, on_texel & (s_o > 0), want_value, want_pdf)
+        si_p = sp.facet_si(sp.frame_p, wi)
+        f_dir, p_dir = _nested(sp, full, sp.frame_p, wi, wo, on_texel & (s_o > 0), want_value, want_pdf, si_p)
         value_t, pdf_t = f_dir * s_o, p_dir * s_o
         # Light the neighbours block, bounced toward ω_o: the glossy part in eval (the diffuse
-        # part is the fill), every lobe in the sampler's pdf.
-        for d, on_facet, share in tx.preimages(wo):
-            s_d = tx.seen(d)
-            blocked = on_texel & on_facet & (s_d < 1.0) & (share > 0)
-            if self.lobes.glossy and want_value:
-                f_b, _ = _nested(sp, glossy, sp.frame_p, wi, d, blocked, True, False)
-                value_t += f_b * (share * (1.0 - s_d))
-            if want_pdf:
-                _, p_b = _nested(sp, full, sp.frame_p, wi, d, blocked, False, True)
-                pdf_t += p_b * (share * (1.0 - s_d))
+        # part is the fill), every lobe in the sampler's pdf. A preimage below the macro plane
+        # is never seen past the neighbours (S = 0: ω_o is above it here). The retro-reflected
+        # pair (share w > 0) and the one below the plane are skipped by packets that need neither.
+        pre = tx.preimages(wo)
+
+        def bounced(ks, acc):
+            f_b, p_b = acc
+            for k in ks:
+                d, on_facet, share = pre[k]
+                s_d = s_o if k == 0 else mi.Float(0.0) if k == 1 else tx.seen(d)
+                blocked = on_texel & on_facet & (s_d < 1.0) & (share > 0)
+                if self.lobes.glossy and want_value:
+                    f, _ = _nested(sp, glossy, sp.frame_p, wi, d, blocked, True, False, si_p)
+                    f_b = f_b + f * (share * (1.0 - s_d))
+                if want_pdf:
+                    _, p = _nested(sp, full, sp.frame_p, wi, d, blocked, False, True, si_p)
+                    p_b = p_b + p * (share * (1.0 - s_d))
+            return f_b, p_b
+        acc = bounced((0,), (value_t, pdf_t))
+        for ks, cond in (((1,), pre[1][1] & (pre[1][2] > 0)), ((2, 3), pre[2][2] > 0)):
+            acc = _gated(on_texel & cond, lambda ks=ks, acc=acc: bounced(ks, acc), acc, gated)
+        value_t, pdf_t = acc
         # The neighbours, where the texel is hidden.
-        f_hid, p_hid = _nested(sp, full, macro_frame(), wi, wo, active & (tx.vis < 1.0), want_value, want_pdf)
+        f_hid, p_hid = _gated(active & (tx.vis < 1.0), lambda: _nested(
+            sp, full, macro_frame(), wi, wo, active & (tx.vis < 1.0), want_value, want_pdf),
+            (mi.Spectrum(0.0), mi.Float(0.0)), gated)
 
         if want_value:
             fill = self._fill(sp, tx, on_texel) * (wo.z * INV_PI)
@@ -518,7 +552,7 @@ class Model:
         dw = self._draw(sp, tx, sample1, sample2, active)
         bs, active = dw.bs, dw.active
         bs.wo = dr.select(dw.delta, bs.wo, dr.detach(bs.wo))
-        value, pdf = self.eval_pdf(sp, tx, bs.wo, active & negate(dw.delta))
+        value, pdf = self.eval_pdf(sp, tx, bs.wo, active & negate(dw.delta), gated=True)
         # Delta lobes (non-diffuse, so bounced ones are the eval's too): the path weight, the
         # branch probabilities cancelling against the eval's factors.
         w_delta = dw.w * dr.select(dw.on_tex, tx.vis / dr.maximum(dw.b_tex, 1e-30),
