@@ -466,6 +466,10 @@ class Model:
         on_texel = active & (tx.vis > 0)
         value, pdf = mi.Spectrum(0.0), mi.Float(0.0)
 
+        # The diffuse fill's lobe (before any branch, and masked independently of ω_o and of the
+        # caller's mask, so that the eval_pdf and sample of one path vertex share it; the lanes
+        # it adds are masked out below).
+        fill = self._fill(sp, tx, (wi.z > 0) & (tx.vis > 0)) if want_value else None
         # Lit directly past the neighbours.
         s_o = tx.seen(wo)
         si_p = sp.facet_si(sp.frame_p, wi)
@@ -500,8 +504,7 @@ class Model:
             (mi.Spectrum(0.0), mi.Float(0.0)), gated)
 
         if want_value:
-            fill = self._fill(sp, tx, on_texel) * (wo.z * INV_PI)
-            value = tx.vis * (value_t + fill) + (1.0 - tx.vis) * f_hid
+            value = tx.vis * (value_t + fill * (wo.z * INV_PI)) + (1.0 - tx.vis) * f_hid
             value = dr.select(active & dr.all(dr.isfinite(value)), dr.maximum(value, 0.0), 0.0)
         if want_pdf:
             b_tex, b_fill, b_hid = self._branches(tx)
