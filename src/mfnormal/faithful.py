@@ -63,7 +63,12 @@ def smith_lambda(w, sigma1, sigma2):
     spread = dr.sqrt(dr.fma(sigma1 * sigma1, w.x * w.x, sigma2 * sigma2 * w.y * w.y))
     a = dr.maximum(w.z, 0.0) / dr.maximum(math.sqrt(2.0) * spread, 1e-30)
     a = dr.maximum(a, 1e-7)
-    lam = 0.5 * (dr.exp(-a * a) / (a * SQRT_PI) - (1.0 - dr.erf(a)))
+    # Λ = e^(−a²)·(1/(2a√π) − erfcx(a)/2), erfcx(a) = e^(a²)erfc(a) ≈ P(1/(1 + p·a)) (Abramowitz &
+    # Stegun 7.1.26, as _erf_np): one exp and no erf.
+    t = dr.rcp(dr.fma(0.3275911, a, 1.0))
+    erfcx = t * dr.fma(t, dr.fma(t, dr.fma(t, dr.fma(t, 1.061405429, -1.453152027), 1.421413741),
+                             -0.284496736), 0.254829592)
+    lam = dr.exp(-a * a) * dr.fma(dr.rcp(a), 0.5 / SQRT_PI, -0.5 * erfcx)
     return dr.select(a < A_UNMASKED, dr.maximum(lam, 0.0), 0.0)
 
 
@@ -333,9 +338,22 @@ class Texel:
         return out
 
 
-def _nested(sp, ctx, frame, wi, wo, active, want_value=True, want_pdf=True):
-    """(f·cos, pdf) of the nested BSDF with context ``ctx`` on the facet with ``frame``."""
-    si_f, wo_f, active = sp._facet_query(frame, wi, wo, active)
+def _gated(cond, fn, otherwise, gated=True):
+    """``fn()`` where ``cond``, ``otherwise`` elsewhere, for an ``fn`` that gives ``otherwise``
+    where ``cond`` is false (its nested calls masked by it): the same values as ``fn()``, but a
+    SIMD packet in which no lane needs ``fn`` skips it (a symbolic ``dr.if_stmt``: LLVM branches
+    per packet; derivatives flow through it). ``gated`` false: ``fn()`` as it is."""
+    if not gated:
+        return fn()
+    if not dr.is_jit_v(mi.Float):
+        return fn() if cond else otherwise
+    return dr.if_stmt((), cond, fn, lambda: otherwise)
+
+
+def _nested(sp, ctx, frame, wi, wo, active, want_value=True, want_pdf=True, si_f=None):
+    """(f·cos, pdf) of the nested BSDF with context ``ctx`` on the facet with ``frame``
+    (``si_f``: ``sp.facet_si(frame, wi)``, if the caller has it)."""
+    si_f, wo_f, active = sp._facet_query(frame, wi, wo, active, si_f)
     if want_value and want_pdf:
         v, p = sp.nested.eval_pdf(ctx, si_f, wo_f, active)
     elif want_value:
@@ -433,8 +451,14 @@ class Model:
             p_fill = mi.Float(0.0)
         return tx.vis - p_fill, p_fill, 1.0 - tx.vis
 
-    def eval_pdf(self, sp, tx, wo, active, want_value=True, want_pdf=True):
-        """(eval, pdf) in radiance mode: camera side ``tx.wi``, light side ``wo``."""
+    def eval_pdf(self, sp, tx, wo, active, want_value=True, want_pdf=True, gated=False):
+        """(eval, pdf) in radiance mode: camera side ``tx.wi``, light side ``wo``.
+
+        ``gated``: terms that no lane of a SIMD packet needs are skipped (:func:`_gated`, the
+        same values). Only for a call that ends its query (the sampler's): a symbolic branch
+        opens a new scope, and Dr.Jit shares no common subexpression across it, so a later
+        call at the same point (the path tracer's ``sample`` after its ``eval_pdf``) would
+        recompute the texel."""
         wi = tx.wi
         active = active & (wi.z > 0) & (wo.z > 0)
         full = mi.BSDFContext(RADIANCE)
@@ -442,27 +466,45 @@ class Model:
         on_texel = active & (tx.vis > 0)
         value, pdf = mi.Spectrum(0.0), mi.Float(0.0)
 
+        # The diffuse fill's lobe (before any branch, and masked independently of ω_o and of the
+        # caller's mask, so that the eval_pdf and sample of one path vertex share it; the lanes
+        # it adds are masked out below).
+        fill = self._fill(sp, tx, (wi.z > 0) & (tx.vis > 0)) if want_value else None
         # Lit directly past the neighbours.
         s_o = tx.seen(wo)
-        f_dir, p_dir = _nested(sp, full, sp.frame_p, wi, wo, on_texel & (s_o > 0), want_value, want_pdf)
+        si_p = sp.facet_si(sp.frame_p, wi)
+        f_dir, p_dir = _nested(sp, full, sp.frame_p, wi, wo, on_texel & (s_o > 0), want_value, want_pdf, si_p)
         value_t, pdf_t = f_dir * s_o, p_dir * s_o
         # Light the neighbours block, bounced toward ω_o: the glossy part in eval (the diffuse
-        # part is the fill), every lobe in the sampler's pdf.
-        for d, on_facet, share in tx.preimages(wo):
-            s_d = tx.seen(d)
-            blocked = on_texel & on_facet & (s_d < 1.0) & (share > 0)
-            if self.lobes.glossy and want_value:
-                f_b, _ = _nested(sp, glossy, sp.frame_p, wi, d, blocked, True, False)
-                value_t += f_b * (share * (1.0 - s_d))
-            if want_pdf:
-                _, p_b = _nested(sp, full, sp.frame_p, wi, d, blocked, False, True)
-                pdf_t += p_b * (share * (1.0 - s_d))
+        # part is the fill), every lobe in the sampler's pdf. A preimage below the macro plane
+        # is never seen past the neighbours (S = 0: ω_o is above it here). The retro-reflected
+        # pair (share w > 0) and the one below the plane are skipped by packets that need neither.
+        pre = tx.preimages(wo)
+
+        def bounced(ks, acc):
+            f_b, p_b = acc
+            for k in ks:
+                d, on_facet, share = pre[k]
+                s_d = s_o if k == 0 else mi.Float(0.0) if k == 1 else tx.seen(d)
+                blocked = on_texel & on_facet & (s_d < 1.0) & (share > 0)
+                if self.lobes.glossy and want_value:
+                    f, _ = _nested(sp, glossy, sp.frame_p, wi, d, blocked, True, False, si_p)
+                    f_b = f_b + f * (share * (1.0 - s_d))
+                if want_pdf:
+                    _, p = _nested(sp, full, sp.frame_p, wi, d, blocked, False, True, si_p)
+                    p_b = p_b + p * (share * (1.0 - s_d))
+            return f_b, p_b
+        acc = bounced((0,), (value_t, pdf_t))
+        for ks, cond in (((1,), pre[1][1] & (pre[1][2] > 0)), ((2, 3), pre[2][2] > 0)):
+            acc = _gated(on_texel & cond, lambda ks=ks, acc=acc: bounced(ks, acc), acc, gated)
+        value_t, pdf_t = acc
         # The neighbours, where the texel is hidden.
-        f_hid, p_hid = _nested(sp, full, macro_frame(), wi, wo, active & (tx.vis < 1.0), want_value, want_pdf)
+        f_hid, p_hid = _gated(active & (tx.vis < 1.0), lambda: _nested(
+            sp, full, macro_frame(), wi, wo, active & (tx.vis < 1.0), want_value, want_pdf),
+            (mi.Spectrum(0.0), mi.Float(0.0)), gated)
 
         if want_value:
-            fill = self._fill(sp, tx, on_texel) * (wo.z * INV_PI)
-            value = tx.vis * (value_t + fill) + (1.0 - tx.vis) * f_hid
+            value = tx.vis * (value_t + fill * (wo.z * INV_PI)) + (1.0 - tx.vis) * f_hid
             value = dr.select(active & dr.all(dr.isfinite(value)), dr.maximum(value, 0.0), 0.0)
         if want_pdf:
             b_tex, b_fill, b_hid = self._branches(tx)
@@ -518,7 +560,7 @@ class Model:
         dw = self._draw(sp, tx, sample1, sample2, active)
         bs, active = dw.bs, dw.active
         bs.wo = dr.select(dw.delta, bs.wo, dr.detach(bs.wo))
-        value, pdf = self.eval_pdf(sp, tx, bs.wo, active & negate(dw.delta))
+        value, pdf = self.eval_pdf(sp, tx, bs.wo, active & negate(dw.delta), gated=True)
         # Delta lobes (non-diffuse, so bounced ones are the eval's too): the path weight, the
         # branch probabilities cancelling against the eval's factors.
         w_delta = dw.w * dr.select(dw.on_tex, tx.vis / dr.maximum(dw.b_tex, 1e-30),

@@ -161,14 +161,15 @@ class ShadingPoint:
         si_f.wi = frame.to_local(wi)
         return si_f
 
-    def _facet_query(self, frame, wi, wo, active):
-        """(si, wo, active) on the facet; active only where both directions are above it.
+    def _facet_query(self, frame, wi, wo, active, si_f=None):
+        """(si, wo, active) on the facet; active only where both directions are above it
+        (``si_f``: :meth:`facet_si` of ``frame`` and ``wi``, if the caller has it).
 
         A facet only reflects: no transmitted lobe, and some nested pdfs (e.g.
         llvm roughplastic's) are not zero below the facet.
         """
         wo_f = frame.to_local(wo)
-        si_f = self.facet_si(frame, wi)
+        si_f = self.facet_si(frame, wi) if si_f is None else si_f
         return si_f, wo_f, active & (wo_f.z > 0) & (si_f.wi.z > 0)
 
     def eval(self, frame, wi, wo, active):
