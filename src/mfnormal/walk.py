@@ -732,7 +732,7 @@ def mis_pdf(sp, params, wo, active):
     e_po = lp * _escape(sp, h_p, p, wo)                                                            # i→p→o
     e_pto = lp * (1.0 - _escape(sp, h_p, p, wo_m)) * _escape(sp, _land(sp, params, h_p, p, wo_m), t, wo)  # i→p→t→o
     e_tpo = (1.0 - lp) * _escape(sp, h_tp, p, wo)                                                  # i→t→p→o
-    stochastic, longer = 0.0, 0.0
+    stochastic = longer = 0.0
     if params.specular_tangent:
         e_tpto = ((1.0 - lp) * (1.0 - _escape(sp, h_tp, p, wo_m))
                   * _escape(sp, _land(sp, params, h_tp, p, wo_m), t, wo))                          # i→t→p→t→o
@@ -753,7 +753,9 @@ def mis_pdf(sp, params, wo, active):
         # weight c·q2 instead of the plain density's 1 − cosθ_p, where c > 1.
         c = stochastic_share_boost(sp, params.mis_boost_max, active)
         q2 = lp * second_visit(sp, params, h_p, wi) + (1.0 - lp) * second_visit(sp, params, h_tp, wi_m)
-        pdf = explicit + stochastic * c + rest + (c - 1.0) * (q2 * dr.maximum(wo.z, 0.0) * dr.inv_pi + longer)
+        pdf = explicit + stochastic * c + rest + (c - 1.0) * q2 * dr.maximum(wo.z, 0.0) * dr.inv_pi
+        if not params.specular_tangent:
+            pdf += (c - 1.0) * longer
     else:
         pdf = explicit + stochastic + rest
     return dr.select(active & dr.isfinite(pdf), pdf, 0.0)
