@@ -378,13 +378,18 @@ def mirror_leg(sp, wo, g_o_t):
     return wo_m, r_lo, dr.select(g_o_t > 0, r_lo + g_o_t * (1.0 - r_lo), r_lo)
 
 
-def add_nee(L, sp, params, to, on_p, w_in, h_a, h_b, scale, active):
+def add_nee(L, sp, params, to, on_p, w_in, h_a, h_b, scale, active, p_in=None):
     """L plus the NEE toward ω_o from a vertex on facet ``on_p`` lit from ``w_in``, at depths
     [h_a, h_b], times ``scale`` (Algorithms 2 and 3): f_m(w_in, ω_o)⟨ω_o, ω_m⟩·G₂/|H| with
-    G₂ = |H ∩ [0, G1(ω_o, m)]|; with a mirror t also f_p(w_in, ω'_o)⟨ω'_o, ω_p⟩·|H ∩ H_r|/|H|."""
+    G₂ = |H ∩ [0, G1(ω_o, m)]|; with a mirror t also f_p(w_in, ω'_o)⟨ω'_o, ω_p⟩·|H ∩ H_r|/|H|.
+    ``p_in``: the walk's ``Walker.p_in`` (a same-material t), for ``connected_nee``."""
     g_o = to.g_o_p if params.specular_tangent else dr.select(on_p, to.g_o_p, to.g_o_t)
     w2 = ms.fraction_inside(h_a, h_b, 0.0, g_o)
-    L += scale * sp.eval(vertex_frame(sp, params, on_p), w_in, to.wo, active & (w2 > 0)) * w2
+    frame = vertex_frame(sp, params, on_p)
+    if p_in is None:
+        L += scale * sp.eval(frame, w_in, to.wo, active & (w2 > 0)) * w2
+    else:
+        L += scale * connected_nee(sp, frame, w_in, to.wo, p_in, active & (w2 > 0)) * w2
     if params.specular_tangent:
         wr = dr.select(to.g_o_t > 0, ms.fraction_inside(h_a, h_b, to.r_lo, to.r_hi), 0.0)
         L += scale * sp.eval(sp.frame_p, w_in, to.wo_m, active & (wr > 0)) * wr
@@ -431,13 +436,24 @@ def connect(sp, params, w, to, seed, a, b, rp=None):
     return dr.select(ok, c, 0.0), ok
 
 
-def connection_weight(sp, w, to, frame, w_in, active):
-    """The balance-heuristic weight p_in/(p_in + p_o) of the NEE at a vertex the walk reached
-    by its own nested sample (density p_in), against ``connect``'s sample of the same
-    direction from ω_o (density p_o = the facet's nested pdf from ω_o toward w_in); 1 at
-    the first vertex and after a delta lobe (p_in = 0)."""
-    p_o = dr.detach(sp.pdf(frame, to.wo, w_in, active & (w.p_in > 0)))
-    return dr.select(w.p_in > 0, w.p_in / dr.maximum(w.p_in + p_o, 1e-30), 1.0)
+def connected_nee(sp, frame, w_in, wo, p_in, active):
+    """f_m(w_in, ω_o)⟨ω_o, ω_m⟩ at a vertex that the walk reached by its own nested sample
+    (density p_in > 0), times the balance-heuristic weight against ``connect``'s sample of
+    the same direction from ω_o (``connection_weight``). One nested call, eval_pdf from ω_o
+    toward w_in: its pdf is p_o, its value f_m(ω_o, w_in)⟨w_in, ω_m⟩, which reciprocity
+    turns into the NEE's (×⟨ω_o, ω_m⟩/⟨w_in, ω_m⟩). Where p_in = 0 (the first vertex, after a
+    delta lobe) the plain eval from w_in, weight 1."""
+    swap = p_in > 0
+    value, p_o = sp.eval_pdf(frame, dr.select(swap, wo, w_in), dr.select(swap, w_in, wo), active)
+    cos_in = dr.dot(w_in, frame.n)
+    f = dr.select(swap, value * (dr.dot(wo, frame.n) / dr.select(swap & (cos_in > 0), cos_in, 1.0)), value)
+    return f * connection_weight(p_in, dr.detach(p_o))
+
+
+def connection_weight(p_in, p_o):
+    """The balance-heuristic weight p_in/(p_in + p_o) of the walk's own sample (density p_in)
+    against ``connect``'s sample of the same direction from ω_o (density p_o); 1 where p_in = 0."""
+    return dr.select(p_in > 0, p_in / dr.maximum(p_in + p_o, 1e-30), 1.0)
 
 
 def t_start_share(sp, params, wo, lp, active):
@@ -561,12 +577,8 @@ def eval_walk(sp, params, wo, active):
             # NEE toward ω_o from this vertex; in the first iteration, the p start's share.
             a, b = attached_interval(at, w, rp)
             on = dr.select(at_start, active, w.walking)
-            scale = dr.select(at_start, mi.Spectrum(lp), w.e)
-            if not params.specular_tangent:
-                # A vertex the walk's sample reached shares its NEE with connect()'s sample.
-                scale *= connection_weight(at, w, to, vertex_frame(at, params, w.on_p), -d_in, on)
             nee = (at, params, to, w.on_p | at_start, dr.select(at_start, at.wi, -d_in), dr.select(at_start, 0.0, a),
-                   dr.select(at_start, b_p, b), scale, on)
+                   dr.select(at_start, b_p, b), dr.select(at_start, mi.Spectrum(lp), w.e), on, w.p_in)
             if not params.specular_tangent:
                 c_next, on_next = connect(at, params, w, to, seed, a, b, rp)
                 if rp is None:
@@ -680,27 +692,37 @@ def glossy_wall_terms(sp, params, wo, lp, active):
     e_tpo = (1.0 - lp) * _escape(sp, h, p, wo)                                      # i→t→p→o
     two = (sp.pdf(sp.frame_p, wi, wo_m, active & (e_pto > 0)) * e_pto
            + sp.pdf(sp.frame_p, wi_m, wo, active & (e_tpo > 0)) * e_tpo)
-    return two, third_vertex(sp, loose, h, p, wi, wo, lp, active) + third_vertex(sp, loose, h, t, wi, wo, 1.0 - lp, active)
+    return two, third_vertex(sp, loose, h, wo, lp, active)
 
 
-def third_vertex(sp, params, h, on_p, w_in, wo, share, active):
-    """The density toward wo of the walks on facet ``on_p`` (depths h, lit from w_in; ``share``
-    of them) whose first two nested samples take their lobes' centres (the mirror directions
-    about the facet and then about the other facet) and whose third vertex, on the first facet
-    again, leaves toward wo: share·P(reach it)·(escape toward wo)·its nested pdf. With a
-    same-material tangent facet these three-vertex walks (p → t → p, t → p → t) give narrow
-    lobes of their own, far from the two-vertex terms (the pdf was 50-100× below the walk's
-    density there at GGX α = 0.05, docs/model.md §5)."""
+def third_vertex(sp, params, h, wo, lp, active):
+    """The density toward wo of the walks whose first two nested samples take their lobes'
+    centres (the mirror directions about the first facet and then about the other) and whose
+    third vertex, on the first facet again, leaves toward wo: share·P(reach it)·(escape
+    toward wo)·its nested pdf. With a same-material tangent facet these three-vertex walks
+    (p → t → p, share λ_p; t → p → t, share λ_t) give narrow lobes of their own, far from the
+    two-vertex terms (the pdf was 50-100× below the walk's density there at GGX α = 0.05,
+    docs/model.md §5). Of the two starts the one with the larger weight gives the term (one
+    nested call; a deterministic choice, which MIS allows)."""
+    q_p, v_p = _third_vertex_reach(sp, params, h, mi.Bool(True), wo, lp)
+    q_t, v_t = _third_vertex_reach(sp, params, h, mi.Bool(False), wo, 1.0 - lp)
+    use_p = q_p >= q_t
+    q = dr.maximum(q_p, q_t)
+    return sp.pdf(select_frame(use_p, sp.frame_p, sp.frame_t), dr.select(use_p, v_p, v_t), wo, active & (q > 0)) * q
+
+
+def _third_vertex_reach(sp, params, h, on_p, wo, share):
+    """(share·P(reach the third vertex)·escape toward wo, the direction it is lit from) for a
+    walk from ω_i that starts on facet ``on_p`` at depths h (``third_vertex``)."""
     off = negate(on_p)
     frame = select_frame(on_p, sp.frame_p, sp.frame_t)
     n_other = dr.select(on_p, sp.wt, sp.wp)
-    d1 = 2.0 * dr.dot(w_in, frame.n) * frame.n - w_in
+    d1 = 2.0 * dr.dot(sp.wi, frame.n) * frame.n - sp.wi
     d2 = d1 - 2.0 * dr.dot(d1, n_other) * n_other
     h2 = _land(sp, params, h, on_p, d1)
     q = (share * (1.0 - _escape(sp, h, on_p, d1)) * (1.0 - _escape(sp, h2, off, d2))
          * _escape(sp, _land(sp, params, h2, off, d2), on_p, wo))
-    q = dr.select((dr.dot(d1, frame.n) > 0) & (dr.dot(d2, n_other) > 0), q, 0.0)
-    return sp.pdf(frame, -d2, wo, active & (q > 0)) * q
+    return dr.select((dr.dot(d1, frame.n) > 0) & (dr.dot(d2, n_other) > 0), q, 0.0), -d2
 
 
 def mis_pdf(sp, params, wo, active):
