@@ -421,9 +421,11 @@ def connect(sp, params, w, to, seed, a, b, rp=None):
     u = dr.detach(bs.wo)
     cos_u, p_n = dr.dot(u, frame_n.n), dr.detach(bs.pdf)
     ok = (on & negate(mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)) & (p_n > 0) & (cos_u > 0)
-          & dr.all(dr.isfinite(weight)))
-    f_m, p_m = sp.eval_pdf(frame_m, -w.d, -u, ok)
-    tau, k = sp.crest_map(on_p, -u)
+          & (dr.dot(u, frame_m.n) < 0) & dr.all(dr.isfinite(weight)))
+    # (Elsewhere a direction off the facet: the crest map's derivative is not finite there.)
+    d = dr.select(ok, -u, frame_m.n)
+    f_m, p_m = sp.eval_pdf(frame_m, -w.d, d, ok)
+    tau, k = sp.crest_map(on_p, d)
     a_n, b_n = (mi.Float(0.0), mi.Float(1.0)) if params.separable else ms.land(a, b, tau, k)
     g2 = (1.0 - ms.escape_fraction(a, b, tau)) * ms.fraction_inside(a_n, b_n, 0.0,
                                                                       dr.select(on_p, to.g_o_t, to.g_o_p))
@@ -591,8 +593,9 @@ def eval_walk(sp, params, wo, active):
                 c = add_nee(mi.Spectrum(0.0), *nee)
                 rp.add(c, on)
                 # The start's choice and the mirror's escape came before this NEE, which only
-                # the latter affects (the first NEE is the start's expectation).
-                rp.factor(p_start, at_start & active)
+                # the latter affects (the first NEE is the start's expectation); the
+                # connection from the start facet depends on the choice.
+                rp.factor(p_start, at_start & active, 0.0 if params.specular_tangent else dr.detach(c_next))
                 if p_fold is not None:
                     rp.factor(p_fold, folded, dr.select(at_start, 0.0, dr.detach(c)))
             bounce(at, w, params, seed, vertex_frame(at, params, w.on_p), *nested_numbers(seed, w.depth), d_in, rp)
