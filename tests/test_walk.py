@@ -581,10 +581,11 @@ def mis_pdf_cases():
                 pdf_d = run_eval(density, wi, wo_l, texel, len(texels), 0, what="pdf")
                 hist = np.bincount(cell_index(wo_l), minlength=N_COS * N_PHI) / live.sum()
                 mass = pdf_cell_masses(density, wi, texel, len(texels))
+                mass_pdf = pdf_cell_masses(bsdf, wi, texel, len(texels)).sum()
                 f32 = np.float32
                 case.update(wo_z=f32(wo_l[:, 2]), pdf=f32(pdf1), deterministic=np.array_equal(pdf1, pdf2),
                             bs_pdf=f32(bs_pdf[live]), density=f32(pdf_d),
-                            tv=0.5 * np.abs(hist - mass / mass.sum()).sum(), mass=mass.sum(),
+                            tv=0.5 * np.abs(hist - mass / mass.sum()).sum(), mass=mass.sum(), mass_pdf=mass_pdf,
                             tv_cos=0.5 * np.abs(hist - COSINE_CELL_MASS).sum())
     return out
 
@@ -631,8 +632,10 @@ def test_mis_boost_adds_the_longer_walks_cosine_lobe():
     with c computed here from Mitsuba's nested pdf (``mis_boost``: 1 for the diffuse, 2.78
     for the α = 0.3 BSDFs): with a mirror tangent facet pdf = density + (c − 1)·q2·cosθ_o/π
     with one q2 ∈ [0, 1] for every ω_o of a case (and pdf = density for c = 1); with a
-    same-material one, whose two-bounce terms take the factor c too,
-    density ≤ pdf ≤ c·density + (c − 1)·cosθ_o/π."""
+    same-material one, whose two-bounce terms take the factor c too and whose three-vertex
+    lobes (walk.third_vertex, at most one unit of pdf mass) take c − 1, density ≤ pdf
+    everywhere and ∫pdf ≤ c·∫density + 2(c − 1) (the cosine lobe's q2 ≤ 1 and the
+    three-vertex lobes' ≤ 1), and pdf = density for c = 1."""
     for (model, tangent_facet, nested, j), case in mis_cases():
         pdf, pdf_d, boost = f64(case["pdf"]), f64(case["density"]), case["boost"]
         cos_lobe = (boost - 1.0) * f64(case["wo_z"]) / np.pi
@@ -645,8 +648,12 @@ def test_mis_boost_adds_the_longer_walks_cosine_lobe():
                 assert np.allclose(pdf, pdf_d, rtol=1e-6, atol=0), (model, nested, j)
         else:
             assert np.all(pdf >= pdf_d * (1 - 2e-5)), f"{model}/{nested}/{j}: boosted pdf below the density"
-            assert np.all(pdf <= boost * pdf_d + cos_lobe + 1e-6), \
-                f"{model}/{nested}/{j}: boost above c·density + (c − 1)·cos/π"
+            if boost > 1.0:
+                # (Quadrature error of the masses: 1e-3 relative, far below the bound's slack.)
+                assert case["mass_pdf"] <= boost * case["mass"] + 2.0 * (boost - 1.0), \
+                    f"{model}/{nested}/{j}: ∫pdf {case['mass_pdf']:.3g} above c·∫density + 2(c − 1)"
+            else:
+                assert np.allclose(pdf, pdf_d, rtol=1e-6, atol=0), (model, nested, j)
 
 
 def test_mis_density_is_close_to_the_walks_exits():
@@ -1002,7 +1009,8 @@ def test_mis_boost_lowers_variance_and_stays_unbiased(model, tangent_facet):
     mis_boost_max = 1:
     - unbiased: both means agree within 5σ of their difference (σ from the per-query
       spread of the paired differences), i.e. the boosted pdf keeps MIS unbiased;
-    - lower variance where it matters: ≥ 5× lower in cases 1 and 3, where the first
+    - lower variance where it matters: ≥ 5× lower in cases 1 and 3 (≥ 2.5× with a
+      same-material tangent facet, see below), where the first
       nested sample's lobe centre crosses to the tangent facet (longer walks are
       common, and their eval is one random direction against a narrow lobe: light
       samples weighted by it are fireflies that the boost hands to BSDF samples);
@@ -1011,8 +1019,13 @@ def test_mis_boost_lowers_variance_and_stays_unbiased(model, tangent_facet):
       bit-identical; a constant boost of the longer walks' lobe (the first version)
       made case 4 1.9× worse, which this bound catches.
     Measured ratios per case (printed with -s): sep/specular 8.6, 1.0, 7.7, 1.0;
-    sep/same 9.7, 2.7, 8.3, 1.0; nonsep/specular 7.3, 1.0, 20.2, 1.0; nonsep/same
-    10.6, 4.7, 19.2, 1.0.
+    sep/same 4.0, 1.0, 3.1, 1.0; nonsep/specular 7.3, 1.0, 20.2, 1.0; nonsep/same
+    3.1, 1.8, 7.1, 1.0. Before issue 18 the `same` rows were 9.7, 2.7, 8.3, 1.0 and
+    10.6, 4.7, 19.2, 1.0 with about the same boosted variance in cases 1-3 (sep 9.43,
+    33.2, 20.9 then, 9.47, 32.9, 21.0 now; nonsep 2.14, 28.4, 15.4 then, 2.14, 28.0, 16.1
+    now): eval's connection (walk.connect) lowered the variance of the plain-MIS estimate
+    that the boost is compared with (sep 91 → 37.7 and 174 → 66.0 in cases 1 and 3;
+    nonsep 22.8 → 6.5 and 296 → 114), so the boost's margin over it is smaller there.
     """
     n_tex, boosted, plain = default_and_variant(BOOST_NESTED, BOOST_CASES, model, tangent_facet, mis_boost_max=1.0)
     ratios = []
@@ -1031,7 +1044,8 @@ def test_mis_boost_lowers_variance_and_stays_unbiased(model, tangent_facet):
               f"variance {y_on.var():.4g} vs {y_off.var():.4g} (ratio {ratio:.1f})")
         assert abs(z) < 5.0, f"boosted MIS changes the mean: z = {z:.2f}"
     ratios = np.array(ratios)
-    assert ratios[[0, 2]].min() >= 5.0 and ratios.min() >= 0.8, f"variance ratios {np.round(ratios, 2)}"
+    least = 5.0 if tangent_facet == "specular" else 2.5
+    assert ratios[[0, 2]].min() >= least and ratios.min() >= 0.8, f"variance ratios {np.round(ratios, 2)}"
 
 
 @pytest.mark.parametrize("value", [0.5, float("nan"), float("inf"), -3.0])

@@ -31,6 +31,7 @@ SLOT_FAITHFUL_RETRO = 1             # faithful sampler: a blocked sample skims o
 SLOT_START_FACET = 0xFFFFFFFF       # eval walk: the first facet (sample(): its own sample1)
 SLOT_START_HEIGHT = 0xFFFFFFFE      # naive estimator (validation): the first height
 SLOT_ROULETTE = 0x7F000000          # + depth: Russian roulette after the bounce at ``depth``
+SLOT_CONNECT = 0x60000000           # + 3·depth + k: eval walk's connection sample from ω_o (``slot_connect``)
 VERTEX_SLOTS = 4                    # per facet bounce: the escape, then the nested sample's three
 
 
@@ -42,6 +43,12 @@ def slot_escape(depth):
 def slot_nested(depth, k):
     """Number k (0: sample1, 1, 2: sample2) of the nested sample at facet bounce ``depth``."""
     return depth * VERTEX_SLOTS + (1 + k)
+
+
+def slot_connect(depth, k):
+    """Number k (0: sample1, 1, 2: sample2) of the eval walk's connection sample from ω_o
+    on the facet after the vertex at facet bounce ``depth`` (walk.connect)."""
+    return SLOT_CONNECT + depth * 3 + k
 
 
 def slot_roulette(depth):

@@ -15,7 +15,9 @@ every vertex, which forgets height correlation (§4.1).
   vertex (Algorithm 2; with a mirror tangent facet, Algorithm 3 and its H_r
   term), an unbiased estimate of f·⟨ω_o, ω_g⟩. Its first nested vertex is
   Rao-Blackwellised (§4.5): taken in expectation over the start facet (and the
-  mirror's escape), so the low-order part of ``eval`` is deterministic;
+  mirror's escape), so the low-order part of ``eval`` is deterministic; with a
+  same-material tangent facet each vertex also connects to the next facet by a
+  sample from ω_o, MIS-weighted against the walk's own (``connect``, §4.8);
 - ``mis_pdf``: a deterministic function for MIS (§5): the exact density of the
   low-order terms plus a cosine lobe for the rest, boosted by the nested lobe's
   sharpness where longer walks are likely (variance-aware MIS).
@@ -46,8 +48,8 @@ import mitsuba as mi
 
 from . import microsurface as ms
 from .microsurface import negate, replace_grad
-from .rng import (SALT_WALK_EVAL, SALT_WALK_SAMPLE, SLOT_START_FACET, choose, hash_floats, slot_escape,
-                  slot_nested, slot_roulette, uniform)
+from .rng import (SALT_WALK_EVAL, SALT_WALK_SAMPLE, SLOT_START_FACET, choose, hash_floats, slot_connect,
+                  slot_escape, slot_nested, slot_roulette, uniform)
 from .shading import broadcast, select_frame
 
 # Default cap of a walk's facet bounces; walks still on the microsurface after it are dropped.
@@ -89,6 +91,8 @@ class Walker:
     nondelta: mi.Bool       # sampled a non-delta lobe on the way
     ja: mi.Vector3f = None  # replayed non-separable walks: ∂a/∂ω_p and ∂b/∂ω_p (``Replay``)
     jb: mi.Vector3f = None
+    p_in: mi.Float = None   # eval walks with a same-material t: the nested pdf of the sample that
+                            # led here (0 at the start and after a delta lobe; ``connect``)
 
 
 # -- Derivatives: the replayed walk (docs/model.md §9) -------------------------------------
@@ -323,6 +327,8 @@ def bounce(sp, w, params, seed, frame, s1, s2, d_in=None, rp=None):
         f = sp.eval(frame, -d_in, d_new, ok & negate(delta))
         rp.factor(dr.select(delta, weight, f), ok)
     w.nondelta = w.nondelta | (w.walking & negate(delta))
+    if w.p_in is not None:
+        w.p_in = dr.select(w.walking, dr.select(ok & negate(delta), dr.detach(bs.pdf), 0.0), w.p_in)
     w.e = dr.select(w.walking, w.e * dr.detach(weight), w.e)
     a, b = attached_interval(sp, w, rp)
     leaves, stays, a_new, b_new, prob, (tau, k) = cross(sp, params, w.on_p, d_new, a, b, ok,
@@ -376,17 +382,84 @@ def mirror_leg(sp, wo, g_o_t):
     return wo_m, r_lo, dr.select(g_o_t > 0, r_lo + g_o_t * (1.0 - r_lo), r_lo)
 
 
-def add_nee(L, sp, params, to, on_p, w_in, h_a, h_b, scale, active):
+def add_nee(L, sp, params, to, on_p, w_in, h_a, h_b, scale, active, p_in=None):
     """L plus the NEE toward ω_o from a vertex on facet ``on_p`` lit from ``w_in``, at depths
     [h_a, h_b], times ``scale`` (Algorithms 2 and 3): f_m(w_in, ω_o)⟨ω_o, ω_m⟩·G₂/|H| with
-    G₂ = |H ∩ [0, G1(ω_o, m)]|; with a mirror t also f_p(w_in, ω'_o)⟨ω'_o, ω_p⟩·|H ∩ H_r|/|H|."""
+    G₂ = |H ∩ [0, G1(ω_o, m)]|; with a mirror t also f_p(w_in, ω'_o)⟨ω'_o, ω_p⟩·|H ∩ H_r|/|H|.
+    ``p_in``: the walk's ``Walker.p_in`` (a same-material t), for ``connected_nee``."""
     g_o = to.g_o_p if params.specular_tangent else dr.select(on_p, to.g_o_p, to.g_o_t)
     w2 = ms.fraction_inside(h_a, h_b, 0.0, g_o)
-    L += scale * sp.eval(vertex_frame(sp, params, on_p), w_in, to.wo, active & (w2 > 0)) * w2
+    frame = vertex_frame(sp, params, on_p)
+    if p_in is None:
+        L += scale * sp.eval(frame, w_in, to.wo, active & (w2 > 0)) * w2
+    else:
+        L += scale * connected_nee(sp, frame, w_in, to.wo, p_in, active & (w2 > 0)) * w2
     if params.specular_tangent:
         wr = dr.select(to.g_o_t > 0, ms.fraction_inside(h_a, h_b, to.r_lo, to.r_hi), 0.0)
         L += scale * sp.eval(sp.frame_p, w_in, to.wo_m, active & (wr > 0)) * wr
     return L
+
+
+def connect(sp, params, w, to, seed, a, b, rp=None):
+    """The eval walk's MIS connection from the walker's vertex to the other facet (a
+    same-material tangent facet, docs/model.md §4.8): the next vertex's NEE term
+
+        e·∫ f_m(w_in, d)⟨d, ω_m⟩·(1 − escape(d))·G₂'(d)·f_m'(−d, ω_o)⟨ω_o, ω_m'⟩ dd
+
+    estimated from a direction sampled at the other facet m' lit from ω_o (u ~ f_m'(ω_o, ·),
+    d = −u; f_m'(−d, ω_o) = f_m'(ω_o, u) by the nested BSDF's reciprocity), weighted by the
+    balance heuristic against the walk's own sample d ~ f_m(w_in, ·), whose NEE at the next
+    vertex takes the complementary weight (``connection_weight``). Where both lobes are narrow
+    the walk's sample rarely meets the next lobe's peak toward ω_o; this sample starts there.
+    The escape and the landed depths [a', b'] are taken in expectation. Only where the walk
+    can have a next vertex (``max_bounces``); delta samples are left to the walk.
+
+    Returns (the contribution, times the walker's throughput; the lanes it is defined on).
+    Replay: f_m' is the attached nested eval at the detached direction, the pdfs detached."""
+    on_p = w.on_p
+    frame_m = select_frame(on_p, sp.frame_p, sp.frame_t)
+    frame_n = select_frame(on_p, sp.frame_t, sp.frame_p)
+    on = w.walking & (w.depth + 1 < params.max_bounces)
+    s2 = mi.Point2f(uniform(seed, slot_connect(w.depth, 1)), uniform(seed, slot_connect(w.depth, 2)))
+    bs, weight = sp.sample(frame_n, to.wo, uniform(seed, slot_connect(w.depth, 0)), s2, on)
+    u = dr.detach(bs.wo)
+    cos_u, p_n = dr.dot(u, frame_n.n), dr.detach(bs.pdf)
+    ok = (on & negate(mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)) & (p_n > 0) & (cos_u > 0)
+          & (dr.dot(u, frame_m.n) < 0) & dr.all(dr.isfinite(weight)))
+    # (Elsewhere a direction off the facet: the crest map's derivative is not finite there.)
+    d = dr.select(ok, -u, frame_m.n)
+    f_m, p_m = sp.eval_pdf(frame_m, -w.d, d, ok)
+    tau, k = sp.crest_map(on_p, d)
+    a_n, b_n = (mi.Float(0.0), mi.Float(1.0)) if params.separable else ms.land(a, b, tau, k)
+    g2 = (1.0 - ms.escape_fraction(a, b, tau)) * ms.fraction_inside(a_n, b_n, 0.0,
+                                                                      dr.select(on_p, to.g_o_t, to.g_o_p))
+    ok &= g2 > 0
+    if rp is None:
+        f_n = weight * (p_n * dr.dot(to.wo, frame_n.n) / dr.select(ok, cos_u, 1.0))
+    else:
+        f_n = sp.eval(frame_n, u, to.wo, ok)
+    c = w.e * f_m * g2 * f_n / dr.select(ok, dr.detach(p_m) + p_n, 1.0)
+    return dr.select(ok, c, 0.0), ok
+
+
+def connected_nee(sp, frame, w_in, wo, p_in, active):
+    """f_m(w_in, ω_o)⟨ω_o, ω_m⟩ at a vertex that the walk reached by its own nested sample
+    (density p_in > 0), times the balance-heuristic weight against ``connect``'s sample of
+    the same direction from ω_o (``connection_weight``). One nested call, eval_pdf from ω_o
+    toward w_in: its pdf is p_o, its value f_m(ω_o, w_in)⟨w_in, ω_m⟩, which reciprocity
+    turns into the NEE's (×⟨ω_o, ω_m⟩/⟨w_in, ω_m⟩). Where p_in = 0 (the first vertex, after a
+    delta lobe) the plain eval from w_in, weight 1."""
+    swap = p_in > 0
+    value, p_o = sp.eval_pdf(frame, dr.select(swap, wo, w_in), dr.select(swap, w_in, wo), active)
+    cos_in = dr.dot(w_in, frame.n)
+    f = dr.select(swap, value * (dr.dot(wo, frame.n) / dr.select(swap & (cos_in > 0), cos_in, 1.0)), value)
+    return f * connection_weight(p_in, dr.detach(p_o))
+
+
+def connection_weight(p_in, p_o):
+    """The balance-heuristic weight p_in/(p_in + p_o) of the walk's own sample (density p_in)
+    against ``connect``'s sample of the same direction from ω_o (density p_o); 1 where p_in = 0."""
+    return dr.select(p_in > 0, p_in / dr.maximum(p_in + p_o, 1e-30), 1.0)
 
 
 def t_start_share(sp, params, wo, lp, active):
@@ -495,6 +568,8 @@ def eval_walk(sp, params, wo, active):
 
     def run(sp, rp):
         walker, p_start, lp, _ = _first_vertex(sp, params, uniform(seed, SLOT_START_FACET), active, rp is not None)
+        if not params.specular_tangent:
+            walker.p_in = dr.zeros(mi.Float, dr.width(walker.a))
         to = NeeTarget.toward(sp, params, wo)
         b_p = first_interval(sp, params, True)[1]
 
@@ -509,15 +584,22 @@ def eval_walk(sp, params, wo, active):
             a, b = attached_interval(at, w, rp)
             on = dr.select(at_start, active, w.walking)
             nee = (at, params, to, w.on_p | at_start, dr.select(at_start, at.wi, -d_in), dr.select(at_start, 0.0, a),
-                   dr.select(at_start, b_p, b), dr.select(at_start, mi.Spectrum(lp), w.e), on)
+                   dr.select(at_start, b_p, b), dr.select(at_start, mi.Spectrum(lp), w.e), on, w.p_in)
+            if not params.specular_tangent:
+                c_next, on_next = connect(at, params, w, to, seed, a, b, rp)
+                if rp is None:
+                    L += c_next
+                else:
+                    rp.add(c_next, on_next)
             if rp is None:
                 L = add_nee(L, *nee)
             else:
                 c = add_nee(mi.Spectrum(0.0), *nee)
                 rp.add(c, on)
                 # The start's choice and the mirror's escape came before this NEE, which only
-                # the latter affects (the first NEE is the start's expectation).
-                rp.factor(p_start, at_start & active)
+                # the latter affects (the first NEE is the start's expectation); the
+                # connection from the start facet depends on the choice.
+                rp.factor(p_start, at_start & active, 0.0 if params.specular_tangent else dr.detach(c_next))
                 if p_fold is not None:
                     rp.factor(p_fold, folded, dr.select(at_start, 0.0, dr.detach(c)))
             bounce(at, w, params, seed, vertex_frame(at, params, w.on_p), *nested_numbers(seed, w.depth), d_in, rp)
@@ -597,6 +679,59 @@ def second_visit(sp, params, h, w_in):
     return dr.select(dr.dot(d1, sp.wp) > 0, q, 0.0)
 
 
+def glossy_wall_terms(sp, params, wo, lp, active):
+    """The MIS pdf's terms for the walks that ``eval`` estimates stochastically with a
+    same-material tangent facet (they take the boost, docs/model.md §5): the two-vertex
+    walks i→p→t→o and i→t→p→o with the t bounce taken as a mirror (the centre of a glossy
+    wall's lobe; without them BSDF samples reflected off a glossy wall got almost no MIS
+    weight: this pdf was 7-14× below the walk's density at α = 0.05), and the three-vertex
+    walks (``third_vertex``), which the plain density leaves to its cosine rest. Their reach
+    and escape probabilities are the separable model's, for both models: the non-separable
+    model's depth intervals make them exactly zero at some lobe centres whose neighbourhood
+    the glossy walks still reach (the pdf was 33× below the walk's density there).
+    Returns (the two-vertex terms, the three-vertex terms)."""
+    loose = replace(params, separable=True)
+    p, t = mi.Bool(True), mi.Bool(False)
+    wi = sp.wi
+    wo_m, wi_m = sp.flip_t(wo), sp.flip_t(wi)
+    h = first_interval(sp, loose, p)
+    e_pto = lp * (1.0 - _escape(sp, h, p, wo_m)) * _escape(sp, h, t, wo)           # i→p→t→o
+    e_tpo = (1.0 - lp) * _escape(sp, h, p, wo)                                      # i→t→p→o
+    two = (sp.pdf(sp.frame_p, wi, wo_m, active & (e_pto > 0)) * e_pto
+           + sp.pdf(sp.frame_p, wi_m, wo, active & (e_tpo > 0)) * e_tpo)
+    return two, third_vertex(sp, loose, h, wo, lp, active)
+
+
+def third_vertex(sp, params, h, wo, lp, active):
+    """The density toward wo of the walks whose first two nested samples take their lobes'
+    centres (the mirror directions about the first facet and then about the other) and whose
+    third vertex, on the first facet again, leaves toward wo: share·P(reach it)·(escape
+    toward wo)·its nested pdf. With a same-material tangent facet these three-vertex walks
+    (p → t → p, share λ_p; t → p → t, share λ_t) give narrow lobes of their own, far from the
+    two-vertex terms (the pdf was 50-100× below the walk's density there at GGX α = 0.05,
+    docs/model.md §5). Of the two starts the one with the larger weight gives the term (one
+    nested call; a deterministic choice, which MIS allows)."""
+    q_p, v_p = _third_vertex_reach(sp, params, h, mi.Bool(True), wo, lp)
+    q_t, v_t = _third_vertex_reach(sp, params, h, mi.Bool(False), wo, 1.0 - lp)
+    use_p = q_p >= q_t
+    q = dr.maximum(q_p, q_t)
+    return sp.pdf(select_frame(use_p, sp.frame_p, sp.frame_t), dr.select(use_p, v_p, v_t), wo, active & (q > 0)) * q
+
+
+def _third_vertex_reach(sp, params, h, on_p, wo, share):
+    """(share·P(reach the third vertex)·escape toward wo, the direction it is lit from) for a
+    walk from ω_i that starts on facet ``on_p`` at depths h (``third_vertex``)."""
+    off = negate(on_p)
+    frame = select_frame(on_p, sp.frame_p, sp.frame_t)
+    n_other = dr.select(on_p, sp.wt, sp.wp)
+    d1 = 2.0 * dr.dot(sp.wi, frame.n) * frame.n - sp.wi
+    d2 = d1 - 2.0 * dr.dot(d1, n_other) * n_other
+    h2 = _land(sp, params, h, on_p, d1)
+    q = (share * (1.0 - _escape(sp, h, on_p, d1)) * (1.0 - _escape(sp, h2, off, d2))
+         * _escape(sp, _land(sp, params, h2, off, d2), on_p, wo))
+    return dr.select((dr.dot(d1, frame.n) > 0) & (dr.dot(d2, n_other) > 0), q, 0.0), -d2
+
+
 def mis_pdf(sp, params, wo, active):
     """Deterministic MIS pdf (docs/model.md §5): a density approximation, variance-aware boosted.
 
@@ -626,7 +761,7 @@ def mis_pdf(sp, params, wo, active):
     e_po = lp * _escape(sp, h_p, p, wo)                                                            # i→p→o
     e_pto = lp * (1.0 - _escape(sp, h_p, p, wo_m)) * _escape(sp, _land(sp, params, h_p, p, wo_m), t, wo)  # i→p→t→o
     e_tpo = (1.0 - lp) * _escape(sp, h_tp, p, wo)                                                  # i→t→p→o
-    stochastic = 0.0
+    stochastic = longer = 0.0
     if params.specular_tangent:
         e_tpto = ((1.0 - lp) * (1.0 - _escape(sp, h_tp, p, wo_m))
                   * _escape(sp, _land(sp, params, h_tp, p, wo_m), t, wo))                          # i→t→p→t→o
@@ -638,23 +773,20 @@ def mis_pdf(sp, params, wo, active):
         e_to = (1.0 - lp) * _escape(sp, first_interval(sp, params, t), t, wo)                     # i→t→o
         explicit = (sp.pdf(sp.frame_p, wi, wo, active & (e_po > 0)) * e_po
                     + sp.pdf(sp.frame_t, wi, wo, active & (e_to > 0)) * e_to)
-        # The two-bounce paths with the t bounce taken as a mirror (the centre of a glossy
-        # tangent facet's lobe): without them BSDF samples reflected off a glossy wall got
-        # almost no MIS weight (this pdf was 7-14× below the walk's density at α = 0.05).
-        # eval estimates them stochastically (one glossy t sample): they take the boost.
-        stochastic = (sp.pdf(sp.frame_p, wi, wo_m, active & (e_pto > 0)) * e_pto
-                      + sp.pdf(sp.frame_p, wi_m, wo, active & (e_tpo > 0)) * e_tpo)
+        stochastic, longer = glossy_wall_terms(sp, params, wo, lp, active)
     # 1 − cosθ_p as sin²θ_p/(1 + cosθ_p): never negative (a float32 unit ω_p can have z > 1)
     # and non-zero for tilts below float32's 1 − cos resolution (θ_p ≲ 3e-4).
     rest = sp.sin_p * sp.sin_p / (1.0 + sp.wp.z) * dr.maximum(wo.z, 0.0) * dr.inv_pi
     # The longer walks' share by the chance q2 that a walk has them: a cosine lobe of weight
-    # c·q2 instead of the plain density's 1 − cosθ_p, where c > 1 (a select, not a branch:
-    # mis_boost_max is a kernel input).
+    # c·q2 instead of the plain density's 1 − cosθ_p, where c > 1, and with a same-material
+    # tangent facet the three-vertex lobes (a select, not a branch: mis_boost_max is a
+    # kernel input).
     c = stochastic_share_boost(sp, params.mis_boost_max, active)
     q2 = lp * second_visit(sp, params, h_p, wi) + (1.0 - lp) * second_visit(sp, params, h_tp, wi_m)
-    pdf = dr.select(params.mis_boost_max > 1.0,
-                    explicit + stochastic * c + rest + (c - 1.0) * q2 * dr.maximum(wo.z, 0.0) * dr.inv_pi,
-                    explicit + stochastic + rest)
+    boosted = explicit + stochastic * c + rest + (c - 1.0) * q2 * dr.maximum(wo.z, 0.0) * dr.inv_pi
+    if not params.specular_tangent:
+        boosted += (c - 1.0) * longer
+    pdf = dr.select(params.mis_boost_max > 1.0, boosted, explicit + stochastic + rest)
     return dr.select(active & dr.isfinite(pdf), pdf, 0.0)
 
 
