@@ -466,7 +466,7 @@ class NormalMapMicrofacet:
         if "data" in params.keys():
             shape = params["data"].shape
             res = min(2 * res, 2 * max(shape[0], shape[1]))
-        scale = self.height_scale * float(dr.slice(self.strength, 0) if dr.is_jit_v(mi.Float) else self.strength)
+        scale = self.height_scale * float(_scalar(self.strength))
         return faithful.principal_slopes(normals.height_map_normals(self.heightmap, scale, res))
 
     def _check_heightmap(self):

@@ -164,9 +164,10 @@ def check_xml_scene(path, params: dict, limits: Limits = DEFAULT_LIMITS) -> None
 
     Files that do not parse, and images that are missing or of another format, are left
     to Mitsuba's own error."""
-    seen, pixels = set(), [0]
+    seen, pixels = set(), 0
 
     def visit(file: Path, depth: int, values: dict):
+        nonlocal pixels
         key = str(file.resolve()) if file.exists() else str(file)
         if depth > 16 or key in seen:
             return
@@ -185,7 +186,7 @@ def check_xml_scene(path, params: dict, limits: Limits = DEFAULT_LIMITS) -> None
                 for prop in el.findall("string"):
                     if prop.get("name") == "filename" and prop.get("value") is not None:
                         image = file.parent / substitute(prop.get("value"), values)
-                        pixels[0] += _check_xml_image(image, file, limits, pixels[0])
+                        pixels += _check_xml_image(image, file, limits, pixels)
 
     visit(Path(path), 0, dict(params))
 
