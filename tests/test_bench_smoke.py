@@ -42,6 +42,19 @@ def test_quick_benchmark_writes_json_with_every_method_and_metric(quick_run):
     assert {s["status"] for s in results["summary"]} <= {"PASS", "FAIL", "n/a"}
 
 
+def test_quick_benchmark_scores_noise_without_the_sun_disc_on_every_scene(quick_run):
+    """Issue 18's scoring: relMSE is scored where the methods render the same content, the sky
+    without its sun disc, on every scene, the constant-map control included (under the full sky
+    its tangent facets add sun glints the built-in lacks); the full-sky ratio is reported beside it."""
+    results = json.loads((quick_run / "results.json").read_text())
+    assert {row["scene"] for row in results["noise"]} == {"plane", "control"}
+    for row in results["noise"]:
+        assert row["scored_on"] == "sunless", row["scene"]
+        assert row["scored_ratio"] == row["sunless_relmse_ratio"]
+        assert row["sunless_relmse"] != row["relmse"], (row["scene"], row["method"])
+        assert row["relmse_ratio"] > 0 and row["sunless_relmse_ratio"] > 0
+
+
 def test_quick_benchmark_writes_markdown_table_with_every_method(quick_run):
     text = (quick_run / "RESULTS.md").read_text()
     assert "## Targets" in text and "benchmarks/run.py --quick" in text
