@@ -108,10 +108,10 @@ def test_strength_change_rebuilds_the_masking():
 # -- A few steep texels (docs/faithful.md §5) ------------------------------------------------------
 
 
-def _bumps_row():
-    """The 16² map of inverse rendering's bumps (35° max tilt) as a 1×256 row of unit normals."""
+def _bumps_row(max_tilt=35.0):
+    """The 16² map of bumps of ``max_tilt`` (inverse rendering's: 35°) as a 1×256 row of unit normals."""
     from mfnormal import heightfield as H
-    return H.texel_normals(H.bumps(periods=2, max_tilt=35.0), 16).reshape(-1, 3)
+    return H.texel_normals(H.bumps(periods=2, max_tilt=max_tilt), 16).reshape(-1, 3)
 
 
 def _plain_slopes(normals):
@@ -159,8 +159,8 @@ def test_one_texel_at_the_clamp_does_not_make_the_map_rough(monkeypatch):
 
 def test_one_texel_at_the_clamp_leaves_the_other_texels_shading():
     """The other 255 texels of that map shade as without the outlier: eval (roughplastic, ω_i 60°,
-    ω_o 50°) differs by at most 1 % of the clean value (measured 0.15 %; with the plain rms, σ1 3.1, 36 %
-    )."""
+    ω_o 50°) differs by at most 1 % of the clean value (measured 0.15 %; with the plain rms, σ1 3.1:
+    36 %)."""
     nested = {"type": "roughplastic", "alpha": 0.2, "diffuse_reflectance": {"type": "rgb", "value": [0.6] * 3}}
     clean = _bumps_row()
     steep = clean.copy()
@@ -175,11 +175,13 @@ def test_one_texel_at_the_clamp_leaves_the_other_texels_shading():
     assert rel.max() < 0.01
 
 
-def test_winsorised_slopes_carry_their_derivatives():
-    """attached_slopes on the map with one clamped texel: the values of principal_slopes and the
-    derivatives of σ1 with respect to a mild texel's x and the clamped texel's y equal central
-    finite differences of principal_slopes (float64, step 1e-4)."""
-    steep = _bumps_row()
+@pytest.mark.parametrize("max_tilt", [35.0, 65.0])
+def test_winsorised_slopes_carry_their_derivatives(max_tilt):
+    """attached_slopes on the map with one texel near the clamp: the values of principal_slopes and
+    the derivatives of σ1 with respect to an uncapped texel's x and the capped texel's y equal
+    central finite differences of principal_slopes (float64, step 1e-4). At 35° the cap is
+    WINSOR_FLOOR, at 65° WINSOR_C × the winsorised rms (whose fixed point moves with every texel)."""
+    steep = _bumps_row(max_tilt)
     steep[OUTLIER] = [-0.3, 0.9, 0.02]
     steep /= np.linalg.norm(steep, axis=-1, keepdims=True)
     wp = mi.Vector3f(*(mi.Float(steep[:, i].astype(np.float32)) for i in range(3)))
