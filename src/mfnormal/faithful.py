@@ -98,16 +98,64 @@ def smith_lambda_np(w, sigma1, sigma2, derivatives=False):
     return (lam, d_a * (-a * sigma1 * w[..., 0] ** 2 * inv), d_a * (-a * sigma2 * w[..., 1] ** 2 * inv))
 
 
+#: Winsorised slopes (docs/faithful.md §5): a texel's slope counts at most WINSOR_C times the map's
+#: (winsorised) rms slope, and never less than WINSOR_FLOOR (tan 60°). The repository's maps reach
+#: 1.2-2.5 times their rms (bumps, egg crates, noise at any steepness and resolution): they are never
+#: capped, and their σ is the plain rms bit for bit.
+WINSOR_C = 5.0
+WINSOR_FLOOR = math.sqrt(3.0)
+
+
+def slope_cap2(s2: np.ndarray):
+    """The squared cap t² of the squared slope magnitudes ``s2`` (float64): None where no texel
+    exceeds WINSOR_C × their rms (nothing capped), else the largest t² ≥ WINSOR_FLOOR² with
+    t² = WINSOR_C² · mean(min(s2, t²)) (a texel at the clamp among 16² cannot make the whole map rough).
+    Iterated from the plain rms: t² falls and the capped set grows, so at most len(s2) steps."""
+    n, c2, floor2 = len(s2), WINSOR_C * WINSOR_C, WINSOR_FLOOR * WINSOR_FLOOR
+    t2 = max(c2 * float(np.mean(s2)), floor2)
+    if not float(np.max(s2, initial=0.0)) > t2:
+        return None
+    for _ in range(n + 1):
+        capped = s2 > t2
+        k, rest = int(capped.sum()), float(s2[~capped].sum())
+        # Where the capped set is ``capped``, t² = c²(rest + k·t²)/n in closed form.
+        new = max(floor2, c2 * rest / (n - c2 * k)) if n > c2 * k else floor2
+        if np.array_equal(s2 > new, capped):
+            return new
+        t2 = new
+    return t2
+
+
+def _cap_attached(sx, sy, s2_np, t2):
+    """sx, sy (Dr.Jit) with the slopes over the cap ``t2`` (slope_cap2 of their detached s2_np)
+    scaled onto it; t² as a Dr.Jit value of the uncapped slopes where it is above the floor, so
+    that the fixed point's derivative is exact."""
+    n, c2 = len(s2_np), WINSOR_C * WINSOR_C
+    capped_np = s2_np > t2
+    capped = mi.Bool(capped_np)
+    s2 = sx * sx + sy * sy
+    if t2 > WINSOR_FLOOR * WINSOR_FLOOR:
+        t2 = c2 * dr.sum(dr.select(capped, 0.0, s2)) / (n - c2 * int(capped_np.sum()))
+    scale = dr.select(capped, dr.sqrt(t2 / dr.select(capped, s2, 1.0)), 1.0)
+    return sx * scale, sy * scale
+
+
 def attached_slopes(wp, strength=None):
     """(σ1, σ2, φ_e) of the unit normals ``wp`` (a Dr.Jit Vector3f, e.g. the map decoded at
     texel centres) as Dr.Jit values that carry wp's derivatives: :func:`principal_slopes`'s
-    quantities in closed form (the 2×2 eigenproblem). Where an eigenvalue or the anisotropy
-    is zero (a flat or isotropic map) their square roots have no derivative; they get the
-    central one, 0. ``strength``: wp was decoded at strength 1 and the map is used at this
-    strength, 0: the slopes are strength × those of wp (exact while no normal is clamped),
-    so that σ has its derivative at strength 0 (where √(σ²) has none)."""
+    quantities in closed form (the 2×2 eigenproblem), with its winsorised slopes. Where an
+    eigenvalue or the anisotropy is zero (a flat or isotropic map) their square roots have no
+    derivative; they get the central one, 0. ``strength``: wp was decoded at strength 1 and the map
+    is used at this strength, 0: the slopes are strength × those of wp (exact while no normal is
+    clamped; none is capped near strength 0, where every slope is below WINSOR_FLOOR), so that σ has
+    its derivative at strength 0 (where √(σ²) has none)."""
     z = dr.maximum(wp.z, 1e-3)
     sx, sy = -wp.x / z, -wp.y / z
+    if strength is None:
+        s2_np = np.square(np.array(dr.detach(sx), np.float64)) + np.square(np.array(dr.detach(sy), np.float64))
+        t2 = slope_cap2(s2_np)
+        if t2 is not None:
+            sx, sy = _cap_attached(sx, sy, s2_np, t2)
     a, b, c = dr.mean(sx * sx), dr.mean(sx * sy), dr.mean(sy * sy)
     q = dr.square(0.5 * (a - c)) + b * b
     iso = q > 1e-24
@@ -126,10 +174,16 @@ def attached_slopes(wp, strength=None):
 
 def principal_slopes(normals: np.ndarray):
     """(σ1, σ2, φ_e): the principal rms slopes of unit normals (N×3) about the macro normal
-    (σ1 ≥ σ2) and the angle of σ1's axis from the tangent frame's x axis."""
+    (σ1 ≥ σ2) and the angle of σ1's axis from the tangent frame's x axis. Slopes over the cap of
+    :func:`slope_cap2` (a few texels far steeper than the rest) are scaled onto it first."""
     n = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
     z = np.maximum(n[:, 2], 1e-3)
     sx, sy = -n[:, 0] / z, -n[:, 1] / z
+    s2 = sx * sx + sy * sy
+    t2 = slope_cap2(s2)
+    if t2 is not None:
+        scale = np.where(s2 > t2, np.sqrt(t2 / np.where(s2 > t2, s2, 1.0)), 1.0)
+        sx, sy = sx * scale, sy * scale
     cov = np.array([[np.mean(sx * sx), np.mean(sx * sy)], [np.mean(sx * sy), np.mean(sy * sy)]])
     values, vectors = np.linalg.eigh(cov)                       # ascending
     s1, s2 = math.sqrt(max(values[1], 0.0)), math.sqrt(max(values[0], 0.0))
