@@ -523,3 +523,40 @@ def test_blocked_table_matches_direct_integration():
         exact = 1.0 - np.mean(np.maximum(cos_dp, 0) / np.pi * seen) * 4 * np.pi
         looked = RegularGridInterpolator(axes, table)([[math.radians(tilt), phi, g ** (1.0 / 3.0)]])[0]
         assert abs(looked - exact) < 0.005, (tilt, phi, g, looked, exact)
+
+
+DARK_PLASTIC = {"type": "roughplastic", "distribution": "ggx", "alpha": 0.1,
+                "diffuse_reflectance": {"type": "rgb", "value": [0.2, 0.22, 0.26]}}
+
+
+def _sky_weighted_moments(texels, wi, per_texel, seed):
+    """Per texel: the mean of the sample weight (channel mean) times a sky that is brightest at
+    the horizon, L(ω) = (1 − 0.7 ω_z)² (as the benchmark's), and its relative variance."""
+    k = texels.shape[0]
+    bsdf = make_bsdf(DARK_PLASTIC, texels)
+    si = make_si(np.repeat(wi, per_texel, 0), k, texel_index=np.repeat(np.arange(k), per_texel))
+    bs, w = sample_all(bsdf, si, np.random.default_rng(seed))
+    y = (np3(w).mean(1) * (1.0 - 0.7 * np1(bs.wo.z)) ** 2).reshape(k, per_texel)
+    return y.mean(1), y.var(1) / np.maximum(y.mean(1), 1e-9) ** 2
+
+
+def test_fill_gets_the_blocked_samples_by_its_albedo(monkeypatch):
+    """The sampler gives the diffuse fill ρ_fill of the blocked light's samples (clipped to
+    [FILL_SHARE_MIN, FILL_SHARE_MAX]) instead of a fixed half: for a dark roughplastic (diffuse
+    0.2, the benchmark plane's) the fill carries ~4 % of the blocked light, and the samples it
+    no longer takes go to the glossy lobes. Estimator of ∫eval·L with a sky-like L over 64
+    texels (tilts 20-65°, θ_i 60-86°, the benchmark plane's grazing view), 4096 samples each,
+    fixed seed: the mean relative variance is ≤ 0.95× that of the fixed half (measured 0.905 and
+    0.908 for two seeds; the benchmark plane's per-sample relMSE 1.36× → 1.28× the built-in's),
+    and both estimate the same integral (every texel within 4.5 standard errors)."""
+    rng = np.random.default_rng(3)
+    k, n = 64, 4096
+    texels = encode(sph(rng.uniform(20, 65, k), rng.uniform(0, 2 * np.pi, k)))
+    wi = sph(rng.uniform(60, 86, k), np.zeros(k))
+    mean_new, var_new = _sky_weighted_moments(texels, wi, n, seed=5)
+    monkeypatch.setattr(faithful, "FILL_SHARE_MIN", 0.5)
+    monkeypatch.setattr(faithful, "FILL_SHARE_MAX", 0.5)
+    mean_old, var_old = _sky_weighted_moments(texels, wi, n, seed=5)
+    se = np.sqrt((var_new * mean_new ** 2 + var_old * mean_old ** 2) / n)
+    assert np.all(np.abs(mean_new - mean_old) <= 4.5 * se + 1e-7), np.abs(mean_new - mean_old) / se
+    assert var_new.mean() <= 0.95 * var_old.mean(), (var_new.mean(), var_old.mean())
