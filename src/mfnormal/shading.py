@@ -87,6 +87,7 @@ class ShadingPoint:
     """
 
     ARRAYS = ("si", "wi", "wp", "wt", "sin_p", "frame_p", "frame_t", "cot_p")
+    indirect = False        # nested-BSDF calls through a callable (:meth:`_nested`), else inlined
 
     def __init__(self, nested, ctx, si, wp):
         self.nested = nested
@@ -102,6 +103,25 @@ class ShadingPoint:
         self.cot_p = ms.cot_p(self.wp, self.sin_p)
         # The vertex tangent frame the map was decoded in (tangent_rotation), None: this frame.
         self.map_rotation = None
+
+    def with_indirect_calls(self):
+        """A copy of this point whose nested-BSDF calls are indirect (:meth:`_nested`)."""
+        sp = copy.copy(self)
+        sp.indirect = True
+        return sp
+
+    def _nested(self, method, *args):
+        """``self.nested.<method>(ctx, *args)``: inlined, or where ``indirect`` (JIT variants) a
+        one-target ``dr.switch``. Dr.Jit compiles such a callable once per kernel for all the
+        call sites whose traced code is the same (it deduplicates identical callables), where an
+        inlined call copies the nested BSDF's code into the kernel at every site (docs/model.md
+        §2.3). The switch zeroes its outputs on the lanes it does not run (e.g. a sample's eta
+        and type, which the faithful and analytic models read there: they stay inlined)."""
+        fn = getattr(self.nested, method)
+        if not (self.indirect and dr.is_jit_v(mi.Float)):
+            return fn(self.ctx, *args)
+        ctx = self.ctx
+        return dr.switch(dr.zeros(mi.UInt32, dr.width(args[-1])), [lambda *a: fn(ctx, *a)], *args)
 
     def state(self):
         """The Dr.Jit arrays of this point, as a list (for a loop's state)."""
@@ -175,19 +195,19 @@ class ShadingPoint:
     def eval(self, frame, wi, wo, active):
         """Nested f·⟨wo, ω_m⟩ on the facet with ``frame``; zero where inactive."""
         si_f, wo_f, active = self._facet_query(frame, wi, wo, active)
-        return dr.select(active, self.nested.eval(self.ctx, si_f, wo_f, active), 0.0)
+        return dr.select(active, self._nested("eval", si_f, wo_f, active), 0.0)
 
     def pdf(self, frame, wi, wo, active):
         si_f, wo_f, active = self._facet_query(frame, wi, wo, active)
-        return dr.select(active, self.nested.pdf(self.ctx, si_f, wo_f, active), 0.0)
+        return dr.select(active, self._nested("pdf", si_f, wo_f, active), 0.0)
 
     def eval_pdf(self, frame, wi, wo, active):
         si_f, wo_f, active = self._facet_query(frame, wi, wo, active)
-        value, pdf = self.nested.eval_pdf(self.ctx, si_f, wo_f, active)
+        value, pdf = self._nested("eval_pdf", si_f, wo_f, active)
         return dr.select(active, value, 0.0), dr.select(active, pdf, 0.0)
 
     def sample(self, frame, wi, sample1, sample2, active):
         """Nested sample on a facet: (BSDFSample with wo in the base frame, weight)."""
-        bs, weight = self.nested.sample(self.ctx, self.facet_si(frame, wi), sample1, sample2, active)
+        bs, weight = self._nested("sample", self.facet_si(frame, wi), sample1, sample2, active)
         bs.wo = frame.to_world(bs.wo)
         return bs, dr.select(active, weight, 0.0)

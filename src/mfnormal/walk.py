@@ -58,6 +58,11 @@ MAX_BOUNCES = 1024
 RR_DEPTH = 3
 # Default cap of the boost of the longer walks' share in the MIS pdf (GGX α ≤ 1/16 reaches it).
 MIS_BOOST_MAX = 64.0
+# Call the nested BSDF through one callable per method (ShadingPoint.with_indirect_calls) instead
+# of inlining it at each of the walks' call sites: on the demo, kernels −13-20 % operations, the
+# first-render compile −5-15 % (ggx_0.05; roughplastic: none), the render time +6-14 % (docs/model.md
+# §4.9). Off: the render-time targets come first. Read when a kernel is traced.
+INDIRECT_NESTED_CALLS = False
 
 
 @dataclass(frozen=True)
@@ -153,6 +158,14 @@ def replays(sp):
     if not dr.is_diff_v(mi.Float):
         return False
     return dr.grad_enabled(sp.wp) or dr.grad_enabled(sp.wi) or sp.nested_attached()
+
+
+def calls(sp):
+    """``sp`` with indirect nested calls where INDIRECT_NESTED_CALLS is set and no derivative
+    is taken (``replays``): forward mode through a callable's implicit inputs (the nested
+    BSDF's parameters) inside the walk loops fails in Dr.Jit 1.5 (an edge outside the
+    dr.isolate_grad scope)."""
+    return sp.with_indirect_calls() if INDIRECT_NESTED_CALLS and not replays(sp) else sp
 
 
 def attached_interval(sp, w, rp):
@@ -524,6 +537,7 @@ def sample_walk(sp, params, sample1, sample2, active):
 
 def _sample_walk(sp, params, sample1, sample2, active):
     """:func:`sample_walk` and its Replay (the throughput's derivative; None without)."""
+    sp = calls(sp)
     active = mi.Bool(active) & (sp.wi.z > 0)
     seed = hash_floats(SALT_WALK_SAMPLE, sample1, sample2.x, sample2.y)
     replay = replays(sp)
@@ -561,6 +575,7 @@ def eval_walk(sp, params, wo, active):
     vertices after the first nested sample. Random numbers: a hash of (ω_i, ω_o, si.p).
     With derivatives the walk runs twice: for L, then replayed for L's derivative (Replay).
     """
+    sp = calls(sp)
     wi = sp.wi
     active = mi.Bool(active) & (wi.z > 0)
     seed = hash_floats(SALT_WALK_EVAL, dr.detach(wi.x), dr.detach(wi.y), dr.detach(wo.x), dr.detach(wo.y),
@@ -751,6 +766,7 @@ def mis_pdf(sp, params, wo, active):
     its lobe's centre (zero where that centre leaves the microsurface, so that light
     samples keep their weight where longer walks are rare).
     """
+    sp = calls(sp)
     wi = sp.wi
     active = mi.Bool(active) & (wi.z > 0) & (wo.z > 0)
     p, t = mi.Bool(True), mi.Bool(False)
