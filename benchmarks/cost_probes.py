@@ -10,7 +10,7 @@ Each probe changes the model (wrong images: timing only) and is timed against Mi
   sample's weight instead of re-evaluating the model (eval_pdf) at the sampled direction;
   ``faithful/no_fill``: the diffuse fill's ρ (two nested evals per texel) a constant;
 - ``separable_same`` as it is; with ``max_bounces`` 1 (one nested sample per walk) and 2;
-  with ``rr_depth`` 1 (roulette from the first bounce).
+  with ``rr_depth`` 1 (roulette from the first bounce) and 2.
 """
 
 from __future__ import annotations
@@ -56,6 +56,7 @@ def patches():
         "separable_same/max_bounces=1": ("separable_same", lambda: attr(walk, "MAX_BOUNCES", 1), none),
         "separable_same/max_bounces=2": ("separable_same", lambda: attr(walk, "MAX_BOUNCES", 2), none),
         "separable_same/rr_depth=1": ("separable_same", lambda: attr(walk, "RR_DEPTH", 1), none),
+        "separable_same/rr_depth=2": ("separable_same", lambda: attr(walk, "RR_DEPTH", 2), none),
     }
 
 
