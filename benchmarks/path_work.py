@@ -1,0 +1,157 @@
+#!/usr/bin/env python
+r"""Issue 18 diagnosis: how much work the path tracer does per sample, per method.
+
+    python benchmarks/path_work.py [--scenes demo model] [--nested native] [--size 192x144]
+        [--methods builtin faithful separable_same] [--spp 16] [--kernels] [--out F.json]
+
+Renders run.py's scenes with every shape's BSDF, and the nested BSDF inside each, wrapped in a
+counter (``bench_total``: forwards every call, adds the call's active lanes to one total), and
+prints per camera sample: the path vertices where the path tracer samples a BSDF (the shape's
+``sample`` calls = path length in BSDF bounces), the calls to the top-level BSDF (``eval_pdf``,
+``sample``, ...), and the calls that reach the nested BSDF. The counter makes every call an
+indirect Python call, so the counted renders are not timed. ``--kernels``: also a warm render of
+the uncounted scene with Dr.Jit's kernel history on: per kernel its size, operation count and
+execution time (ms).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import sys
+import tempfile
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import run as R  # noqa: E402  (benchmarks/run.py)
+
+OPS = ("eval", "pdf", "eval_pdf", "sample")
+COUNTERS = {}
+
+
+def register():
+    import drjit as dr
+    import mitsuba as mi
+
+    class Total(mi.BSDF):
+        """The BSDF ``bsdf``, each call adding its active lanes to COUNTERS[label][op]."""
+
+        def __init__(self, props):
+            mi.BSDF.__init__(self, props)
+            self.inner = next(obj for _, obj in props.objects() if isinstance(obj, mi.BSDF))
+            self.label = props["label"]
+            self.m_flags = self.inner.flags()
+            self.m_components = [self.inner.flags(i) for i in range(self.inner.component_count())]
+            COUNTERS[self.label] = {op: dr.zeros(mi.UInt64, 1) for op in OPS}
+
+        def _count(self, op, active):
+            active = mi.Bool(active)
+            dr.scatter_add(COUNTERS[self.label][op], mi.UInt64(1), mi.UInt32(0), active)
+
+        def eval(self, ctx, si, wo, active=True):
+            self._count("eval", active)
+            return self.inner.eval(ctx, si, wo, active)
+
+        def pdf(self, ctx, si, wo, active=True):
+            self._count("pdf", active)
+            return self.inner.pdf(ctx, si, wo, active)
+
+        def eval_pdf(self, ctx, si, wo, active=True):
+            self._count("eval_pdf", active)
+            return self.inner.eval_pdf(ctx, si, wo, active)
+
+        def sample(self, ctx, si, sample1, sample2, active=True):
+            self._count("sample", active)
+            return self.inner.sample(ctx, si, sample1, sample2, active)
+
+        def to_string(self):
+            return f"Total[{self.label}: {self.inner}]"
+
+    mi.register_bsdf("bench_total", lambda props: Total(props))
+
+
+def wrap(scene: dict) -> dict:
+    """Every shape's BSDF, and its nested BSDF (a child ``bsdf*``) if any, wrapped in ``bench_total``."""
+    def bsdf_keys(d):
+        return [k for k, v in d.items() if k.startswith("bsdf") and isinstance(v, dict)]
+    for key, v in scene.items():
+        if not isinstance(v, dict):
+            continue
+        for kb in bsdf_keys(v):
+            outer = v[kb]
+            for kn in bsdf_keys(outer):
+                outer[kn] = {"type": "bench_total", "label": f"{key}.nested", "bsdf": outer[kn]}
+            v[kb] = {"type": "bench_total", "label": key, "bsdf": outer}
+    return scene
+
+
+def counted(scene, nested, method, W, H, spp, assets):
+    mi, dr = R.mi, R.dr
+    COUNTERS.clear()
+    d = wrap(R.scene_dict(scene, assets, method, nested, W, H, spp))
+    sc = mi.load_dict(d)
+    img = mi.render(sc, spp=spp, seed=100)
+    dr.eval(img)
+    n = W * H * spp
+    return {label: {op: int(c[op][0]) / n for op in OPS} for label, c in COUNTERS.items()}
+
+
+def kernels(scene, nested, method, W, H, spp, assets):
+    mi, dr = R.mi, R.dr
+    sc = R.load_scene(scene, assets, method, nested, W, H, spp)
+    R.timed_render(sc, spp, 0)
+    dr.kernel_history_clear() if hasattr(dr, "kernel_history_clear") else dr.kernel_history()
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    t, _ = R.timed_render(sc, spp, 1)
+    hist = dr.kernel_history()
+    dr.set_flag(dr.JitFlag.KernelHistory, False)
+    out = []
+    for k in hist:
+        if k.get("type") != dr.KernelType.JIT:
+            continue
+        out.append({"size": k.get("size"), "ops": k.get("operation_count"),
+                    "ms": k.get("execution_time"), "cache_hit": k.get("cache_hit")})
+    return {"render_s": t, "kernels": out}
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--scenes", nargs="+", default=["demo", "model"])
+    ap.add_argument("--nested", nargs="+", default=[R.NATIVE])
+    ap.add_argument("--size", default="192x144")
+    ap.add_argument("--methods", nargs="+", default=["builtin", "faithful", "separable_same"])
+    ap.add_argument("--spp", type=int, default=16)
+    ap.add_argument("--kernels", action="store_true")
+    ap.add_argument("--out", type=Path)
+    args = ap.parse_args(argv)
+    R.import_mitsuba()
+    register()
+    W, H = (int(x) for x in args.size.split("x"))
+    root = Path(tempfile.mkdtemp(prefix="mfnormal_work_"))
+    rows = []
+    try:
+        assets = R.prepare_assets(root, args.scenes)
+        for s in args.scenes:
+            for n in args.nested:
+                for m in args.methods:
+                    row = {"scene": s, "nested": n, "method": m, "size": args.size,
+                           "per_sample": counted(s, n, m, W, H, args.spp, assets)}
+                    if args.kernels:
+                        row.update(kernels(s, n, m, W, H, args.spp, assets))
+                    R.log(f"{s:6s} {n:10s} {m:16s} " + "  ".join(
+                        f"{lab}: " + " ".join(f"{op} {v:.3f}" for op, v in c.items() if v)
+                        for lab, c in row["per_sample"].items()))
+                    if args.kernels:
+                        R.log("   kernels (size, ops, ms): " + ", ".join(
+                            f"({k['size']}, {k['ops']}, {k['ms']:.1f})" for k in row["kernels"]))
+                    rows.append(row)
+                    if args.out:
+                        args.out.write_text(json.dumps(rows, indent=1))
+    finally:
+        shutil.rmtree(root, ignore_errors=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
