@@ -24,9 +24,10 @@ import tempfile
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+import probes  # noqa: E402  (benchmarks/probes.py)
 import run as R  # noqa: E402  (benchmarks/run.py)
 
-OPS = ("eval", "pdf", "eval_pdf", "sample")
+OPS = probes.OPS
 COUNTERS = {}
 
 
@@ -34,36 +35,17 @@ def register():
     import drjit as dr
     import mitsuba as mi
 
-    class Total(mi.BSDF):
+    class Total(probes.forwarding_base()):
         """The BSDF ``bsdf``, each call adding its active lanes to COUNTERS[label][op]."""
 
         def __init__(self, props):
-            mi.BSDF.__init__(self, props)
-            self.inner = next(obj for _, obj in props.objects() if isinstance(obj, mi.BSDF))
+            super().__init__(props)
             self.label = props["label"]
-            self.m_flags = self.inner.flags()
-            self.m_components = [self.inner.flags(i) for i in range(self.inner.component_count())]
             COUNTERS[self.label] = {op: dr.zeros(mi.UInt64, 1) for op in OPS}
 
         def _count(self, op, active):
             active = mi.Bool(active)
             dr.scatter_add(COUNTERS[self.label][op], mi.UInt64(1), mi.UInt32(0), active)
-
-        def eval(self, ctx, si, wo, active=True):
-            self._count("eval", active)
-            return self.inner.eval(ctx, si, wo, active)
-
-        def pdf(self, ctx, si, wo, active=True):
-            self._count("pdf", active)
-            return self.inner.pdf(ctx, si, wo, active)
-
-        def eval_pdf(self, ctx, si, wo, active=True):
-            self._count("eval_pdf", active)
-            return self.inner.eval_pdf(ctx, si, wo, active)
-
-        def sample(self, ctx, si, sample1, sample2, active=True):
-            self._count("sample", active)
-            return self.inner.sample(ctx, si, sample1, sample2, active)
 
         def to_string(self):
             return f"Total[{self.label}: {self.inner}]"

@@ -13,30 +13,21 @@ from __future__ import annotations
 OPS = ("eval", "pdf", "eval_pdf", "sample")
 
 
-def register():
-    import drjit as dr
+def forwarding_base():
+    """A ``mi.BSDF`` class (of the current variant) that wraps the nested BSDF ``bsdf`` of
+    its properties and forwards every call to it, after ``self._count(op, active)`` (a no-op
+    here: subclasses count)."""
     import mitsuba as mi
 
-    class Counting(mi.BSDF):
-        """The nested BSDF ``bsdf``, counting its calls once ``reset(n)`` gave it n lanes."""
-
+    class Forwarding(mi.BSDF):
         def __init__(self, props):
             mi.BSDF.__init__(self, props)
             self.inner = next(obj for _, obj in props.objects() if isinstance(obj, mi.BSDF))
             self.m_flags = self.inner.flags()
             self.m_components = [self.inner.flags(i) for i in range(self.inner.component_count())]
-            self.counts, self.sites = None, None
-
-        def reset(self, n):
-            self.counts = {op: dr.zeros(mi.UInt32, n) for op in OPS}
-            self.sites = dr.zeros(mi.UInt32, n)
 
         def _count(self, op, active):
-            if self.counts is not None:
-                active = mi.Bool(active)
-                lane = dr.arange(mi.UInt32, dr.width(active))
-                dr.scatter_add(self.counts[op], mi.UInt32(1), lane, active)
-                dr.scatter_add(self.sites, mi.UInt32(1), lane)
+            pass
 
         def eval(self, ctx, si, wo, active=True):
             self._count("eval", active)
@@ -53,6 +44,31 @@ def register():
         def sample(self, ctx, si, sample1, sample2, active=True):
             self._count("sample", active)
             return self.inner.sample(ctx, si, sample1, sample2, active)
+
+    return Forwarding
+
+
+def register():
+    import drjit as dr
+    import mitsuba as mi
+
+    class Counting(forwarding_base()):
+        """The nested BSDF ``bsdf``, counting its calls once ``reset(n)`` gave it n lanes."""
+
+        def __init__(self, props):
+            super().__init__(props)
+            self.counts, self.sites = None, None
+
+        def reset(self, n):
+            self.counts = {op: dr.zeros(mi.UInt32, n) for op in OPS}
+            self.sites = dr.zeros(mi.UInt32, n)
+
+        def _count(self, op, active):
+            if self.counts is not None:
+                active = mi.Bool(active)
+                lane = dr.arange(mi.UInt32, dr.width(active))
+                dr.scatter_add(self.counts[op], mi.UInt32(1), lane, active)
+                dr.scatter_add(self.sites, mi.UInt32(1), lane)
 
         def to_string(self):
             return f"Counting[{self.inner}]"
