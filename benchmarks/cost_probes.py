@@ -70,12 +70,8 @@ def main(argv=None):
     ap.add_argument("--probes", nargs="+")
     args = ap.parse_args(argv)
     R.import_mitsuba()
-    import shutil
-    import tempfile
     W, H = (int(x) for x in args.size.split("x"))
-    root = Path(tempfile.mkdtemp(prefix="mfnormal_probes_"))
-    try:
-        assets = R.prepare_assets(root, [args.scene])
+    with R.temporary_assets([args.scene], "mfnormal_probes_") as assets:
         base = R.load_scene(args.scene, assets, "builtin", args.nested, W, H, args.spp)
         R.timed_render(base, args.spp, 0)
         for name, (method, at_load, at_render) in patches().items():
@@ -86,15 +82,9 @@ def main(argv=None):
             with at_render():
                 R.timed_render(scene, args.spp, 0)
                 R.timed_render(base, args.spp, 0)     # (the first built-in render after a load is slow)
-                tb, tm = [], []
-                for r in range(args.reps):
-                    tb.append(R.timed_render(base, args.spp, 100 + r)[0])
-                    tm.append(R.timed_render(scene, args.spp, 100 + r)[0])
-            ratios = [a / b for a, b in zip(tm, tb)]
+                tb, tm, ratios = R.interleaved_pairs(base, scene, args.spp, args.reps)
             R.log(f"{args.scene} {args.nested} {W}x{H} {name:30s} ratio {R.median(ratios):.3f} "
                   f"{[round(x, 3) for x in ratios]}  ({R.median(tm):.3f} s vs {R.median(tb):.3f} s)")
-    finally:
-        shutil.rmtree(root, ignore_errors=True)
     return 0
 
 

@@ -111,12 +111,8 @@ def main():
     ap.add_argument("--reps", type=int, default=5)
     args = ap.parse_args()
     R.import_mitsuba()
-    root = Path(tempfile.mkdtemp(prefix="mfnormal_nested_calls_assets_"))
-    try:
-        assets = R.prepare_assets(root, ["demo"])
+    with R.temporary_assets(["demo"], "mfnormal_nested_calls_assets_") as assets:
         (compile_ab if args.mode == "compile" else time_ab)(args.methods.split(","), args.nested, assets, args.reps)
-    finally:
-        shutil.rmtree(root, ignore_errors=True)
 
 
 if __name__ == "__main__":

@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import argparse
 import sys
-import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -101,8 +100,7 @@ def main(argv=None) -> int:
     ap.add_argument("--full-sky", action="store_true", help="keep the sun disc")
     args = ap.parse_args(argv)
     R.import_mitsuba()
-    with tempfile.TemporaryDirectory(prefix="mfnormal_anatomy_") as root:
-        assets = R.prepare_assets(Path(root), ["plane"])
+    with R.temporary_assets(["plane"], "mfnormal_anatomy_") as assets:
         for m in args.methods.split(","):
             anatomy(m, args.nested, assets, args.passes, not args.full_sky)
     return 0

@@ -18,9 +18,7 @@ from __future__ import annotations
 
 import argparse
 import json
-import shutil
 import sys
-import tempfile
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -110,10 +108,8 @@ def main(argv=None):
     R.import_mitsuba()
     register()
     W, H = (int(x) for x in args.size.split("x"))
-    root = Path(tempfile.mkdtemp(prefix="mfnormal_work_"))
     rows = []
-    try:
-        assets = R.prepare_assets(root, args.scenes)
+    with R.temporary_assets(args.scenes, "mfnormal_work_") as assets:
         for s in args.scenes:
             for n in args.nested:
                 for m in args.methods:
@@ -130,8 +126,6 @@ def main(argv=None):
                     rows.append(row)
                     if args.out:
                         args.out.write_text(json.dumps(rows, indent=1))
-    finally:
-        shutil.rmtree(root, ignore_errors=True)
     return 0
 
 

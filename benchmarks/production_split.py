@@ -17,9 +17,7 @@ from __future__ import annotations
 
 import argparse
 import json
-import shutil
 import sys
-import tempfile
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -34,11 +32,7 @@ def cell(scene, nested, size, methods, reps, spp, assets, probe=None):
         R.timed_render(scenes[m], spp, 0)
     rows = []
     for m in methods:
-        tb, tm = [], []
-        for r in range(reps):
-            tb.append(R.timed_render(scenes["builtin"], spp, 100 + r)[0])
-            tm.append(R.timed_render(scenes[m], spp, 100 + r)[0])
-        ratios = [a / b for a, b in zip(tm, tb)]
+        tb, tm, ratios = R.interleaved_pairs(scenes["builtin"], scenes[m], spp, reps)
         row = {"scene": scene, "nested": nested, "probe": probe, "size": f"{W}x{H}", "method": m,
                "builtin_s": R.median(tb), "method_s": R.median(tm), "ratio": R.median(ratios),
                "ratios": ratios, "builtin_us_per_sample": 1e6 * R.median(tb) / (W * H * spp)}
@@ -62,10 +56,8 @@ def main(argv=None):
     ap.add_argument("--out", type=Path)
     args = ap.parse_args(argv)
     R.import_mitsuba()
-    root = Path(tempfile.mkdtemp(prefix="mfnormal_split_"))
     rows = []
-    try:
-        assets = R.prepare_assets(root, args.scenes)
+    with R.temporary_assets(args.scenes, "mfnormal_split_") as assets:
         for s in args.scenes:
             for n in args.nested:
                 for size in args.sizes:
@@ -73,8 +65,6 @@ def main(argv=None):
                     rows += cell(s, n, (W, H), args.methods, args.reps, args.spp, assets, args.probe)
                     if args.out:
                         args.out.write_text(json.dumps(rows, indent=1))
-    finally:
-        shutil.rmtree(root, ignore_errors=True)
     return 0
 
 

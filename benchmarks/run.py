@@ -359,6 +359,27 @@ def timed_render(scene, spp: int, seed: int):
     return time.perf_counter() - t0, img
 
 
+def interleaved_pairs(base, scene, spp: int, reps: int):
+    """Metric 1's timing: ``reps`` warm renders of ``base`` and ``scene`` interleaved (base,
+    scene, base, scene, ...; seeds 100, 101, ...): (base's seconds, scene's seconds, the
+    per-pair ratios scene / base)."""
+    tb, tm = [], []
+    for r in range(reps):
+        tb.append(timed_render(base, spp, 100 + r)[0])
+        tm.append(timed_render(scene, spp, 100 + r)[0])
+    return tb, tm, [a / b for a, b in zip(tm, tb)]
+
+
+@contextlib.contextmanager
+def temporary_assets(scenes, prefix="mfnormal_bench_assets_"):
+    """:func:`prepare_assets` of ``scenes`` in a temporary folder, removed on exit."""
+    root = Path(tempfile.mkdtemp(prefix=prefix))
+    try:
+        yield prepare_assets(root, scenes)
+    finally:
+        shutil.rmtree(root, ignore_errors=True)
+
+
 def to_numpy(img) -> np.ndarray:
     x = np.array(img, dtype=np.float64)[..., :3]
     return np.where(np.isfinite(x), np.maximum(x, 0.0), 0.0)
@@ -640,11 +661,7 @@ def render_time(scene, nested, assets, prof, scenes) -> list:
     for m in prof.methods:
         if m == "builtin":
             continue
-        tb, tm = [], []
-        for r in range(prof.reps):
-            tb.append(timed_render(scenes["builtin"], spp, 100 + r)[0])
-            tm.append(timed_render(scenes[m], spp, 100 + r)[0])
-        ratios = [a / b for a, b in zip(tm, tb)]
+        tb, tm, ratios = interleaved_pairs(scenes["builtin"], scenes[m], spp, prof.reps)
         target = TIME_TARGET[catalogue_method(m).model]
         ratio = median(ratios)
         timing.append({"profile": prof.name, "scene": scene, "nested": nested, "method": m,
@@ -1125,13 +1142,9 @@ def main(argv=None) -> int:
     log(f"mfnormal benchmark ({', '.join(p.name for p in profiles)}, {mi.variant()}): "
         f"{results['machine']['cpu']}, {results['machine']['cores']} cores, "
         f"load {results['machine']['loadavg_start'][0]:.1f}")
-    assets_root = Path(tempfile.mkdtemp(prefix="mfnormal_bench_assets_"))
-    try:
-        assets = prepare_assets(assets_root, sorted({s for p in profiles for s in p.scenes}))
+    with temporary_assets(sorted({s for p in profiles for s in p.scenes})) as assets:
         for prof in profiles:
             run_profile(prof, assets, results, skip, args.variant)
-    finally:
-        shutil.rmtree(assets_root, ignore_errors=True)
     if args.profile == "all" and not args.quick and "backward" not in skip:
         results["backward"] = run_backward(out, args.variant)
     finish(results, out, t_start)

@@ -19,7 +19,6 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-import tempfile
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
@@ -39,12 +38,8 @@ def cell(scene, nested, assets, prof, reps, compile_runs):
         bench.timed_render(s, spp, 0)
     rows = []
     for m in METHODS:
-        tb, tm = [], []
-        for r in range(reps):
-            tb.append(bench.timed_render(scenes["builtin"], spp, 100 + r)[0])
-            tm.append(bench.timed_render(scenes[m], spp, 100 + r)[0])
-        rows.append({"scene": scene, "nested": nested, "method": m,
-                     "time_ratio": bench.median([a / b for a, b in zip(tm, tb)])})
+        ratios = bench.interleaved_pairs(scenes["builtin"], scenes[m], spp, reps)[2]
+        rows.append({"scene": scene, "nested": nested, "method": m, "time_ratio": bench.median(ratios)})
     base = bench.equal_time_noise(scenes["builtin"], spp, prof)
     for row in rows:
         row["spp"] = max(1, int(round(spp / row["time_ratio"])))
@@ -99,11 +94,11 @@ def main(argv=None) -> int:
     prof = bench.Profile("same_walks", scenes, tuple(args.nested.split(",")), METHODS,
                          width=192, height=144, spp=16, reps=args.reps, ref_spp=256, ref_pass=32,
                          noise_seeds=args.noise_seeds, queries=0, tput_reps=0, stub_reps=0, compile_warm_reps=2)
-    assets = bench.prepare_assets(Path(tempfile.mkdtemp(prefix="mfnormal_same_walks_")), scenes)
     rows = []
-    for scene in scenes:
-        for nested in prof.nested:
-            rows += cell(scene, nested, assets, prof, args.reps, not args.no_compile)
+    with bench.temporary_assets(scenes, "mfnormal_same_walks_") as assets:
+        for scene in scenes:
+            for nested in prof.nested:
+                rows += cell(scene, nested, assets, prof, args.reps, not args.no_compile)
     if args.out:
         args.out.write_text(markdown(rows, argv))
         args.out.with_suffix(".json").write_text(json.dumps(rows, indent=1))
