@@ -889,40 +889,27 @@ def why_lines(results: dict) -> list:
                          f"{fmt(c.get('stub_compile_s'))} / {c.get('stub_max_kernel_ops', '–')} |")
         lines.append("")
     if fails_n:
-        lines.append("**Equal-time noise.** The failing content-equal cells (scored ratio: the sky without "
-                     "its sun disc). Full-sky relMSE ratio = (per-sample variance "
-                     "ratio) × (time ratio): which of the two dominates:")
+        lines.append("**Equal-time noise.** The failing content-equal cells, scored without the sun "
+                     "disc; beside them the full-sky ratio. relMSE ratio = (per-sample variance ratio) × "
+                     "(time ratio): which of the two dominates (under the full sky):")
         lines.append("")
-        diag = all("ref_mean_ratio" in c for c in fails_n)     # recorded since run.py added it
-        sun = all("sunless_relmse_ratio" in c for c in fails_n)
-        lines.append("| scene | nested | method | scored ratio (on) | full-sky relMSE ratio | "
-                     "per-sample variance ratio | time ratio |"
-                     + (" reference mean / built-in's | error share of worst 0.1 % pixels (built-in) |"
-                        if diag else "")
-                     + (" relMSE ratio, sky without its sun disc | target |" if sun else ""))
-        lines.append("|---|---|---|---|---|---|---|" + ("---|---|" if diag else "") + ("---|---|" if sun else ""))
+        lines.append("| scene | nested | method | relMSE ratio, sky without its sun disc (scored) | target | "
+                     "full-sky relMSE ratio | per-sample variance ratio | time ratio | reference mean / "
+                     "built-in's | error share of worst 0.1 % pixels (built-in) |")
+        lines.append("|---|---|---|---|---|---|---|---|---|---|")
         noise = {(c["scene"], c["nested"], c["method"]): c for c in results["noise"]}
         for c in fails_n:
             b = noise.get((c["scene"], c["nested"], "builtin"), {})
-            extra = (f" {fmt(c.get('ref_mean_ratio'))} | {fmt(c.get('top_pixel_error_share'))} "
-                     f"({fmt(b.get('top_pixel_error_share'))}) |") if diag else ""
-            if sun:
-                extra += (f" {fmt(c['sunless_relmse_ratio'])} {mark(c['sunless_pass'])} | "
-                          f"{fmt(c['target'], '.1f')} |")
             lines.append(f"| {c['scene']} | {c['nested']} | {c['method']} | {fmt(c.get('scored_ratio'))} "
-                         f"({c.get('scored_on', 'full sky')}) | {fmt(c['relmse_ratio'])} | "
-                         f"{fmt(c['variance_per_sample_ratio'])} | {fmt(c['time_ratio'])} |" + extra)
+                         f"{mark(c['pass'])} | {fmt(c['target'], '.1f')} | {fmt(c['relmse_ratio'])} | "
+                         f"{fmt(c['variance_per_sample_ratio'])} | {fmt(c['time_ratio'])} | "
+                         f"{fmt(c.get('ref_mean_ratio'))} | {fmt(c.get('top_pixel_error_share'))} "
+                         f"({fmt(b.get('top_pixel_error_share'))}) |")
         lines.append("")
         lines.append("A large per-sample variance ratio with a similar reference mean and most of the "
                      "error in a few pixels points at fireflies or sub-pixel glints; "
-                     "`benchmarks/experiments.py` (control, evalnoise, mispdf) separates the two.")
-        if sun:
-            lines.append("The scored ratio re-measures each cell, at the same spp, with the sun disc "
-                         "(peak radiance 700, σ 4°) removed from the sky and nothing else changed: "
-                         "where the full-sky ratio misses and the sunless one meets the target, the "
-                         "excess noise comes from the sun's glints — highlights that the microfacet "
-                         "model's tangent-facet paths add to the image (the built-in has none there; "
-                         "`benchmarks/plane_glints.png`), not from the estimator on the rest of the image.")
+                     "`benchmarks/experiments.py` (control, evalnoise, mispdf) and "
+                     "`benchmarks/noise_anatomy.py` (the path tracer's two strategies) separate them.")
         lines.append("")
     return lines
 
