@@ -710,7 +710,6 @@ def noise_metrics(scene, nested, assets, prof, scenes, ratio_of) -> list:
                    sunless_relmse_ratio=row["sunless_relmse"] / b if b > 0 else float("nan"), scored_on="sunless")
         row["scored_ratio"] = row["sunless_relmse_ratio"]
         row["pass"] = None if target is None else row["scored_ratio"] <= target
-        row["sunless_pass"] = row["pass"]
         row["sun_pass"] = None if target is None else row["relmse_ratio"] <= target   # reported only
         log(f"  noise  {scene:7s} {nested:12s} {row['method']:22s} {row['spp']:3d} spp  relMSE "
             f"{row['relmse']:.4g}  ratio {row['relmse_ratio']:5.2f}  without the sun disc "
