@@ -630,6 +630,15 @@ class Model:
         prob = dr.select(on_tex, b_tex * dr.select(bounced, (1.0 - s_b) * share, s_b), b_hid)
         return _Draw(bs, w, active & ok, delta, on_tex, bounced, prob, b_tex, b_hid)
 
+    def _derivatives(self, sp):
+        """Whether anything this point's queries read carries derivatives (the normal, the
+        map-wide slopes, the nested BSDF). Then ``sample`` does not gate its re-evaluation: a
+        symbolic ``dr.if_stmt`` inside the BSDF's call lets Dr.Jit 1.5 differentiate the values
+        it captures outside the call's scope, which fails under Mitsuba's ``path``
+        (render_forward: "forward-propagate derivatives across edge ... outside of the current
+        dr.isolate_grad() scope"; render_backward: invalid LLVM IR). The values are the same."""
+        return sp.attached or self.d_tables is not None or sp.nested_attached()
+
     def sample(self, sp, tx, sample1, sample2, active):
         """Radiance-mode sample from ``tx.wi``: (BSDFSample3f in the base frame, weight).
 
@@ -639,7 +648,7 @@ class Model:
         dw = self._draw(sp, tx, sample1, sample2, active)
         bs, active = dw.bs, dw.active
         bs.wo = dr.select(dw.delta, bs.wo, dr.detach(bs.wo))
-        value, pdf = self.eval_pdf(sp, tx, bs.wo, active & negate(dw.delta), gated=True)
+        value, pdf = self.eval_pdf(sp, tx, bs.wo, active & negate(dw.delta), gated=not self._derivatives(sp))
         # Delta lobes (non-diffuse, so bounced ones are the eval's too): the path weight, the
         # branch probabilities cancelling against the eval's factors.
         w_delta = dw.w * dr.select(dw.on_tex, tx.vis / dr.maximum(dw.b_tex, 1e-30),
