@@ -1,7 +1,7 @@
 #!/usr/bin/env python
 r"""Benchmark ``normalmap_microfacet`` against Mitsuba's built-in ``normalmap``.
 
-    python benchmarks/run.py [--quick] [--profile full|production|all] [--variant V] [--integrator I] [--out benchmarks]
+    python benchmarks/run.py [--quick] [--profile full|production|all] [--variant V] [--out benchmarks]
 
 One run measures, side by side, every method on every scene and nested BSDF:
 
@@ -50,9 +50,6 @@ Writes ``results.json`` and ``RESULTS.md`` into ``--out``. ``--quick`` runs a
 subset at tiny sizes (a smoke test, < 1 minute); its timings mean nothing.
 ``--variant`` (default llvm_ad_rgb) renders in another Mitsuba variant, e.g.
 ``cuda_ad_rgb`` on a GPU; an unknown or unusable variant is a one-line error.
-``--integrator`` (default ``path``) renders the methods with another integrator, e.g.
-``mfnormal_path``; the built-in always renders under ``path`` (the ratios' denominator)
-and is also timed under that integrator (a fairness row: ``builtin`` with an integrator).
 """
 
 from __future__ import annotations
@@ -115,7 +112,6 @@ SCENE_TITLES = {"demo": "(a) demo: sphere + ground", "model": "(b) torus knot, 2
 CONTROL_NORMAL = (40.0, 0.0)
 
 VARIANT = "llvm_ad_rgb"          # --variant
-INTEGRATOR = "path"              # --integrator: the methods' integrator (the built-in's is always path)
 MAX_DEPTH = 8
 
 # Targets: the method's value / the built-in's (issue 18).
@@ -338,21 +334,8 @@ def scene_dict(name: str, assets: dict, method: str, nested: str, width: int, he
     return swap_bsdfs(base, method, nested_spec(nested, probe))
 
 
-def with_integrator(scene: dict, name: str) -> dict:
-    """``scene`` with its (path) integrator's type set to ``name``, its other properties kept."""
-    keys = [k for k, v in scene.items() if isinstance(v, dict) and v.get("type") == "path"]
-    if len(keys) != 1:
-        raise ValueError(f"expected one path integrator in the scene, found {len(keys)}")
-    return dict(scene, **{keys[0]: dict(scene[keys[0]], type=name)})
-
-
-def load_scene(name, assets, method, nested, width, height, spp, sunless=False, probe=None, integrator=None):
-    """A benchmark scene; ``integrator`` (default: the built-in under path, the methods under
-    INTEGRATOR) names the integrator replacing the scene's path tracer."""
+def load_scene(name, assets, method, nested, width, height, spp, sunless=False, probe=None):
     d = scene_dict(name, assets, method, nested, width, height, spp, probe)
-    integrator = integrator or ("path" if method == "builtin" else INTEGRATOR)
-    if integrator != "path":
-        d = with_integrator(d, integrator)
     if sunless:
         d = with_envmap(d, assets["sunless_envmap"])
     return mi.load_dict(d)
@@ -423,10 +406,8 @@ def memory_mb() -> dict:
 
 def worker_main(args: dict) -> dict:
     """Runs in a fresh process whose DRJIT_CACHE_DIR is an empty directory."""
-    global INTEGRATOR
     rss0 = memory_mb()["VmHWM"]
     import_mitsuba(args.get("variant"))
-    INTEGRATOR = args.get("integrator", "path")
     return _worker(args, rss0)
 
 
@@ -689,18 +670,8 @@ def render_time(scene, nested, assets, prof, scenes) -> list:
                        "target": target, "pass": ratio <= target})
         log(f"  time   {scene:7s} {nested:12s} {m:22s} {median(tm):6.3f} s vs {median(tb):6.3f} s"
             f"  ratio {ratio:5.2f} [{min(ratios):.2f}, {max(ratios):.2f}]")
-    if INTEGRATOR != "path":
-        # Fairness: the built-in under the methods' integrator against itself under path.
-        own = load_scene(scene, assets, "builtin", nested, W, H, spp, integrator=INTEGRATOR)
-        timed_render(own, spp, 0)
-        tb, tm, ratios = interleaved_pairs(scenes["builtin"], own, spp, prof.reps)
-        timing.append({"profile": prof.name, "scene": scene, "nested": nested, "method": "builtin",
-                       "integrator": INTEGRATOR, "builtin_s": median(tb), "method_s": median(tm),
-                       "ratio": median(ratios), "ratios": ratios, "ratio_min": min(ratios),
-                       "ratio_max": max(ratios), "target": None, "pass": None})
-        log(f"  time   {scene:7s} {nested:12s} builtin under {INTEGRATOR}: ratio {median(ratios):5.2f}")
     for row in timing:
-        if row["pass"] is not False or prof.name == "production":
+        if row["pass"] or prof.name == "production":
             continue
         stubbed = load_scene(scene, assets, row["method"], nested, W, H, spp, probe="stub")
         timed_render(stubbed, spp, 0)
@@ -873,7 +844,7 @@ def why_lines(results: dict) -> list:
     tput = {(r["nested"], r["method"]): r for r in results["throughput"]}
     comp = {(c["scene"], c["nested"], c["method"]): c for c in results["compile"]}
     lines = []
-    fails_t = [c for c in results["render_time"] if c["pass"] is False]
+    fails_t = [c for c in results["render_time"] if not c["pass"]]
     fails_n = [c for c in results["noise"] if c.get("pass") is False]
     fails_c = [c for c in results["compile"] if c.get("pass") is False]
     if fails_t:
@@ -975,8 +946,7 @@ def cell_table(results: dict, prof: dict) -> list:
         if k[2] == "builtin":
             others = [v["builtin_s"] for kk, v in t.items() if kk[:2] == k[:2]]
             ts = median(others) if others else None
-        ratio = fmt(tt.get("ratio")) + (f" (itself under `{tt['integrator']}`)" if tt.get("integrator") else "")
-        L.append(f"| {k[0]} | {k[1]} | {k[2]} | {fmt(ts, '.3f')} | {ratio} | "
+        L.append(f"| {k[0]} | {k[1]} | {k[2]} | {fmt(ts, '.3f')} | {fmt(tt.get('ratio'))} | "
                  f"{mark(tt.get('pass'))} | {nn.get('spp', '–')} | {fmt(nn.get('relmse'), '.3g')} | "
                  f"{fmt(nn.get('relmse_ratio'))} | {fmt(nn.get('sunless_relmse_ratio'))} | {mark(nn.get('pass'))} | "
                  f"{fmt(cc.get('compile_s'))} | {fmt(cc.get('compile_ratio'))} | {mark(cc.get('pass'))} | "
@@ -1013,9 +983,6 @@ def write_markdown(results: dict, path: Path):
           f"- load average at start {fmt(m['loadavg_start'][0])}, at end "
           f"{fmt(results['loadavg_end'][0])}; wall time {results['duration_s'] / 60:.1f} min; "
           f"started {results['started']}",
-          f"- integrator: `path` for the built-in, `{results.get('integrator', 'path')}` for the methods"
-          + (" (the built-in is also timed under it: rows `builtin` with an integrator)"
-             if results.get("integrator", "path") != "path" else ""),
           f"- code: commit `{results['git']['commit']}`"
           + (f", with uncommitted changes in {', '.join(results['git']['modified'])}"
              if results['git']['modified'] else ""),
@@ -1097,9 +1064,6 @@ def parse_args(argv):
                          "(both, and benchmarks/backward.py; the default)")
     ap.add_argument("--variant", default=VARIANT, help=f"Mitsuba variant (default {VARIANT}; e.g. cuda_ad_rgb)")
     ap.add_argument("--out", default=str(HERE), help="output directory (default: benchmarks/)")
-    ap.add_argument("--integrator", default="path",
-                    help="the methods' integrator (default path; e.g. mfnormal_path); the built-in "
-                         "always renders under path, and is also timed under this one")
     ap.add_argument("--scenes", help=f"comma-separated subset of {','.join(SCENES)}")
     ap.add_argument("--nested", help=f"comma-separated subset of {','.join(NESTED)}")
     ap.add_argument("--skip", default="", help="comma-separated metrics to skip: render,compile,throughput,backward")
@@ -1143,8 +1107,6 @@ def main(argv=None) -> int:
     out.mkdir(parents=True, exist_ok=True)
 
     t_start = time.time()
-    global INTEGRATOR
-    INTEGRATOR = args.integrator
     from mfnormal.cli import CLIError
     try:
         import_mitsuba(args.variant)
@@ -1161,7 +1123,6 @@ def main(argv=None) -> int:
         "config": asdict(profiles[0]),
         "configs": [asdict(p) for p in profiles],
         "targets": {"render_time": TIME_TARGET, "noise": NOISE_TARGET, "compile": COMPILE_TARGET},
-        "integrator": INTEGRATOR,
         "render_time": [], "noise": [], "compile": [], "throughput": [], "notes": [],
     }
     log(f"mfnormal benchmark ({', '.join(p.name for p in profiles)}, {mi.variant()}): "
@@ -1217,7 +1178,7 @@ def compile_metrics(s: str, nested: str, assets: dict, prof: Profile, variant: s
     """Metrics 2 and 5 of one scene and nested BSDF: a subprocess per method with an empty kernel cache."""
     rows = []
     job = {"scene": s, "nested": nested, "assets": assets, "width": prof.width, "height": prof.height,
-           "spp": prof.spp, "warm_reps": prof.compile_warm_reps, "variant": variant, "integrator": INTEGRATOR}
+           "spp": prof.spp, "warm_reps": prof.compile_warm_reps, "variant": variant}
     for m in prof.methods:
         r = run_worker(dict(job, method=m))
         r.update(profile=prof.name, scene=s, nested=nested, method=m)

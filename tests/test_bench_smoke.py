@@ -74,28 +74,3 @@ def test_normal_sources_benchmark_runs_and_reports_every_config(tmp_path):
         (c, w) for c in ("heightmap", "geometric", "geometric_heightmap", "geometric_nomap")
         for w in ("eval", "eval_pdf", "sample")}
     assert all(r["ratio"] > 0 for r in rows)
-
-
-def test_integrator_option_renders_the_methods_under_it_and_the_builtin_under_path():
-    """``--integrator`` (here Mitsuba's prb, any registered integrator will do): the methods'
-    scenes get it, with the scene's other integrator properties (max_depth) kept; the built-in's
-    stays path (the ratios' denominator), unless asked for explicitly (the fairness row)."""
-    import importlib.util
-    spec = importlib.util.spec_from_file_location("bench_run", SCRIPT)
-    run = importlib.util.module_from_spec(spec)
-    sys.modules["bench_run"] = run                  # (its dataclasses look their module up)
-    sys.path.insert(0, str(SCRIPT.parent))          # its probes.py
-    spec.loader.exec_module(run)
-    from variant import VARIANT
-    run.import_mitsuba(VARIANT)
-    run.INTEGRATOR = "prb"
-    with run.temporary_assets(("plane",)) as assets:
-        def integrator(method, **kw):
-            i = run.load_scene("plane", assets, method, "diffuse", 8, 8, 1, **kw).integrator()
-            return type(i).__name__, str(i)
-        name, text = integrator("faithful")
-        assert "PRB" in name and "max_depth = 8" in text, (name, text)
-        assert "Path" in integrator("builtin")[1]
-        assert "PRB" in integrator("builtin", integrator="prb")[0]
-        run.INTEGRATOR = "path"
-        assert "Path" in integrator("faithful")[1]
