@@ -641,6 +641,42 @@ class NormalMapMicrofacet:
     def eval_pdf(self, ctx, si, wo, active=True):
         return self._differentiable(ctx, si, active, lambda sp: self._macro_eval_pdf(ctx, sp, wo, active))
 
+    def eval_pdf_sample(self, ctx, si, wo, sample1, sample2, active=True):
+        """(eval, pdf) at ``wo`` and a sample, as Mitsuba's ``eval_pdf_sample``: (value, pdf, bs,
+        weight). Mitsuba 3.9.1's path tracers do not call it for a Python BSDF (its trampoline
+        runs ``eval_pdf`` and then ``sample``); the ``mfnormal_path`` integrator does.
+
+        The random walks run ONE walk (walk.eval_sample): ``sample``'s walk (the same sample and
+        weight, bit for bit) with ``eval``'s NEE toward ``wo`` (an unbiased estimate of ``eval``
+        from the sample's numbers; the pdf is the same deterministic ``mis_pdf``). Where
+        derivatives are taken (walk.replays), and for ``faithful`` and ``analytic`` (their setup is
+        already shared in a kernel by Dr.Jit's common-subexpression elimination), it is
+        ``eval_pdf`` then ``sample``, as Mitsuba's default."""
+        if self.model in ("faithful", "analytic"):
+            return self._eval_pdf_then_sample(ctx, si, wo, sample1, sample2, active)
+        sp = self.shading_point(ctx, si, active)
+        if (sp.attached and dr.is_diff_v(mi.Float)) or walk.replays(sp):
+            return self._eval_pdf_then_sample(ctx, si, wo, sample1, sample2, active)
+        macro = normals.macro_of(sp)
+        active = mi.Bool(active)
+        wo_m = wo if macro is None else macro.to_macro(wo)
+        value, (bs, weight) = walk.eval_sample(sp, self.walk_params, wo_m, sample1, sample2, active)
+        pdf = walk.mis_pdf(sp, self.walk_params, wo_m, active)
+        if macro is not None:
+            k = macro.adjoint(ctx, sp, wo, wo_m)
+            value = value if k is None else value * k
+            bs_wo_m = mi.Vector3f(bs.wo)        # a copy: assigning bs.wo writes into the struct
+            bs.wo = macro.from_macro(bs_wo_m)
+            k = macro.adjoint(ctx, sp, bs.wo, bs_wo_m)
+            weight = weight if k is None else weight * k
+        return value, pdf, bs, weight
+
+    def _eval_pdf_then_sample(self, ctx, si, wo, sample1, sample2, active):
+        """Mitsuba's default ``eval_pdf_sample``: ``eval_pdf`` at ``wo``, then ``sample``."""
+        value, pdf = self.eval_pdf(ctx, si, wo, active)
+        bs, weight = self.sample(ctx, si, sample1, sample2, active)
+        return value, pdf, bs, weight
+
     def to_string(self):
         return (f"NormalMapMicrofacet[model={self.model}, tangent_facet={self.tangent_facet}, "
                 f"rr_depth={self._walk_ok[1]}, mis_boost_max={self._walk_ok[2]}, strength={self.strength}, "
