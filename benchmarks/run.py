@@ -334,11 +334,22 @@ def scene_dict(name: str, assets: dict, method: str, nested: str, width: int, he
     return swap_bsdfs(base, method, nested_spec(nested, probe))
 
 
-def load_scene(name, assets, method, nested, width, height, spp, sunless=False, probe=None):
+def load_scene(name, assets, method, nested, width, height, spp, sunless=False, probe=None, integrator="path"):
     d = scene_dict(name, assets, method, nested, width, height, spp, probe)
     if sunless:
         d = with_envmap(d, assets["sunless_envmap"])
-    return mi.load_dict(d)
+    return mi.load_dict(with_integrator(d, integrator))
+
+
+def with_integrator(scene: dict, integrator: str) -> dict:
+    """``scene`` with its ``path`` integrator replaced by ``integrator`` (its parameters kept),
+    e.g. ``mfnormal_path`` (mfnormal.integrator); "path" leaves it as it is."""
+    if integrator == "path":
+        return scene
+    found = [k for k, v in scene.items() if isinstance(v, dict) and v.get("type") == "path"]
+    if not found:
+        raise ValueError("the scene has no 'path' integrator to replace")
+    return {**scene, **{k: {**scene[k], "type": integrator} for k in found}}
 
 
 def with_envmap(scene: dict, filename: str) -> dict:
@@ -413,7 +424,8 @@ def worker_main(args: dict) -> dict:
 
 def _worker(args: dict, rss0) -> dict:
     scene = load_scene(args["scene"], args["assets"], args["method"], args["nested"],
-                       args["width"], args["height"], args["spp"], probe="stub" if args.get("stub") else None)
+                       args["width"], args["height"], args["spp"], probe="stub" if args.get("stub") else None,
+                       integrator=args.get("integrator", "path"))
     rss_load = memory_mb()["VmRSS"]
     dr.set_flag(dr.JitFlag.KernelHistory, True)
     dr.kernel_history_clear()
