@@ -19,7 +19,8 @@ calls the plugin's own ``eval_pdf_sample`` (one walk). Per scene size and nested
   ``path``.
 
 Uses run.py's helpers (``load_scene``, ``timed_render``, ``run_worker``), the same scenes and
-MAX_DEPTH. Writes a JSON file and prints a table.
+MAX_DEPTH. Writes ``--out`` (JSON) and its tables beside it (``.md``; ``--report-only JSON``
+rewrites them from a JSON file).
 """
 
 from __future__ import annotations
@@ -90,8 +91,9 @@ def compile_rows(scene, nested, assets, size, spp, methods, variant) -> dict:
 
 
 def table(cell: dict, methods) -> list:
-    lines = ["| method | time path | time mfnormal_path | mf/path | compile path | compile mf | ops path | ops mf |",
-             "|---|---|---|---|---|---|---|---|"]
+    lines = ["| method | time path | time mfnormal_path | mf/path | mf/(builtin mf) | compile path | compile mf "
+             "| ops path | ops mf |", "|---|---|---|---|---|---|---|---|---|"]
+    base_mf = cell["render"]["builtin|mfnormal_path"]["ratio"]
     comp = cell.get("compile", {})
 
     def c(m, i, key, spec=".2f"):
@@ -99,10 +101,28 @@ def table(cell: dict, methods) -> list:
         return "–" if v is None else format(v, spec)
     for m in methods:
         tp, tm = cell["render"][f"{m}|path"]["ratio"], cell["render"][f"{m}|mfnormal_path"]["ratio"]
-        lines.append(f"| {m} | {tp:.3f} | {tm:.3f} | {tm / tp:.3f} | {c(m, 'path', 'compile_ratio')} | "
+        lines.append(f"| {m} | {tp:.3f} | {tm:.3f} | {tm / tp:.3f} | {tm / base_mf:.3f} | {c(m, 'path', 'compile_ratio')} | "
                      f"{c(m, 'mfnormal_path', 'compile_ratio')} | {c(m, 'path', 'max_kernel_ops', 'd')} | "
                      f"{c(m, 'mfnormal_path', 'max_kernel_ops', 'd')} |")
     return lines
+
+
+def write_markdown(results: dict, path: Path, methods=METHODS):
+    """The tables of every cell: each configuration's time and compile as ratios to the built-in
+    under ``path``, and the largest kernel's operations."""
+    m = results["machine"]
+    lines = ["# The fused BSDF call: every method under `path` and under `mfnormal_path`", "",
+             f"`benchmarks/fused.py`, scene `{results['scene']}`, {results['spp']} spp, {results['reps']} "
+             f"interleaved repetitions (medians of per-pair ratios to the built-in under `path`), commit "
+             f"`{results['git']['commit']}`, {m['variant']}, {m['cores']} cores ({m['cpu']}). "
+             "Compile: run.py's metric 2 (192×144: first − warm render; 1280×720: the kernel history's "
+             "codegen + backend time). `mf/path`: the method's time under `mfnormal_path` over its time under "
+             "`path`; `mf/(builtin mf)`: its time under `mfnormal_path` over the built-in's under "
+             "`mfnormal_path` (the integrators' own difference taken out).", ""]
+    for cell in results["cells"]:
+        w, h = cell["size"]
+        lines += [f"## {w}×{h}, nested {cell['nested']}", ""] + table(cell, methods) + [""]
+    path.write_text("\n".join(lines))
 
 
 def main(argv=None) -> int:
@@ -116,7 +136,11 @@ def main(argv=None) -> int:
     ap.add_argument("--no-compile", action="store_true")
     ap.add_argument("--variant", default=R.VARIANT)
     ap.add_argument("--out", type=Path, default=R.HERE / "fused.json")
+    ap.add_argument("--report-only", type=Path, help="write the markdown of this JSON file and exit")
     args = ap.parse_args(argv)
+    if args.report_only:
+        write_markdown(json.loads(args.report_only.read_text()), args.out.with_suffix(".md"))
+        return 0
     if "builtin" not in args.methods:
         args.methods.insert(0, "builtin")
     R.import_mitsuba(args.variant)
@@ -136,6 +160,7 @@ def main(argv=None) -> int:
                 results["cells"].append(cell)
                 R.log("\n".join(table(cell, args.methods)))
                 args.out.write_text(json.dumps(results, indent=1, default=str))
+                write_markdown(results, args.out.with_suffix(".md"), args.methods)
     R.log(f"done in {time.time() - t0:.0f} s: {args.out}")
     return 0
 

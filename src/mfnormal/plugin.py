@@ -161,6 +161,12 @@ normals); ``nonseparable`` is the physically exact one (height-correlated),
 the look closest to classic normal mapping; ``same`` spreads the material over
 both facets.
 
+``eval_pdf_sample`` (eval and pdf at ``wo`` and a sample, as Mitsuba's) runs one walk for
+the random-walk models (``sample``'s walk with ``eval``'s NEE toward ``wo``; docs/model.md
+§4.10), ``eval_pdf`` then ``sample`` for the others and wherever derivatives are taken. Mitsuba
+3.9.1's own path tracers never call it for a Python BSDF; the ``mfnormal_path`` integrator
+(registered with this plugin) does.
+
 Costs per query: ``faithful`` 3 nested ``eval_pdf`` per ``eval``/``pdf`` (5 for a
 nested BSDF with both diffuse and other components), 1 nested ``sample`` more per
 ``sample`` (whose ``eval`` skips, per SIMD packet, the bounce terms no lane needs). ``analytic`` 3 nested ``eval_pdf`` per ``eval``/``pdf``, and

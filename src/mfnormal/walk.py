@@ -21,6 +21,8 @@ every vertex, which forgets height correlation (§4.1).
 - ``mis_pdf``: a deterministic function for MIS (§5): the exact density of the
   low-order terms plus a cosine lobe for the rest, boosted by the nested lobe's
   sharpness where longer walks are likely (variance-aware MIS).
+- ``eval_sample``: both from one walk (§4.10, primal only): ``eval_walk`` run with
+  ``sample_walk``'s numbers, so its walker is ``sample``'s and its L an unbiased ``eval``.
 
 Both loops are built from the same steps: ``mirror_fold`` (a mirror tangent
 facet), ``add_nee`` (NEE at a vertex), ``bounce`` (nested sample, ``cross`` to
