@@ -112,6 +112,10 @@ SCENE_TITLES = {"demo": "(a) demo: sphere + ground", "model": "(b) torus knot, 2
 CONTROL_NORMAL = (40.0, 0.0)
 
 VARIANT = "llvm_ad_rgb"          # --variant
+# The integrator the methods render under (--integrator): Mitsuba's "path", or "mfnormal_path"
+# (mfnormal.integrator: path calling the plugin's fused eval_pdf_sample). The built-in: always "path".
+INTEGRATORS = ("path", "mfnormal_path")
+INTEGRATOR = "path"
 MAX_DEPTH = 8
 
 # Targets: the method's value / the built-in's (issue 18).
@@ -334,11 +338,27 @@ def scene_dict(name: str, assets: dict, method: str, nested: str, width: int, he
     return swap_bsdfs(base, method, nested_spec(nested, probe))
 
 
-def load_scene(name, assets, method, nested, width, height, spp, sunless=False, probe=None):
+def method_integrator(method: str) -> str:
+    """The integrator ``method`` renders under: the built-in always under ``path``."""
+    return "path" if method == "builtin" else INTEGRATOR
+
+
+def load_scene(name, assets, method, nested, width, height, spp, sunless=False, probe=None, integrator="path"):
     d = scene_dict(name, assets, method, nested, width, height, spp, probe)
     if sunless:
         d = with_envmap(d, assets["sunless_envmap"])
-    return mi.load_dict(d)
+    return mi.load_dict(with_integrator(d, integrator))
+
+
+def with_integrator(scene: dict, integrator: str) -> dict:
+    """``scene`` with its ``path`` integrator replaced by ``integrator`` (its parameters kept),
+    e.g. ``mfnormal_path`` (mfnormal.integrator); "path" leaves it as it is."""
+    if integrator == "path":
+        return scene
+    found = [k for k, v in scene.items() if isinstance(v, dict) and v.get("type") == "path"]
+    if not found:
+        raise ValueError("the scene has no 'path' integrator to replace")
+    return {**scene, **{k: {**scene[k], "type": integrator} for k in found}}
 
 
 def with_envmap(scene: dict, filename: str) -> dict:
@@ -413,7 +433,8 @@ def worker_main(args: dict) -> dict:
 
 def _worker(args: dict, rss0) -> dict:
     scene = load_scene(args["scene"], args["assets"], args["method"], args["nested"],
-                       args["width"], args["height"], args["spp"], probe="stub" if args.get("stub") else None)
+                       args["width"], args["height"], args["spp"], probe="stub" if args.get("stub") else None,
+                       integrator=args.get("integrator", "path"))
     rss_load = memory_mb()["VmRSS"]
     dr.set_flag(dr.JitFlag.KernelHistory, True)
     dr.kernel_history_clear()
@@ -642,7 +663,8 @@ def throughput(nested: str, methods, prof: Profile) -> list:
 def render_metrics(scene: str, nested: str, assets: dict, prof: Profile) -> tuple:
     """Metrics 1 and 3 of one scene and nested BSDF: (render-time rows, noise rows)."""
     W, H, spp = prof.width, prof.height, prof.spp
-    scenes = {m: load_scene(scene, assets, m, nested, W, H, spp) for m in prof.methods}
+    scenes = {m: load_scene(scene, assets, m, nested, W, H, spp, integrator=method_integrator(m))
+              for m in prof.methods}
     for m in prof.methods:                              # JIT-compile (warm-up)
         timed_render(scenes[m], spp, 0)
     timing = render_time(scene, nested, assets, prof, scenes)
@@ -673,7 +695,8 @@ def render_time(scene, nested, assets, prof, scenes) -> list:
     for row in timing:
         if row["pass"] or prof.name == "production":
             continue
-        stubbed = load_scene(scene, assets, row["method"], nested, W, H, spp, probe="stub")
+        stubbed = load_scene(scene, assets, row["method"], nested, W, H, spp, probe="stub",
+                             integrator=method_integrator(row["method"]))
         timed_render(stubbed, spp, 0)
         ts = median([timed_render(stubbed, spp, 300 + r)[0] for r in range(3)])
         row.update(stub_s=ts, stub_ratio=ts / row["builtin_s"],
@@ -695,8 +718,8 @@ def noise_metrics(scene, nested, assets, prof, scenes, ratio_of) -> list:
                       "ref_spp": n["ref_spp"], "time_ratio": ratio_of[m], "relmse": n["relmse"],
                       "relmse_raw": n["relmse_raw"], "ref_mean": n["ref_mean"], "top_pixel_error_share": n["top"]})
     for row in noise:
-        n = equal_time_noise(load_scene(scene, assets, row["method"], nested, W, H, prof.spp, sunless=True),
-                             row["spp"], prof)
+        n = equal_time_noise(load_scene(scene, assets, row["method"], nested, W, H, prof.spp, sunless=True,
+                                        integrator=method_integrator(row["method"])), row["spp"], prof)
         row["sunless_relmse"] = n["relmse"]
     base = next(r for r in noise if r["method"] == "builtin")
     for row in noise:
@@ -983,6 +1006,8 @@ def write_markdown(results: dict, path: Path):
           f"- load average at start {fmt(m['loadavg_start'][0])}, at end "
           f"{fmt(results['loadavg_end'][0])}; wall time {results['duration_s'] / 60:.1f} min; "
           f"started {results['started']}",
+          *([f"- integrator: the methods under `{results['integrator']}` (mfnormal.integrator), the "
+             "built-in under Mitsuba's `path`"] if results.get("integrator", "path") != "path" else []),
           f"- code: commit `{results['git']['commit']}`"
           + (f", with uncommitted changes in {', '.join(results['git']['modified'])}"
              if results['git']['modified'] else ""),
@@ -1067,6 +1092,8 @@ def parse_args(argv):
     ap.add_argument("--scenes", help=f"comma-separated subset of {','.join(SCENES)}")
     ap.add_argument("--nested", help=f"comma-separated subset of {','.join(NESTED)}")
     ap.add_argument("--skip", default="", help="comma-separated metrics to skip: render,compile,throughput,backward")
+    ap.add_argument("--integrator", choices=INTEGRATORS, default="path",
+                    help="the integrator the methods render under (default path; the built-in: always path)")
     ap.add_argument("--report-only", action="store_true",
                     help="rewrite RESULTS.md from the results.json already in --out")
     ap.add_argument("--worker", help=argparse.SUPPRESS)
@@ -1102,6 +1129,8 @@ def main(argv=None) -> int:
         log(f"wrote {Path(args.out) / 'RESULTS.md'}")
         return 0
     profiles = selected_profiles(ap, args)
+    global INTEGRATOR
+    INTEGRATOR = args.integrator
     skip = set(filter(None, args.skip.split(",")))
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -1124,6 +1153,7 @@ def main(argv=None) -> int:
         "configs": [asdict(p) for p in profiles],
         "targets": {"render_time": TIME_TARGET, "noise": NOISE_TARGET, "compile": COMPILE_TARGET},
         "render_time": [], "noise": [], "compile": [], "throughput": [], "notes": [],
+        "integrator": INTEGRATOR,
     }
     log(f"mfnormal benchmark ({', '.join(p.name for p in profiles)}, {mi.variant()}): "
         f"{results['machine']['cpu']}, {results['machine']['cores']} cores, "
@@ -1180,7 +1210,7 @@ def compile_metrics(s: str, nested: str, assets: dict, prof: Profile, variant: s
     job = {"scene": s, "nested": nested, "assets": assets, "width": prof.width, "height": prof.height,
            "spp": prof.spp, "warm_reps": prof.compile_warm_reps, "variant": variant}
     for m in prof.methods:
-        r = run_worker(dict(job, method=m))
+        r = run_worker(dict(job, method=m, integrator=method_integrator(m)))
         r.update(profile=prof.name, scene=s, nested=nested, method=m)
         rows.append(r)
         log(f"  compile {s:7s} {nested:12s} {m:22s} "
@@ -1199,7 +1229,7 @@ def compile_metrics(s: str, nested: str, assets: dict, prof: Profile, variant: s
         r["pass"] = None if r["method"] == "builtin" else r["compile_ratio"] <= COMPILE_TARGET
         if r["pass"] is False and prof.name != "production":
             # Profile: the same configuration with the nested calls stubbed out.
-            st = run_worker(dict(job, method=r["method"], stub=True))
+            st = run_worker(dict(job, method=r["method"], stub=True, integrator=method_integrator(r["method"])))
             if "error" not in st:
                 r.update(stub_compile_s=st["compile_s"], stub_max_kernel_ops=st["max_kernel_ops"],
                          stub_backend_s=st["backend_s"])

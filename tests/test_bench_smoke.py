@@ -74,3 +74,22 @@ def test_normal_sources_benchmark_runs_and_reports_every_config(tmp_path):
         (c, w) for c in ("heightmap", "geometric", "geometric_heightmap", "geometric_nomap")
         for w in ("eval", "eval_pdf", "sample")}
     assert all(r["ratio"] > 0 for r in rows)
+
+
+def test_integrator_option_swaps_only_the_methods_path_tracer():
+    """``--integrator mfnormal_path``: the methods' scenes get it, the built-in keeps ``path``."""
+    sys.path.insert(0, str(SCRIPT.parent))
+    import run as R
+    scene = {"type": "scene", "integrator": {"type": "path", "max_depth": 8}, "x": {"type": "sphere"}}
+    swapped = R.with_integrator(scene, "mfnormal_path")
+    assert swapped["integrator"] == {"type": "mfnormal_path", "max_depth": 8}
+    assert scene["integrator"]["type"] == "path" and R.with_integrator(scene, "path") is scene
+    old = R.INTEGRATOR
+    try:
+        R.INTEGRATOR = "mfnormal_path"
+        assert R.method_integrator("builtin") == "path"
+        assert R.method_integrator("separable_same") == "mfnormal_path"
+    finally:
+        R.INTEGRATOR = old
+    with pytest.raises(ValueError):
+        R.with_integrator({"type": "scene"}, "mfnormal_path")

@@ -1,8 +1,8 @@
 """mfnormal: microfacet-based normal mapping (Schüßler et al. 2017) for Mitsuba 3.
 
 ``import mfnormal`` first makes sure Dr.Jit will load a compatible libLLVM (see
-``mfnormal._llvm``), then registers the ``normalmap_microfacet`` BSDF plugin for
-the active Mitsuba variant. Call ``mfnormal.register()`` again after
+``mfnormal._llvm``), then registers the ``normalmap_microfacet`` BSDF plugin and the
+``mfnormal_path`` integrator (``mfnormal.integrator``) for the active Mitsuba variant. Call ``mfnormal.register()`` again after
 ``mi.set_variant(...)``.
 """
 
@@ -39,9 +39,11 @@ def register(variant: str | None = None) -> str | None:
         warnings.warn(f"mfnormal: the Python BSDF runs ~100x slower in '{variant}' than in "
                       "'llvm_ad_rgb'; use a JIT variant for rendering", RuntimeWarning, stacklevel=2)
     if variant not in _registered:
-        from . import plugin
+        from . import integrator, plugin
         cls = plugin.bsdf_class()
         mi.register_bsdf("normalmap_microfacet", lambda props: cls(props))
+        path_cls = integrator.integrator_class()
+        mi.register_integrator("mfnormal_path", lambda props: path_cls(props))
         _registered.add(variant)
     return variant
 

@@ -161,6 +161,12 @@ normals); ``nonseparable`` is the physically exact one (height-correlated),
 the look closest to classic normal mapping; ``same`` spreads the material over
 both facets.
 
+``eval_pdf_sample`` (eval and pdf at ``wo`` and a sample, as Mitsuba's) runs one walk for
+the random-walk models (``sample``'s walk with ``eval``'s NEE toward ``wo``; docs/model.md
+§4.10), ``eval_pdf`` then ``sample`` for the others and wherever derivatives are taken. Mitsuba
+3.9.1's own path tracers never call it for a Python BSDF; the ``mfnormal_path`` integrator
+(registered with this plugin) does.
+
 Costs per query: ``faithful`` 3 nested ``eval_pdf`` per ``eval``/``pdf`` (5 for a
 nested BSDF with both diffuse and other components), 1 nested ``sample`` more per
 ``sample`` (whose ``eval`` skips, per SIMD packet, the bounce terms no lane needs). ``analytic`` 3 nested ``eval_pdf`` per ``eval``/``pdf``, and
@@ -640,6 +646,42 @@ class NormalMapMicrofacet:
 
     def eval_pdf(self, ctx, si, wo, active=True):
         return self._differentiable(ctx, si, active, lambda sp: self._macro_eval_pdf(ctx, sp, wo, active))
+
+    def eval_pdf_sample(self, ctx, si, wo, sample1, sample2, active=True):
+        """(eval, pdf) at ``wo`` and a sample, as Mitsuba's ``eval_pdf_sample``: (value, pdf, bs,
+        weight). Mitsuba 3.9.1's path tracers do not call it for a Python BSDF (its trampoline
+        runs ``eval_pdf`` and then ``sample``); the ``mfnormal_path`` integrator does.
+
+        The random walks run ONE walk (walk.eval_sample): ``sample``'s walk (the same sample and
+        weight, bit for bit) with ``eval``'s NEE toward ``wo`` (an unbiased estimate of ``eval``
+        from the sample's numbers; the pdf is the same deterministic ``mis_pdf``). Where
+        derivatives are taken (walk.replays), and for ``faithful`` and ``analytic`` (their setup is
+        already shared in a kernel by Dr.Jit's common-subexpression elimination), it is
+        ``eval_pdf`` then ``sample``, as Mitsuba's default."""
+        if self.model in ("faithful", "analytic"):
+            return self._eval_pdf_then_sample(ctx, si, wo, sample1, sample2, active)
+        sp = self.shading_point(ctx, si, active)
+        if (sp.attached and dr.is_diff_v(mi.Float)) or walk.replays(sp):
+            return self._eval_pdf_then_sample(ctx, si, wo, sample1, sample2, active)
+        macro = normals.macro_of(sp)
+        active = mi.Bool(active)
+        wo_m = wo if macro is None else macro.to_macro(wo)
+        value, (bs, weight) = walk.eval_sample(sp, self.walk_params, wo_m, sample1, sample2, active)
+        pdf = walk.mis_pdf(sp, self.walk_params, wo_m, active)
+        if macro is not None:
+            k = macro.adjoint(ctx, sp, wo, wo_m)
+            value = value if k is None else value * k
+            bs_wo_m = mi.Vector3f(bs.wo)        # a copy: assigning bs.wo writes into the struct
+            bs.wo = macro.from_macro(bs_wo_m)
+            k = macro.adjoint(ctx, sp, bs.wo, bs_wo_m)
+            weight = weight if k is None else weight * k
+        return value, pdf, bs, weight
+
+    def _eval_pdf_then_sample(self, ctx, si, wo, sample1, sample2, active):
+        """Mitsuba's default ``eval_pdf_sample``: ``eval_pdf`` at ``wo``, then ``sample``."""
+        value, pdf = self.eval_pdf(ctx, si, wo, active)
+        bs, weight = self.sample(ctx, si, sample1, sample2, active)
+        return value, pdf, bs, weight
 
     def to_string(self):
         return (f"NormalMapMicrofacet[model={self.model}, tangent_facet={self.tangent_facet}, "

@@ -21,6 +21,8 @@ every vertex, which forgets height correlation (§4.1).
 - ``mis_pdf``: a deterministic function for MIS (§5): the exact density of the
   low-order terms plus a cosine lobe for the rest, boosted by the nested lobe's
   sharpness where longer walks are likely (variance-aware MIS).
+- ``eval_sample``: both from one walk (§4.10, primal only): ``eval_walk`` run with
+  ``sample_walk``'s numbers, so its walker is ``sample``'s and its L an unbiased ``eval``.
 
 Both loops are built from the same steps: ``mirror_fold`` (a mirror tangent
 facet), ``add_nee`` (NEE at a vertex), ``bounce`` (nested sample, ``cross`` to
@@ -565,7 +567,7 @@ def _sample_walk(sp, params, sample1, sample2, active):
     return w, rp
 
 
-def eval_walk(sp, params, wo, active):
+def eval_walk(sp, params, wo, active, numbers=None):
     """Supplemental Algorithms 2 (3 with a mirror t): NEE toward ω_o along a walk from ω_i.
 
     Returns (L, walker): L estimates f·⟨ω_o, ω_g⟩ without bias. The NEE at the first
@@ -574,21 +576,33 @@ def eval_walk(sp, params, wo, active):
     it started on, ``t_start_share`` the t start's share, and later iterations the
     vertices after the first nested sample. Random numbers: a hash of (ω_i, ω_o, si.p).
     With derivatives the walk runs twice: for L, then replayed for L's derivative (Replay).
+
+    ``numbers`` = (sample1, sample2, walk_active): the fused walk of :func:`eval_sample`
+    (primal only). The walk then takes the sample walk's numbers (its start facet, first
+    nested sample and seed), so its walker is ``sample_walk``'s, and runs on ``walk_active``
+    (ω_i above the horizon) while the NEE is only taken on ``active``.
     """
     sp = calls(sp)
     wi = sp.wi
     active = mi.Bool(active) & (wi.z > 0)
-    seed = hash_floats(SALT_WALK_EVAL, dr.detach(wi.x), dr.detach(wi.y), dr.detach(wo.x), dr.detach(wo.y),
-                       sp.si.p.x, sp.si.p.y, sp.si.p.z)
+    if numbers is None:
+        seed = hash_floats(SALT_WALK_EVAL, dr.detach(wi.x), dr.detach(wi.y), dr.detach(wo.x), dr.detach(wo.y),
+                           sp.si.p.x, sp.si.p.y, sp.si.p.z)
+        u_start, walk_active = uniform(seed, SLOT_START_FACET), active
+    else:
+        sample1, sample2, walk_active = numbers
+        seed = hash_floats(SALT_WALK_SAMPLE, sample1, sample2.x, sample2.y)
+        u_start, walk_active = sample1, mi.Bool(walk_active) & (wi.z > 0)
 
     def run(sp, rp):
-        walker, p_start, lp, _ = _first_vertex(sp, params, uniform(seed, SLOT_START_FACET), active, rp is not None)
+        walker, p_start, lp, s1_first = _first_vertex(sp, params, u_start, walk_active, rp is not None)
+        first = None if numbers is None else (s1_first, mi.Point2f(numbers[1]))
         if not params.specular_tangent:
             walker.p_in = dr.zeros(mi.Float, dr.width(walker.a))
         to = NeeTarget.toward(sp, params, wo)
         b_p = first_interval(sp, params, True)[1]
 
-        def body(w, L, rp, geometry, seed, to, lp, b_p, active, p_start):
+        def body(w, L, rp, geometry, seed, to, lp, b_p, active, p_start, first):
             at = sp.with_state(geometry)
             at_start = w.depth == 0   # the first vertex (before a folded mirror bounce counts)
             d_in, p_fold = w.d, None
@@ -597,7 +611,7 @@ def eval_walk(sp, params, wo, active):
                 d_in, p_fold = mirror_fold(at, w, params, seed, rp)
             # NEE toward ω_o from this vertex; in the first iteration, the p start's share.
             a, b = attached_interval(at, w, rp)
-            on = dr.select(at_start, active, w.walking)
+            on = dr.select(at_start, active, w.walking & active)   # (eval: w.walking ⊆ active)
             nee = (at, params, to, w.on_p | at_start, dr.select(at_start, at.wi, -d_in), dr.select(at_start, 0.0, a),
                    dr.select(at_start, b_p, b), dr.select(at_start, mi.Spectrum(lp), w.e), on, w.p_in)
             if not params.specular_tangent:
@@ -617,11 +631,14 @@ def eval_walk(sp, params, wo, active):
                 rp.factor(p_start, at_start & active, 0.0 if params.specular_tangent else dr.detach(c_next))
                 if p_fold is not None:
                     rp.factor(p_fold, folded, dr.select(at_start, 0.0, dr.detach(c)))
-            bounce(at, w, params, seed, vertex_frame(at, params, w.on_p), *nested_numbers(seed, w.depth), d_in, rp)
-            return w, L, rp, geometry, seed, to, lp, b_p, active, p_start
+            s1, s2 = nested_numbers(seed, w.depth)
+            if first is not None:       # the fused walk: the sample walk's first nested sample
+                s1, s2 = dr.select(w.depth == 0, first[0], s1), dr.select(w.depth == 0, first[1], s2)
+            bounce(at, w, params, seed, vertex_frame(at, params, w.on_p), s1, s2, d_in, rp)
+            return w, L, rp, geometry, seed, to, lp, b_p, active, p_start, first
 
         state = (walker, dr.zeros(mi.Spectrum, dr.width(active)), rp, sp.state(), seed, to, lp, b_p, active,
-                 p_start)
+                 p_start, first)
         w, L, rp = _loop(state, body, "mfnormal_eval_walk")[:3]
         return w, L, rp, lp
 
@@ -646,6 +663,12 @@ def sample(sp, params, sample1, sample2, active):
     if rp is not None:
         w.e = replace_grad(w.e, w.e * rp.G)
         w.d = replace_grad(w.d, w.d + rp.exit)
+    return exit_sample(sp, params, w)
+
+
+def exit_sample(sp, params, w):
+    """A finished walker as the BSDF's sample: (BSDFSample3f with the MIS pdf, throughput);
+    walks that did not escape, or escaped below the horizon, give pdf and weight 0."""
     valid = w.escaped & (w.d.z > 0) & dr.all(dr.isfinite(w.e)) & dr.all(dr.isfinite(w.d))
     bs = dr.zeros(mi.BSDFSample3f, dr.width(w.d))
     bs.wo = dr.select(w.escaped & dr.all(dr.isfinite(w.d)), w.d, mi.Vector3f(0.0, 0.0, 1.0))
@@ -665,6 +688,21 @@ def eval(sp, params, wo, active):
     active = mi.Bool(active) & (sp.wi.z > 0) & (wo.z > 0)
     L = eval_walk(sp, params, wo, active)[0]
     return dr.select(active & dr.all(dr.isfinite(L)), dr.maximum(L, 0.0), 0.0)
+
+
+def eval_sample(sp, params, wo, sample1, sample2, active):
+    """``eval`` at wo and ``sample`` from one walk (primal only: without derivatives).
+
+    The walk is ``sample``'s (the same numbers, so the same exit, sample and weight, bit for
+    bit) and does ``eval_walk``'s NEE toward wo at its vertices. The value is an unbiased
+    estimate of f·⟨wo, z⟩ like ``eval``'s, but from the sample's numbers instead of a hash of
+    the query; its correlation with the sample leaves a path tracer unbiased (the NEE and the
+    continuation are added). Returns (value, (BSDFSample3f, weight))."""
+    walking = mi.Bool(active) & (sp.wi.z > 0)
+    on = walking & (wo.z > 0)
+    L, w = eval_walk(sp, params, wo, on, (sample1, sample2, walking))
+    value = dr.select(on & dr.all(dr.isfinite(L)), dr.maximum(L, 0.0), 0.0)
+    return value, exit_sample(sp, params, w)
 
 
 def _escape(sp, h, on_p, d):
