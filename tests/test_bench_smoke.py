@@ -76,8 +76,9 @@ def test_normal_sources_benchmark_runs_and_reports_every_config(tmp_path):
     assert all(r["ratio"] > 0 for r in rows)
 
 
-def test_integrator_option_swaps_only_the_methods_path_tracer():
-    """``--integrator mfnormal_path``: the methods' scenes get it, the built-in keeps ``path``."""
+def test_integrator_option_swaps_every_methods_path_tracer():
+    """``--integrator mfnormal_path``: every method's scene gets it, the built-in's included (one
+    integrator for the ratios); a scene without a path integrator is an error."""
     sys.path.insert(0, str(SCRIPT.parent))
     import run as R
     scene = {"type": "scene", "integrator": {"type": "path", "max_depth": 8}, "x": {"type": "sphere"}}
@@ -87,7 +88,7 @@ def test_integrator_option_swaps_only_the_methods_path_tracer():
     old = R.INTEGRATOR
     try:
         R.INTEGRATOR = "mfnormal_path"
-        assert R.method_integrator("builtin") == "path"
+        assert R.method_integrator("builtin") == "mfnormal_path"
         assert R.method_integrator("separable_same") == "mfnormal_path"
     finally:
         R.INTEGRATOR = old
