@@ -2,8 +2,9 @@
 
 ``import mfnormal`` first makes sure Dr.Jit will load a compatible libLLVM (see
 ``mfnormal._llvm``), then registers the ``normalmap_microfacet`` BSDF plugin for
-the active Mitsuba variant. Call ``mfnormal.register()`` again after
-``mi.set_variant(...)``.
+the active Mitsuba variant, and the ``mfnormal_prb`` AD integrator (``mfnormal.ad_integrator``:
+unbiased render derivatives for the random-walk models). Call ``mfnormal.register()`` again
+after ``mi.set_variant(...)``.
 """
 
 from __future__ import annotations  # ``str | None`` annotations on Python 3.9
@@ -42,6 +43,10 @@ def register(variant: str | None = None) -> str | None:
         from . import plugin
         cls = plugin.bsdf_class()
         mi.register_bsdf("normalmap_microfacet", lambda props: cls(props))
+        if "_ad_" in variant:
+            from . import ad_integrator
+            integ = ad_integrator.integrator_class()
+            mi.register_integrator("mfnormal_prb", lambda props: integ(props))
         _registered.add(variant)
     return variant
 
