@@ -33,9 +33,12 @@ differentiated exactly as ``prb`` does, through ``bsdf.eval`` (tested equal to `
 Light from NEE is linear in the eval estimate and needs nothing new.
 
 Limitations: a walk nested inside another BSDF (``twosided``, ``blendbsdf``) is seen as that
-BSDF, i.e. differentiated as ``prb`` does (biased); for the walks the re-drawn weight has a
-detached direction, so the cosine's and the BSDF's dependence on moving geometry (the
-Jacobian J is still applied) is not differentiated: use it for material parameters.
+BSDF, i.e. differentiated as ``prb`` does (biased); for the walks the cosine's and the BSDF's
+dependence on moving geometry is not differentiated (the Jacobian J is still applied): use
+it for material parameters. A mirror-facet walk's sample that leaves by the mirror has a
+direction that moves with the map; detached replay does not follow it, so those walks'
+texel derivatives are biased where the incident radiance varies with direction (measured
+in docs/model.md §9; zero under a constant environment).
 
 .. tabs::
 
