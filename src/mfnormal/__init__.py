@@ -1,9 +1,11 @@
 """mfnormal: microfacet-based normal mapping (Schüßler et al. 2017) for Mitsuba 3.
 
 ``import mfnormal`` first makes sure Dr.Jit will load a compatible libLLVM (see
-``mfnormal._llvm``), then registers the ``normalmap_microfacet`` BSDF plugin and the
-``mfnormal_path`` integrator (``mfnormal.integrator``) for the active Mitsuba variant. Call ``mfnormal.register()`` again after
-``mi.set_variant(...)``.
+``mfnormal._llvm``), then registers the ``normalmap_microfacet`` BSDF plugin, the
+``mfnormal_path`` integrator (``mfnormal.integrator``) and, in the ``*_ad_*`` variants, the
+``mfnormal_prb`` AD integrator (``mfnormal.ad_integrator``: unbiased render derivatives for the
+random-walk models) for the active Mitsuba variant. Call ``mfnormal.register()`` again
+after ``mi.set_variant(...)``.
 """
 
 from __future__ import annotations  # ``str | None`` annotations on Python 3.9
@@ -44,6 +46,10 @@ def register(variant: str | None = None) -> str | None:
         mi.register_bsdf("normalmap_microfacet", lambda props: cls(props))
         path_cls = integrator.integrator_class()
         mi.register_integrator("mfnormal_path", lambda props: path_cls(props))
+        if "_ad_" in variant:
+            from . import ad_integrator
+            integ = ad_integrator.integrator_class()
+            mi.register_integrator("mfnormal_prb", lambda props: integ(props))
         _registered.add(variant)
     return variant
 

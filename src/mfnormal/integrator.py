@@ -13,7 +13,7 @@ BSDF call is a ``dr.dispatch`` over the shapes' BSDFs, so that a Python BSDF's o
 Parameters: ``max_depth`` (default -1: unbounded), ``rr_depth`` (default 5),
 ``hide_emitters`` (default false), as ``path``'s. Primal rendering only: it does not
 re-evaluate the BSDF for derivatives as ``path`` does; under AD (a ray that carries
-derivatives) it raises, use ``path`` or ``prb`` there. Unpolarised variants only.
+derivatives) it raises, use ``prb`` there (``mfnormal_prb`` for the random walks). Unpolarised variants only.
 """
 
 from __future__ import annotations
@@ -89,8 +89,8 @@ class MfnormalPath:
         result[active_em] = dr.fma(throughput, value * em_weight * mis_em, result)
         ray = si.spawn_ray(si.to_world(bs.wo))
         if dr.grad_enabled(ray):
-            raise NotImplementedError("mfnormal_path renders primal images only: use 'path' or 'prb' "
-                                      "for derivatives")
+            raise NotImplementedError("mfnormal_path renders primal images only: use 'prb' for "
+                                      "derivatives ('mfnormal_prb' for the random-walk models)")
         throughput = throughput * weight
         eta = eta * bs.eta
         valid_ray |= active & si.is_valid() & ~mi.has_flag(bs.sampled_type, mi.BSDFFlags.Null)

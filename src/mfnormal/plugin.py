@@ -683,6 +683,12 @@ class NormalMapMicrofacet:
         bs, weight = self.sample(ctx, si, sample1, sample2, active)
         return value, pdf, bs, weight
 
+    @property
+    def stochastic_eval(self) -> bool:
+        """The walks' ``eval`` is an estimate: ``mfnormal_prb`` differentiates their sampled light
+        through the sample weight (ad_integrator.py)."""
+        return self.model in ("separable", "nonseparable")
+
     def to_string(self):
         return (f"NormalMapMicrofacet[model={self.model}, tangent_facet={self.tangent_facet}, "
                 f"rr_depth={self._walk_ok[1]}, mis_boost_max={self._walk_ok[2]}, strength={self.strength}, "
