@@ -29,7 +29,7 @@ from variant import VARIANT  # noqa: E402
 mi.set_variant(VARIANT)
 mfnormal.register()
 
-from test_render_gradients import NESTED, RES, TEXELS, key_of, update  # noqa: E402
+from test_render_gradients import NESTED, RES, TEXELS, camera, key_of, update  # noqa: E402
 
 SLOW = os.environ.get("MFNORMAL_SLOW") == "1"
 SPP, H, NSEEDS = 64, 0.02, 8
@@ -45,12 +45,7 @@ def env_scene(bsdf, spp=SPP, ball=False):
                       "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": 0.8}}}} if ball else {}
     return mi.load_dict({
         "type": "scene",
-        "sensor": {"type": "perspective", "fov": 30,
-                   "to_world": mi.ScalarTransform4f().look_at(origin=[0.3, 0.2, 3.0], target=[0, 0, 0],
-                                                              up=[0, 1, 0]),
-                   "film": {"type": "hdrfilm", "width": RES, "height": RES, "rfilter": {"type": "box"},
-                            "pixel_format": "rgb"},
-                   "sampler": {"type": "independent", "sample_count": spp}},
+        "sensor": camera(spp),
         "plane": {"type": "rectangle", "bsdf": bsdf, "to_world": mi.ScalarTransform4f().scale([1.5, 1.5, 1.0])},
         "sky": {"type": "constant", "radiance": {"type": "rgb", "value": 1.0}},
         **extra,

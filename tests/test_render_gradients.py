@@ -81,6 +81,15 @@ def load_integrator(name):
     return mi.load_dict({"type": name} if name == "direct_projective" else {"type": name, "max_depth": 2})
 
 
+def camera(spp):
+    """The test's camera: from above the plane, RES² pixels, box filter, ``spp`` samples."""
+    return {"type": "perspective", "fov": 30,
+            "to_world": mi.ScalarTransform4f().look_at(origin=[0.3, 0.2, 3.0], target=[0, 0, 0], up=[0, 1, 0]),
+            "film": {"type": "hdrfilm", "width": RES, "height": RES, "rfilter": {"type": "box"},
+                     "pixel_format": "rgb"},
+            "sampler": {"type": "independent", "sample_count": spp}}
+
+
 def scene(model, facet, nested=None):
     bsdf = {"type": "normalmap_microfacet", "model": model, "bsdf": NESTED if nested is None else nested,
             "normalmap": {"type": "bitmap", "data": mi.TensorXf(TEXELS), "raw": True,
@@ -90,12 +99,7 @@ def scene(model, facet, nested=None):
     el = np.radians(40.0)
     return mi.load_dict({
         "type": "scene",
-        "sensor": {"type": "perspective", "fov": 30,
-                   "to_world": mi.ScalarTransform4f().look_at(origin=[0.3, 0.2, 3.0], target=[0, 0, 0],
-                                                              up=[0, 1, 0]),
-                   "film": {"type": "hdrfilm", "width": RES, "height": RES, "rfilter": {"type": "box"},
-                            "pixel_format": "rgb"},
-                   "sampler": {"type": "independent", "sample_count": SPP}},
+        "sensor": camera(SPP),
         "plane": {"type": "rectangle", "bsdf": bsdf,
                   "to_world": mi.ScalarTransform4f().scale([1.5, 1.5, 1.0])},
         "sun": {"type": "directional", "direction": [-np.cos(el), -0.3, -np.sin(el)],
