@@ -53,6 +53,8 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
+from .variant_class import variant_subclass
+
 
 def _is_stochastic(bsdf):
     """Per BSDF instance (``dr.dispatch``): does it declare a stochastic ``eval``?"""
@@ -198,13 +200,6 @@ class MfnormalPRB:
         return (L if primal else δL, depth != 0, [], L)
 
 
-_classes: dict[str, type] = {}
-
-
 def integrator_class() -> type:
     """``MfnormalPRB`` as a subclass of the active variant's ``RBIntegrator``."""
-    variant = mi.variant()
-    if variant not in _classes:
-        methods = {k: v for k, v in vars(MfnormalPRB).items() if k not in ("__dict__", "__weakref__")}
-        _classes[variant] = type("MfnormalPRB", (mi.ad.integrators.common.RBIntegrator,), methods)
-    return _classes[variant]
+    return variant_subclass(MfnormalPRB, mi.ad.integrators.common.RBIntegrator)

@@ -21,6 +21,8 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
+from .variant_class import variant_subclass
+
 RR_PROB_MAX = 0.95      # path's cap of the Russian roulette survival probability
 
 
@@ -123,13 +125,6 @@ class MfnormalPath:
         return f"MfnormalPath[max_depth={self.max_depth}, rr_depth={self.rr_depth}]"
 
 
-_classes: dict[str, type] = {}
-
-
 def integrator_class() -> type:
     """``MfnormalPath`` as a subclass of the active variant's ``mi.SamplingIntegrator``."""
-    variant = mi.variant()
-    if variant not in _classes:
-        methods = {k: v for k, v in vars(MfnormalPath).items() if k not in ("__dict__", "__weakref__")}
-        _classes[variant] = type("MfnormalPath", (mi.SamplingIntegrator,), methods)
-    return _classes[variant]
+    return variant_subclass(MfnormalPath, mi.SamplingIntegrator)

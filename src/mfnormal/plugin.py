@@ -207,6 +207,7 @@ import mitsuba as mi
 from . import analytic, faithful, normals, walk
 from .microsurface import COS_P_MIN, SIN_P_EPS, decode_normal, negate, replace_grad
 from .shading import ShadingPoint, from_tangent_frame, tangent_rotation
+from .variant_class import variant_subclass
 
 MODELS = ("faithful", "analytic", "separable", "nonseparable")
 DEFAULT_MODEL = "faithful"
@@ -699,13 +700,6 @@ class NormalMapMicrofacet:
                 + f"  bsdf={self.nested}]")
 
 
-_classes: dict[str, type] = {}
-
-
 def bsdf_class() -> type:
     """``NormalMapMicrofacet`` as a subclass of the active variant's ``mi.BSDF``."""
-    variant = mi.variant()
-    if variant not in _classes:
-        methods = {k: v for k, v in vars(NormalMapMicrofacet).items() if k not in ("__dict__", "__weakref__")}
-        _classes[variant] = type("NormalMapMicrofacet", (mi.BSDF,), methods)
-    return _classes[variant]
+    return variant_subclass(NormalMapMicrofacet, mi.BSDF)
