@@ -35,9 +35,8 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import run as R  # noqa: E402
 
-METHODS = ("builtin", "faithful", "analytic", "separable_specular", "separable_same",
-           "nonseparable_specular", "nonseparable_same")
-INTEGRATORS = ("path", "mfnormal_path")
+METHODS = R.METHOD_KEYS
+INTEGRATORS = R.INTEGRATORS
 
 
 def configs(methods):
