@@ -7,7 +7,8 @@
 with ω' = flip_t(ω) and f_p the nested f·cos in the p frame. Its sampler leaves p along
 a nested sample d directly or after the mirror in proportion to the energy each way carries,
 G1(d,p) : (1 − G1(d,p)) G1(ω'_d,t) (``exit_split``), so its pdf is the three terms with the
-nested pdf in place of f, the first two divided by that energy E(d) at their d (ω_o, ω'_o).
+nested pdf in place of f, the first two divided by that energy E(d) at their d (ω_o, ω'_o),
+the third without its G1(ω_o,p).
 """
 
 from __future__ import annotations
