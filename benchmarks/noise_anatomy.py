@@ -13,7 +13,8 @@ unweighted (BSDF sampling alone), B1 = the NEE unweighted (emitter sampling alon
 mean over the plane's pixels of Var/(ref² + 0.01) (the benchmark's relMSE per sample, luminance,
 ref = the pixel's mean over the passes), Var(A + B) split into Var(A) + Var(B) + 2 Cov, the share
 of the integral that NEE carries, and the BSDF samples by lobe type (their share of the samples,
-of the pixel's value, and of E[A²]).
+of the pixel's value, and of E[A²]), and MIS and BSDF sampling alone on each half of the image
+(on control, ω_i hits p first on the left, the tangent facet first on the right).
 
 Measured (issue 18, plane / roughplastic, sunless, 64 passes; docs/faithful.md): the built-in's
 MIS costs 12 % over its BSDF sampling alone (0.166 against 0.148), the faithful model's 37 %
@@ -96,6 +97,11 @@ def anatomy(method: str, nested: str, assets: dict, passes: int, sunless: bool, 
           f"A {rel(x['A'].var(0)):.4f} + B {rel(x['B'].var(0)):.4f} + 2cov {2 * rel(cov):.4f} | BSDF alone "
           f"{rel(x['A1'].var(0)):.4f}, NEE alone {rel(x['B1'].var(0)):.4f} | NEE's share of the integral "
           f"{float((x['B'].mean(0) / np.maximum(ref, 1e-9))[mask].mean()):.3f}", flush=True)
+    # Left and right half of the image: on control, ω_i hits p first on the left, the tangent facet on the right.
+    left = (np.arange(width * height) % width) < width // 2
+    halves = [f"{side}: MIS {float(((x['A'] + x['B']).var(0) / den)[mask & m].mean()):.4f}, BSDF alone "
+              f"{float((x['A1'].var(0) / den)[mask & m].mean()):.4f}" for side, m in (("left", left), ("right", ~left))]
+    print("   by half of the image, " + "; ".join(halves))
     for flag, name in ((R.mi.BSDFFlags.DiffuseReflection, "diffuse"), (R.mi.BSDFFlags.GlossyReflection, "glossy")):
         sel = (x["type"] & int(flag)) != 0
         print(f"   {name:7s} BSDF samples: {sel[:, mask].mean():.3f} of them, "
