@@ -1,10 +1,11 @@
 #!/usr/bin/env python
 r"""Where a cell's per-sample noise comes from: the BSDF-sample and NEE halves of the one-sample
 MIS estimator that Mitsuba's ``path``/``direct`` integrators use (balance heuristic), on one
-bounce from the camera of benchmarks/run.py's ``plane`` scene (without its sun disc by default).
+bounce from the camera of benchmarks/run.py's ``plane`` scene, or its ``control`` (``--scene``),
+without its sun disc by default.
 
     python benchmarks/noise_anatomy.py [--nested roughplastic] [--methods builtin,faithful,analytic]
-                                       [--passes 64] [--full-sky]
+                                       [--passes 64] [--full-sky] [--scene plane|control]
 
 Per pixel and pass: one camera ray (random position in the pixel), one emitter sample (NEE) and
 one BSDF sample. A = the BSDF sample's MIS-weighted radiance, B = the NEE's; A1 = the BSDF sample
@@ -12,7 +13,8 @@ unweighted (BSDF sampling alone), B1 = the NEE unweighted (emitter sampling alon
 mean over the plane's pixels of Var/(ref² + 0.01) (the benchmark's relMSE per sample, luminance,
 ref = the pixel's mean over the passes), Var(A + B) split into Var(A) + Var(B) + 2 Cov, the share
 of the integral that NEE carries, and the BSDF samples by lobe type (their share of the samples,
-of the pixel's value, and of E[A²]).
+of the pixel's value, and of E[A²]), and MIS and BSDF sampling alone on each half of the image
+(on control, ω_i hits p first on the left, the tangent facet first on the right).
 
 Measured (issue 18, plane / roughplastic, sunless, 64 passes; docs/faithful.md): the built-in's
 MIS costs 12 % over its BSDF sampling alone (0.166 against 0.148), the faithful model's 37 %
@@ -21,6 +23,16 @@ fill share followed the fill's albedo), its emitter sampling alone 2.8×: its gl
 0.54 of the value against the built-in's 0.40 (the texels the camera does not see show their
 neighbours' grazing reflection of the sky). The analytic model: BSDF sampling alone 1.38×, NEE
 alone 0.98×, MIS 1.23×.
+
+Issue 25 (analytic, roughplastic, sunless, 256 passes): MIS 1.242× → 1.219× on plane and
+1.524× → 1.482× on control with the exit split by energy (docs/model.md §3.2). On control the
+excess splits by the side of the view. Where ω_i hits p first (left half) BSDF sampling alone is
+2.0× the built-in's; at pixel (30, 100) (2¹⁷ samples) the variance an exact sampler of f would
+have, Var_f(L)/E_f(L)², is 2.5× the built-in's (0.099 against 0.039: the masked part of each
+lobe leaves mirrored, toward other sky), and the weights vary little more than the built-in's
+(E[w²]/E[w]² 1.18 against 1.12). Where ω_i hits the tangent facet first (right half) it is
+1.15×; the weight is the nested weight times G1(d, p), the dropped third bounce, which a sampler
+of the nested BSDF cannot see (E[w²]/E[w]² 1.28 against 1.12 at pixel (160, 100)).
 """
 
 from __future__ import annotations
@@ -67,8 +79,9 @@ def one_pass(scene, seed: int, width: int, height: int) -> dict:
     return out
 
 
-def anatomy(method: str, nested: str, assets: dict, passes: int, sunless: bool, width=192, height=144):
-    d = R.scene_dict("plane", assets, method, nested, width, height, 1)
+def anatomy(method: str, nested: str, assets: dict, passes: int, sunless: bool, width=192, height=144,
+            scene_name: str = "plane"):
+    d = R.scene_dict(scene_name, assets, method, nested, width, height, 1)
     if sunless:
         d = R.with_envmap(d, assets["sunless_envmap"])
     scene = R.mi.load_dict(d)
@@ -84,6 +97,11 @@ def anatomy(method: str, nested: str, assets: dict, passes: int, sunless: bool, 
           f"A {rel(x['A'].var(0)):.4f} + B {rel(x['B'].var(0)):.4f} + 2cov {2 * rel(cov):.4f} | BSDF alone "
           f"{rel(x['A1'].var(0)):.4f}, NEE alone {rel(x['B1'].var(0)):.4f} | NEE's share of the integral "
           f"{float((x['B'].mean(0) / np.maximum(ref, 1e-9))[mask].mean()):.3f}", flush=True)
+    # Left and right half of the image: on control, ω_i hits p first on the left, the tangent facet on the right.
+    left = (np.arange(width * height) % width) < width // 2
+    halves = [f"{side}: MIS {float(((x['A'] + x['B']).var(0) / den)[mask & m].mean()):.4f}, BSDF alone "
+              f"{float((x['A1'].var(0) / den)[mask & m].mean()):.4f}" for side, m in (("left", left), ("right", ~left))]
+    print("   by half of the image, " + "; ".join(halves))
     for flag, name in ((R.mi.BSDFFlags.DiffuseReflection, "diffuse"), (R.mi.BSDFFlags.GlossyReflection, "glossy")):
         sel = (x["type"] & int(flag)) != 0
         print(f"   {name:7s} BSDF samples: {sel[:, mask].mean():.3f} of them, "
@@ -98,11 +116,13 @@ def main(argv=None) -> int:
     ap.add_argument("--methods", default="builtin,faithful,analytic")
     ap.add_argument("--passes", type=int, default=64)
     ap.add_argument("--full-sky", action="store_true", help="keep the sun disc")
+    ap.add_argument("--scene", default="plane", choices=("plane", "control"),
+                    help="run.py's plane (a bump map) or control (a constant 40° map)")
     args = ap.parse_args(argv)
     R.import_mitsuba()
-    with R.temporary_assets(["plane"], "mfnormal_anatomy_") as assets:
+    with R.temporary_assets([args.scene], "mfnormal_anatomy_") as assets:
         for m in args.methods.split(","):
-            anatomy(m, args.nested, assets, args.passes, not args.full_sky)
+            anatomy(m, args.nested, assets, args.passes, not args.full_sky, scene_name=args.scene)
     return 0
 
 

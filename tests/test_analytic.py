@@ -394,6 +394,65 @@ def test_white_lambertian_albedo_by_sample_weights():
     assert np.all(mean <= 1.0 + tol)
 
 
+# -- 5b. The sampler's exit split (docs/model.md §3.2) -------------------------------------------
+
+
+def G1_ref(w, wm, wp):
+    """G1(ω, ω_m) = χ⁺⟨ω,ω_m⟩ · min(1, cosθ_p⟨ω,ω_g⟩₊/Ã(ω)) (docs/model.md §2.1), float64."""
+    sin_p = np.hypot(wp[:, 0], wp[:, 1])
+    wt = wt_ref(wp)
+    total = np.maximum(0.0, np.sum(w * wp, -1)) + sin_p * np.maximum(0.0, np.sum(w * wt, -1))
+    g = np.minimum(1.0, wp[:, 2] * np.maximum(0.0, w[:, 2]) / total)
+    return np.where(np.sum(w * wm, -1) > 0, g, 0.0)
+
+
+def test_mirror_facet_sample_weight_is_the_exit_energy():
+    """A smooth mirror on p, ω_i on the side ω_p leans to (λ_t(ω_i) = 0): every sample leaves
+    p along d = reflect(ω_i, ω_p), directly or after the tangent facet, and carries the energy
+    E(d) = G1(d, p) + (1 − G1(d, p))·G1(flip_t d, t) of the model's two paths, whichever exit
+    it took (float64 reference; 1e-5 relative, float32). ω_i = (0, 0.98, 0.2) at θ_p = 40°
+    gives G1(d, p) = 0.17, G1(flip_t d, t) = 0.21, E = 0.35; the exit choice by G1(d, p)
+    alone gave weights G1(d, p) and G1(flip_t d, t) whose mean, 0.20, missed E."""
+    wp = sph(np.array([40.0]))
+    bsdf = make_bsdf({"type": "conductor", "material": "none"}, encode(wp))
+    wp = decode_ref(encode(wp))
+    wi = np.array([[0.0, 0.98, 0.2]]) / np.hypot(0.98, 0.2)
+    d = 2.0 * np.sum(wi * wp, -1, keepdims=True) * wp - wi
+    wt = wt_ref(wp)
+    d_m = d - 2.0 * np.sum(d * wt, -1, keepdims=True) * wt
+    g_p, g_t = G1_ref(d, wp, wp)[0], G1_ref(d_m, wt, wp)[0]
+    energy = g_p + (1.0 - g_p) * g_t
+    assert 0.1 < g_p < 0.3 and 0.1 < g_t < 0.3 and lambda_t_ref(wi, wp)[0] == 0.0
+
+    n = 4096
+    rng = np.random.default_rng(21)
+    wo, _, weight = sample(bsdf, make_si(np.repeat(wi, n, 0)), rng.random(n), rng.random((n, 2)))
+    mirrored = np.isclose(wo, d_m, atol=1e-5).all(1)
+    direct = np.isclose(wo, d, atol=1e-5).all(1)
+    assert np.all(mirrored | direct) and mirrored.sum() > n // 4 and direct.sum() > n // 8
+    assert np.allclose(weight, energy, rtol=1e-5, atol=0), (np.unique(weight[:, 0]), energy)
+
+
+def test_exit_split_lowers_the_sample_weight_variance():
+    """The exit choice in proportion to the energy each exit carries (docs/model.md §3.2) leaves
+    less spread in eval/pdf than the choice by G1(d, p): E[w²]/E[w]² of 2¹⁸ samples (seed 12)
+    at three ω_i over a 40° tilt. Measured with the split (without it): GGX α = 0.1 1.787 (1.926),
+    1.112 (1.171), 1.418 (1.517); the tests' roughplastic 1.313 (1.334), 1.242 (1.271), 1.300
+    (1.346); standard errors ≤ 0.003 (64 batches). The bound is halfway between."""
+    wis = np.array([[-0.05, -0.95, 0.3], [0.3, 0.3, 0.906], [0.0, 0.98, 0.2]])
+    wis /= np.linalg.norm(wis, axis=1, keepdims=True)
+    bound = {"ggx_0.1": [1.856, 1.142, 1.467], "roughplastic": [1.323, 1.256, 1.323]}
+    k, m = len(wis), 1 << 18
+    for nested, limit in bound.items():
+        bsdf = make_bsdf(NESTED[nested], encode(sph(np.array([40.0]))))
+        rng = np.random.default_rng(12)
+        si = make_si(np.repeat(wis, m, 0), 1, np.zeros(k * m, int))
+        _, _, weight = sample(bsdf, si, rng.random(k * m), rng.random((k * m, 2)))
+        w = weight[:, 0].reshape(k, m)
+        second = (w ** 2).mean(1) / w.mean(1) ** 2
+        assert np.all(second < limit), (nested, second, limit)
+
+
 # -- 6. A flat map reproduces the nested BSDF ---------------------------------------------------
 
 

@@ -4,9 +4,11 @@
                                    + f_p(ω_i,ω'_o)(1 − G1(ω'_o,p)) G1(ω_o,t) ]            i→p→t→o
                         + λ_t(ω_i)·  f_p(ω'_i,ω_o) G1(ω_o,p)                                i→t→p→o
 
-with ω' = flip_t(ω) and f_p the nested f·cos in the p frame. Its sampler's pdf
-has the same three terms with the nested pdf in place of f and no G1(ω_o,t)
-factor on the middle term.
+with ω' = flip_t(ω) and f_p the nested f·cos in the p frame. Its sampler leaves p along
+a nested sample d directly or after the mirror in proportion to the energy each way carries,
+G1(d,p) : (1 − G1(d,p)) G1(ω'_d,t) (``exit_split``), so its pdf is the three terms with the
+nested pdf in place of f, the first two divided by that energy E(d) at their d (ω_o, ω'_o),
+the third without its G1(ω_o,p).
 """
 
 from __future__ import annotations
@@ -16,6 +18,18 @@ import mitsuba as mi
 
 from . import rng
 from .microsurface import negate, score
+
+
+def exit_split(sp, d, d_m):
+    """(G1(d, p), (1 − G1(d, p))·G1(d_m, t)) with d_m = flip_t(d): the energy a ray leaving p
+    along d carries out directly, and after mirroring off the tangent facet (docs/model.md §3.2)."""
+    return sp.G1_p(d), sp.one_minus_G1_p(d) * sp.G1_t(d_m)
+
+
+def exit_energy(sp, d, d_m):
+    """E(d) = G1(d, p) + (1 − G1(d, p))·G1(d_m, t): the energy leaving p along d in two bounces."""
+    direct, mirrored = exit_split(sp, d, d_m)
+    return direct + mirrored
 
 
 def eval_pdf(sp, wo, active, want_value=True, want_pdf=True):
@@ -49,7 +63,11 @@ def eval_pdf(sp, wo, active, want_value=True, want_pdf=True):
         value = f1 * c1 + f2 * (c2 * g_o_t) + f3 * (c3 * g_o_p)
         value = dr.select(active & dr.all(dr.isfinite(value)), dr.maximum(value, 0.0), 0.0)
     if want_pdf:
-        pdf = p1 * c1 + p2 * c2 + p3 * c3
+        # The sampler's exit split (exit_split): the first two terms over the energy E(d)
+        # leaving p along d = ω_o and d = ω'_o.
+        e1, e2 = exit_energy(sp, wo, wo_m), exit_energy(sp, wo_m, wo)
+        pdf = (p1 * dr.select(e1 > 0, c1 / dr.select(e1 > 0, e1, 1.0), 0.0)
+               + p2 * dr.select(e2 > 0, c2 * g_o_t / dr.select(e2 > 0, e2, 1.0), 0.0) + p3 * c3)
         pdf = dr.select(active & dr.isfinite(pdf), dr.maximum(pdf, 0.0), 0.0)
     return value, pdf
 
@@ -69,14 +87,19 @@ def sample(sp, sample1, sample2, active):
 
     # Light reaches p directly, or after mirroring off the tangent facet.
     bs, w = sp.sample(sp.frame_p, dr.select(on_p, wi, sp.flip_t(wi)), s1, sample2, active)
-    g_p = sp.G1_p(bs.wo)
+    d_m = sp.flip_t(bs.wo)
+    direct, mirrored = exit_split(sp, bs.wo, d_m)
+    energy = direct + mirrored
+    safe = dr.select(energy > 0, energy, 1.0)
+    leave, mirror = dr.select(energy > 0, direct / safe, 1.0), dr.select(energy > 0, mirrored / safe, 0.0)
 
-    # Leave after p, or hit the tangent facet and mirror (p→t→o).
+    # From p, leave along d or mirror off the tangent facet (p→t→o), in proportion to the
+    # energy each way carries; after i→t→p the ray leaves, carrying G1(d, p).
     seed = rng.hash_floats(rng.SALT_ANALYTIC_SAMPLE, sample1, sample2.x, sample2.y)
-    to_t = on_p & (rng.uniform(seed, rng.SLOT_ANALYTIC_SHADOW) >= dr.detach(g_p))
-    wo = dr.select(to_t, sp.flip_t(bs.wo), bs.wo)
-    path = dr.select(to_t, sp.G1_t(wo), g_p)
-    prob = dr.select(on_p, lp * dr.select(to_t, 1.0 - g_p, g_p), 1.0 - lp)
+    to_t = on_p & (rng.uniform(seed, rng.SLOT_ANALYTIC_SHADOW) >= dr.detach(leave))
+    wo = dr.select(to_t, d_m, bs.wo)
+    path = dr.select(on_p, energy, direct)
+    prob = dr.select(on_p, lp * dr.select(to_t, mirror, leave), 1.0 - lp)
     active &= (bs.pdf > 0) & (path > 0) & (wo.z > 0) & dr.all(dr.isfinite(wo))
 
     # Smooth lobes: weight = eval/pdf with the exact pdf. Delta lobes: the path weight.
