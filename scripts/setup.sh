@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Set up mfnormal on a fresh machine: a libLLVM >= 17 for Dr.Jit, a virtual
 # environment in .venv with the pinned Mitsuba/Dr.Jit, and the package itself.
-# With --test, also what the test suite needs (pytest, scipy, matplotlib,
+# With --test, also what the test suite needs (pytest, pytest-xdist, scipy, matplotlib,
 # selenium, Dask.distributed for the --cluster tests, Debian's headless Chromium
 # for the report's browser test,
 # pymikktspace, the reference MikkTSpace of the glTF tests, and their
