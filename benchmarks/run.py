@@ -40,7 +40,7 @@ Metrics:
    map's: at stop 22 the control's full-sky walk cells measured 7.2-14.5x at GGX 0.05).
    For estimators with a heavy tail (the mirror-facet walks over GGX 0.05) one such
    number (6 renders, a 256-spp reference) is itself noisy: repeated over independent
-   seed blocks it spreads 7-18x (benchmarks/fused_noise.py, which pools the blocks);
+   seed blocks it spreads 7-31x (benchmarks/fused_noise.py, which pools the blocks);
 4. BSDF throughput: sample/eval queries per second on 2^20 random queries
    (random wi, wo, and normals from a texture), random-walk lengths, nested
    calls per query, and the share of time spent in nested BSDF calls (the
