@@ -4,6 +4,7 @@ metric, repeated over independent blocks of seeds.
 
     PYTHONPATH=src python benchmarks/fused_noise.py [--cells plane:ggx_0.05:separable_specular ...]
         [--blocks 8] [--size 192x144] [--ref-spp 2048] [--out benchmarks/fused_noise.json]
+    python benchmarks/fused_noise.py --report-only benchmarks/fused_noise.json
 
 run.py's metric 3 scores a method by the relMSE of ``noise_seeds`` (6) renders at 16 spp
 (seeds 20000…20005) against a 256-spp reference. Its full run under ``mfnormal_path`` (stop 24,
@@ -23,7 +24,7 @@ it) under both integrators and the built-in under ``path``, at the benchmark's s
 
 A heavy-tailed estimator (rare, very bright samples) shows as blocks that disagree by far more
 than their sampling error; then one block, as in the benchmark, says little. Writes ``--out``
-and a table beside it (``.md``).
+and a table beside it (``.md``; ``--report-only`` rewrites it from the JSON).
 """
 
 from __future__ import annotations
@@ -45,15 +46,11 @@ CELLS = ("plane:ggx_0.05:separable_specular", "plane:ggx_0.05:nonseparable_specu
 SPP, SEEDS, REF_PASS = 16, 6, 64
 
 
-def reference(scene, spp: int) -> np.ndarray:
-    passes = max(1, spp // REF_PASS)
-    return sum(R.to_numpy(R.timed_render(scene, REF_PASS, 10_000 + i)[1]) for i in range(passes)) / passes
-
-
 def block_relmse(scene, ref: np.ndarray, ref_spp: int, base: int) -> float:
+    """run.py's metric-3 number for the seed block starting at ``base``."""
     from mfnormal.metrics import rel_mse
-    errs = [rel_mse(R.to_numpy(R.timed_render(scene, SPP, base + s)[1]), ref) for s in range(SEEDS)]
-    return float(np.mean(errs)) / (1.0 + SPP / ref_spp)
+    errs = [rel_mse(x, ref) for x in R.noise_renders(scene, SPP, SEEDS, base)]
+    return R.reference_noise_removed(float(np.mean(errs)), SPP, ref_spp)
 
 
 def measure(cell: str, assets: dict, size, blocks: int, ref_spp: int) -> dict:
@@ -63,7 +60,7 @@ def measure(cell: str, assets: dict, size, blocks: int, ref_spp: int) -> dict:
                "mfnormal_path": (method, "mfnormal_path")}
     scenes = {k: R.load_scene(scene_name, assets, m, nested, W, H, SPP, sunless=True, integrator=i)
               for k, (m, i) in configs.items()}
-    refs = {k: reference(sc, ref_spp) for k, sc in scenes.items()}
+    refs = {k: R.reference_image(sc, ref_spp, REF_PASS)[0] for k, sc in scenes.items()}
     shared = 0.5 * (refs["path"] + refs["mfnormal_path"])
     from mfnormal.metrics import rel_mse
     out = {"cell": cell, "size": f"{W}x{H}", "ref_spp": ref_spp,
@@ -79,9 +76,9 @@ def measure(cell: str, assets: dict, size, blocks: int, ref_spp: int) -> dict:
 
 def summary(rows) -> str:
     lines = ["| cell | blocks | built-in (path) median | walk under path: median [min, max] | "
-             "under mfnormal_path: median [min, max] | per-block ratio mfnormal_path/path: median "
-             "[min, max] | block 0 (the benchmark's seeds): ratio |",
-             "|---|---|---|---|---|---|---|"]
+             "under mfnormal_path: median [min, max] | pooled: built-in, path, mfnormal_path | "
+             "per-block ratio mfnormal_path/path: median [min, max] | block 0 (the benchmark's seeds): ratio |",
+             "|---|---|---|---|---|---|---|---|"]
     for r in rows:
         p, f = r["path"], r["mfnormal_path"]
         ratio = [b / a for a, b in zip(p, f)]
@@ -95,6 +92,16 @@ def summary(rows) -> str:
     return "\n".join(lines)
 
 
+def report(doc: dict) -> str:
+    """The Markdown beside the JSON, from the JSON document alone."""
+    rows = doc["rows"]
+    return (f"# `path` vs `mfnormal_path`: the benchmark's noise metric over independent seed blocks\n\n"
+            f"- command: `{doc['command']}`\n- {len(rows)} cells, sky without its sun disc, "
+            f"{rows[0]['size'].replace('x', '×')}, {SEEDS} renders × {SPP} spp per block, reference "
+            f"{rows[0]['ref_spp']} spp per integrator (the walk's two averaged), {doc['seconds'] / 60:.1f} min\n\n"
+            f"{summary(rows)}\n")
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--cells", nargs="+", default=list(CELLS), help="SCENE:NESTED:METHOD")
@@ -102,7 +109,11 @@ def main(argv=None) -> int:
     ap.add_argument("--size", default="192x144")
     ap.add_argument("--ref-spp", type=int, default=2048)
     ap.add_argument("--out", type=Path, default=Path(__file__).resolve().parent / "fused_noise.json")
+    ap.add_argument("--report-only", type=Path, metavar="JSON", help="rewrite the .md beside JSON from it")
     args = ap.parse_args(argv)
+    if args.report_only is not None:
+        args.report_only.with_suffix(".md").write_text(report(json.loads(args.report_only.read_text())))
+        return 0
     size = tuple(int(x) for x in args.size.split("x"))
     R.import_mitsuba()
     t0 = time.time()
@@ -112,13 +123,8 @@ def main(argv=None) -> int:
     doc = {"command": " ".join(["benchmarks/fused_noise.py"] + (argv if argv is not None else sys.argv[1:])),
            "machine": R.machine_info(), "seconds": time.time() - t0, "rows": rows}
     args.out.write_text(json.dumps(doc, indent=1))
-    table = summary(rows)
-    args.out.with_suffix(".md").write_text(
-        f"# `path` vs `mfnormal_path`: the benchmark's noise metric over independent seed blocks\n\n"
-        f"- command: `{doc['command']}`\n- {len(rows)} cells, sky without its sun disc, {size[0]}×{size[1]}, "
-        f"{SEEDS} renders × {SPP} spp per block, reference {args.ref_spp} spp per integrator "
-        f"(the walk's two averaged), {doc['seconds'] / 60:.1f} min\n\n{table}\n")
-    print(table)
+    args.out.with_suffix(".md").write_text(report(doc))
+    print(summary(rows))
     return 0
 
 

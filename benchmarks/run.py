@@ -757,24 +757,39 @@ def noise_metrics(scene, nested, assets, prof, scenes, ratio_of) -> list:
     return noise
 
 
+def reference_image(scene, ref_spp: int, ref_pass: int):
+    """(the mean of ``ref_spp // ref_pass`` renders of ``ref_pass`` spp, seeds 10000…, its spp):
+    metric 3's high-spp reference."""
+    acc = None
+    passes = max(1, ref_spp // ref_pass)
+    for i in range(passes):
+        img = to_numpy(timed_render(scene, ref_pass, 10_000 + i)[1])
+        acc = img if acc is None else acc + img
+    return acc / passes, passes * ref_pass
+
+
+def noise_renders(scene, spp: int, seeds: int, base: int = 20_000) -> list:
+    """Metric 3's noisy renders: ``seeds`` images of ``spp`` spp, seeds base, base + 1, …"""
+    return [to_numpy(timed_render(scene, spp, base + s)[1]) for s in range(seeds)]
+
+
+def reference_noise_removed(relmse: float, spp: int, ref_spp: int) -> float:
+    """E[(x − ref)²] = σ²/spp + σ²/ref_spp: the relMSE of an spp-sample render with the
+    reference's share removed."""
+    return relmse / (1.0 + spp / ref_spp)
+
+
 def equal_time_noise(scene, spp: int, prof: Profile) -> dict:
     """relMSE of ``spp``-sample renders (mean of ``prof.noise_seeds``) against a high-spp
     reference of the same scene, with the reference's own noise removed."""
     from mfnormal.metrics import rel_mse, rel_se
-    acc = None
-    passes = max(1, prof.ref_spp // prof.ref_pass)
-    for i in range(passes):
-        img = to_numpy(timed_render(scene, prof.ref_pass, 10_000 + i)[1])
-        acc = img if acc is None else acc + img
-    ref = acc / passes
-    ref_spp = passes * prof.ref_pass
-    imgs = [to_numpy(timed_render(scene, spp, 20_000 + s)[1]) for s in range(prof.noise_seeds)]
+    ref, ref_spp = reference_image(scene, prof.ref_spp, prof.ref_pass)
+    imgs = noise_renders(scene, spp, prof.noise_seeds)
     errs = [rel_mse(x, ref) for x in imgs]
     # Fireflies: the share of the squared error in the worst 0.1 % of the pixels.
     e = rel_se(imgs[0], ref).mean(axis=-1).ravel()
     top = float(np.sort(e)[::-1][: max(1, e.size // 1000)].sum() / max(e.sum(), 1e-30))
-    # E[(x - ref)^2] = σ²/n + σ²/n_ref: remove the reference's share.
-    return {"relmse": float(np.mean(errs)) / (1.0 + spp / ref_spp), "relmse_raw": float(np.mean(errs)),
+    return {"relmse": reference_noise_removed(float(np.mean(errs)), spp, ref_spp), "relmse_raw": float(np.mean(errs)),
             "ref_spp": ref_spp, "ref_mean": float(ref.mean()), "top": top}
 
 
