@@ -530,14 +530,17 @@ class Model:
             p_fill = mi.Float(0.0)
         return tx.vis - p_fill, p_fill, 1.0 - tx.vis
 
-    def eval_pdf(self, sp, tx, wo, active, want_value=True, want_pdf=True, gated=False):
+    def eval_pdf(self, sp, tx, wo, active, want_value=True, want_pdf=True, gated=None):
         """(eval, pdf) in radiance mode: camera side ``tx.wi``, light side ``wo``.
 
-        ``gated``: terms that no lane of a SIMD packet needs are skipped (:func:`_gated`, the
-        same values). Only for a call that ends its query (the sampler's): a symbolic branch
-        opens a new scope, and Dr.Jit shares no common subexpression across it, so a later
-        call at the same point (the path tracer's ``sample`` after its ``eval_pdf``) would
-        recompute the texel."""
+        ``gated``: terms that no lane of a SIMD packet needs (the retro-reflected and below-plane
+        preimages, the hidden texel) are skipped (:func:`_gated`: the same values, to float
+        rounding); None: wherever nothing the query reads carries derivatives (:meth:`_gates`).
+        What the texel shares with the ``sample`` at the same path vertex (Λ(ω_i), V, B, the
+        fill) is traced before the branches, so Dr.Jit's common-subexpression elimination still
+        shares it (a branch opens a scope that shares nothing with the outside)."""
+        if gated is None:
+            gated = self._gates(sp, tx, wo)
         wi = tx.wi
         active = active & (wi.z > 0) & (wo.z > 0)
         full = mi.BSDFContext(RADIANCE)
@@ -632,12 +635,18 @@ class Model:
 
     def _derivatives(self, sp):
         """Whether anything this point's queries read carries derivatives (the normal, the
-        map-wide slopes, the nested BSDF). Then ``sample`` does not gate its re-evaluation: a
+        map-wide slopes, the nested BSDF). Then no query gates its terms (:meth:`_gates`): a
         symbolic ``dr.if_stmt`` inside the BSDF's call lets Dr.Jit 1.5 differentiate the values
         it captures outside the call's scope, which fails under Mitsuba's ``path``
         (render_forward: "forward-propagate derivatives across edge ... outside of the current
         dr.isolate_grad() scope"; render_backward: invalid LLVM IR). The values are the same."""
         return sp.attached or self.d_tables is not None or sp.nested_attached()
+
+    def _gates(self, sp, tx, *directions):
+        """Whether a query may skip, per SIMD packet, the terms no lane needs (:func:`_gated`):
+        where nothing it reads carries derivatives (:meth:`_derivatives`, ω_i and ``directions``:
+        moving geometry or emitters)."""
+        return not (self._derivatives(sp) or dr.grad_enabled(tx.wi, *directions))
 
     def sample(self, sp, tx, sample1, sample2, active):
         """Radiance-mode sample from ``tx.wi``: (BSDFSample3f in the base frame, weight).
@@ -648,7 +657,7 @@ class Model:
         dw = self._draw(sp, tx, sample1, sample2, active)
         bs, active = dw.bs, dw.active
         bs.wo = dr.select(dw.delta, bs.wo, dr.detach(bs.wo))
-        value, pdf = self.eval_pdf(sp, tx, bs.wo, active & negate(dw.delta), gated=not self._derivatives(sp))
+        value, pdf = self.eval_pdf(sp, tx, bs.wo, active & negate(dw.delta), gated=self._gates(sp, tx))
         # Delta lobes (non-diffuse, so bounced ones are the eval's too): the path weight, the
         # branch probabilities cancelling against the eval's factors.
         w_delta = dw.w * dr.select(dw.on_tex, tx.vis / dr.maximum(dw.b_tex, 1e-30),

@@ -169,7 +169,7 @@ the random-walk models (``sample``'s walk with ``eval``'s NEE toward ``wo``; doc
 
 Costs per query: ``faithful`` 3 nested ``eval_pdf`` per ``eval``/``pdf`` (5 for a
 nested BSDF with both diffuse and other components), 1 nested ``sample`` more per
-``sample`` (whose ``eval`` skips, per SIMD packet, the bounce terms no lane needs). ``analytic`` 3 nested ``eval_pdf`` per ``eval``/``pdf``, and
+``sample`` (each ``eval`` skips, per SIMD packet, the bounce terms no lane needs). ``analytic`` 3 nested ``eval_pdf`` per ``eval``/``pdf``, and
 1 nested ``sample`` + 3 nested ``eval_pdf`` per ``sample``. Random walks: per
 bounce 1 nested ``sample`` and (``eval`` only) 1 nested ``eval``, 2 with a mirror
 tangent facet, plus 1 (2 with a mirror) for the first vertex's other start facet;
