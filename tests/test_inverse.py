@@ -99,3 +99,28 @@ def test_encode_unit_keeps_the_direction_at_unit_length():
     assert cos.min() > 1.0 - 1e-6
     assert np.allclose(n_new[0, 0], [0.0, 0.0, 1.0])
     assert np.abs(I.encode_unit(out) - out).max() < 1e-6
+
+
+@pytest.mark.parametrize("slope_derivatives", [True, False])
+def test_slope_derivatives_switch(slope_derivatives):
+    """Setup.slope_derivatives=False (validation/inverse_seeds.py --detached-slopes, a diagnostic)
+    drops the derivative of the default model's map-wide slopes σ and keeps their values (the
+    map's principal rms slopes); True, the default, keeps it."""
+    import drjit as dr
+    import numpy as np
+    from mfnormal import faithful, heightfield as H
+    setup = I.Setup(res=8, spp=2, slope_derivatives=slope_derivatives)
+    texels = H.encode_normals(I.true_normals(setup))
+    scene = I._plane_scenes(setup, "faithful", texels)[0]
+    params = mi.traverse(scene)
+    key = next(k for k in params.keys() if k.endswith("normalmap.data"))
+    dr.enable_grad(params[key])
+    params.update()
+    if not setup.slope_derivatives:
+        I._detach_slopes(scene)
+    model = next(s.bsdf().faithful for s in scene.shapes() if getattr(s.bsdf(), "faithful", None) is not None)
+    assert dr.grad_enabled(model.sigma1) == slope_derivatives
+    assert (model.d_tables is not None) == slope_derivatives
+    s1 = float(np.array(dr.detach(model.sigma1)).ravel()[0])
+    expected = faithful.principal_slopes(I._decode(texels).reshape(-1, 3))[0]
+    assert 0.1 < s1 < 0.5 and s1 == pytest.approx(expected, rel=1e-5)

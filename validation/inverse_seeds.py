@@ -8,6 +8,8 @@ own fixed seed) with ``Setup.seed`` = SEED: the seeds of the optimisation's rend
 writes per run the texel-centre error (final and minimum), the surface error
 (inverse.surface_error), the loss (first, final and largest) and the recovered map. The
 run-to-run spread of an optimisation is what a difference between methods has to exceed.
+``--detached-slopes``: the default model's map-wide slopes σ without their derivative
+(``Setup.slope_derivatives``), the diagnostic of validation/results/inverse_rendering.md.
 """
 
 from __future__ import annotations
@@ -29,6 +31,8 @@ def main(argv=None):
     p.add_argument("runs", nargs="+", help="METHOD:SEED")
     p.add_argument("--iterations", type=int, default=80)
     p.add_argument("--out", type=Path, default=None)
+    p.add_argument("--detached-slopes", action="store_true",
+                   help="drop the derivative of the default model's map-wide slopes (Setup.slope_derivatives)")
     args = p.parse_args(argv)
 
     mi.set_variant("llvm_ad_rgb")
@@ -39,9 +43,9 @@ def main(argv=None):
     rows = []
     for run in args.runs:
         method, seed = run.split(":")
-        setup = I.Setup(res=32, spp=8, lr=0.02, seed=int(seed))
+        setup = I.Setup(res=32, spp=8, lr=0.02, seed=int(seed), slope_derivatives=not args.detached_slopes)
         r = I.optimise(setup, method, targets, iterations=args.iterations, log=print)
-        row = dict(method=method, seed=int(seed), centre_final=r.error[-1], centre_min=min(r.error),
+        row = dict(method=method, seed=int(seed), slope_derivatives=setup.slope_derivatives, centre_final=r.error[-1], centre_min=min(r.error),
                    surface=I.surface_error(setup, r.texels), loss_start=r.loss[0], loss_final=r.loss[-1],
                    loss_max=max(r.loss), seconds=r.seconds, loss=r.loss, error=r.error, texels=r.texels.tolist())
         print(f"RESULT {method} seed {seed}: centre {row['centre_final']:.3f}° (min {row['centre_min']:.3f}°) "

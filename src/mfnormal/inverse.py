@@ -58,6 +58,11 @@ class Setup:
     lr: float = 0.02
     seed: int = 0                              # iteration k renders with seed + k
     unit_texels: bool = False                  # after each step, rescale each texel to a unit normal
+    # The default model's map-wide slopes σ follow the map; False: their derivative is dropped
+    # (σ is set from the map's values before each render, a block-coordinate scheme), a
+    # diagnostic of what that map-wide coupling does to the optimisation
+    # (validation/results/inverse_rendering.md).
+    slope_derivatives: bool = True
     material: dict = field(default_factory=lambda: dict(MATERIAL))
 
     def __post_init__(self):
@@ -183,6 +188,14 @@ class Result:
     first_step: float    # max |Δ texel| of the first step
 
 
+def _detach_slopes(scene):
+    """The faithful model's map-wide slopes in ``scene`` without their derivative (same values)."""
+    for shape in scene.shapes():
+        model = getattr(shape.bsdf(), "faithful", None)
+        if model is not None:
+            model.set_slopes(model.slopes)
+
+
 def optimise(setup, method, targets, iterations=None, log=None):
     """Adam on the map's texels from a flat map, the L2 distance of ``method``'s prb renders to
     ``targets`` (one per sun); texels clamped to [0, 1] after each step."""
@@ -202,6 +215,8 @@ def optimise(setup, method, targets, iterations=None, log=None):
         for p, scene, target in zip(params, scenes, targets):
             p[key] = opt[key]
             p.update()
+            if not setup.slope_derivatives:
+                _detach_slopes(scene)
             img = mi.render(scene, p, spp=setup.spp, seed=setup.seed + it)
             loss = dr.mean(dr.square(img - target), axis=None)
             dr.backward(loss)
