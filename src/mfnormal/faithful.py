@@ -577,9 +577,10 @@ class Model:
                     p_b = p_b + p * (share * (1.0 - s_d))
             return f_b, p_b
         acc = bounced((0,), (value_t, pdf_t))
-        for ks, cond in (((1,), pre[1][1] & (pre[1][2] > 0)), ((2, 3), pre[2][2] > 0)):
-            acc = _gated(on_texel & cond, lambda ks=ks, acc=acc: bounced(ks, acc), acc, gated)
-        value_t, pdf_t = acc
+        # (One branch for the three: each branch's scope repeats the nested BSDF's own ω_i terms,
+        # 3 % more kernel operations with two.)
+        rare = on_texel & ((pre[1][1] & (pre[1][2] > 0)) | (pre[2][2] > 0))
+        value_t, pdf_t = _gated(rare, lambda: bounced((1, 2, 3), acc), acc, gated)
         # The neighbours, where the texel is hidden.
         f_hid, p_hid = _gated(active & (tx.vis < 1.0), lambda: _nested(
             sp, full, macro_frame(), wi, wo, active & (tx.vis < 1.0), want_value, want_pdf),
