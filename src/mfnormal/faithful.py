@@ -534,8 +534,8 @@ class Model:
         """(eval, pdf) in radiance mode: camera side ``tx.wi``, light side ``wo``.
 
         ``gated``: terms that no lane of a SIMD packet needs (the retro-reflected and below-plane
-        preimages, the hidden texel) are skipped (:func:`_gated`: the same values, to float
-        rounding); None: wherever nothing the query reads carries derivatives (:meth:`_gates`).
+        preimages, the hidden texel) are skipped (:func:`_gated`: the same values, bit for bit);
+        None: wherever nothing the query reads carries derivatives (:meth:`_gates`).
         What the texel shares with the ``sample`` at the same path vertex (Λ(ω_i), V, B, the
         fill) is traced before the branches, so Dr.Jit's common-subexpression elimination still
         shares it (a branch opens a scope that shares nothing with the outside)."""
