@@ -118,7 +118,7 @@ def test_slope_derivatives_switch(slope_derivatives):
     params.update()
     if not setup.slope_derivatives:
         I._detach_slopes(scene)
-    model = next(s.bsdf().faithful for s in scene.shapes() if getattr(s.bsdf(), "faithful", None) is not None)
+    (model,) = I._faithful_models(scene)
     assert dr.grad_enabled(model.sigma1) == slope_derivatives
     assert (model.d_tables is not None) == slope_derivatives
     s1 = float(np.array(dr.detach(model.sigma1)).ravel()[0])

@@ -188,12 +188,18 @@ class Result:
     first_step: float    # max |Δ texel| of the first step
 
 
-def _detach_slopes(scene):
-    """The faithful model's map-wide slopes in ``scene`` without their derivative (same values)."""
+def _faithful_models(scene):
+    """The default model (``faithful.Model``) of each shape's ``normalmap_microfacet`` in ``scene``."""
     for shape in scene.shapes():
         model = getattr(shape.bsdf(), "faithful", None)
         if model is not None:
-            model.set_slopes(model.slopes)
+            yield model
+
+
+def _detach_slopes(scene):
+    """The faithful model's map-wide slopes in ``scene`` without their derivative (same values)."""
+    for model in _faithful_models(scene):
+        model.set_slopes(model.slopes)
 
 
 def optimise(setup, method, targets, iterations=None, log=None):
