@@ -124,3 +124,15 @@ def test_slope_derivatives_switch(slope_derivatives):
     s1 = float(np.array(dr.detach(model.sigma1)).ravel()[0])
     expected = faithful.principal_slopes(I._decode(texels).reshape(-1, 3))[0]
     assert 0.1 < s1 < 0.5 and s1 == pytest.approx(expected, rel=1e-5)
+
+
+def test_learning_rate_schedule():
+    """Setup.lr_final: the optimiser's rate falls geometrically from lr at the first iteration to
+    lr_final at the last (read back from the optimiser each iteration); None keeps it at lr."""
+    import numpy as np
+    kw = dict(res=8, spp=1, target_spp=4, iterations=5, lr=0.02)
+    decayed = I.Setup(lr_final=0.002, **kw)
+    r = I.optimise(decayed, "builtin", I.same_method_targets(decayed, "builtin"))
+    assert np.allclose(r.lr, 0.02 * 0.1 ** (np.arange(5) / 4), rtol=1e-6)
+    const = I.Setup(**kw)
+    assert np.allclose(I.optimise(const, "builtin", I.same_method_targets(const, "builtin")).lr, 0.02, rtol=1e-6)

@@ -10,6 +10,8 @@ writes per run the texel-centre error (final and minimum), the surface error
 run-to-run spread of an optimisation is what a difference between methods has to exceed.
 ``--detached-slopes``: the default model's map-wide slopes σ without their derivative
 (``Setup.slope_derivatives``), the diagnostic of validation/results/inverse_rendering.md.
+``--iterations N --lr-final R``: N iterations with the rate falling geometrically from 0.02 to R
+(``Setup.lr_final``), the annealed runs of that file's follow-up 4 (400 and 800, R = 0.001).
 """
 
 from __future__ import annotations
@@ -33,6 +35,8 @@ def main(argv=None):
     p.add_argument("--out", type=Path, default=None)
     p.add_argument("--detached-slopes", action="store_true",
                    help="drop the derivative of the default model's map-wide slopes (Setup.slope_derivatives)")
+    p.add_argument("--lr-final", type=float, default=None,
+                   help="the rate falls geometrically from 0.02 to this over the iterations (Setup.lr_final)")
     args = p.parse_args(argv)
 
     mi.set_variant("llvm_ad_rgb")
@@ -43,9 +47,11 @@ def main(argv=None):
     rows = []
     for run in args.runs:
         method, seed = run.split(":")
-        setup = I.Setup(res=32, spp=8, lr=0.02, seed=int(seed), slope_derivatives=not args.detached_slopes)
+        setup = I.Setup(res=32, spp=8, lr=0.02, seed=int(seed), slope_derivatives=not args.detached_slopes,
+                        lr_final=args.lr_final)
         r = I.optimise(setup, method, targets, iterations=args.iterations, log=print)
-        row = dict(method=method, seed=int(seed), slope_derivatives=setup.slope_derivatives, centre_final=r.error[-1], centre_min=min(r.error),
+        row = dict(method=method, seed=int(seed), slope_derivatives=setup.slope_derivatives, lr_final=setup.lr_final,
+                   iterations=args.iterations, centre_final=r.error[-1], centre_min=min(r.error),
                    surface=I.surface_error(setup, r.texels), loss_start=r.loss[0], loss_final=r.loss[-1],
                    loss_max=max(r.loss), seconds=r.seconds, loss=r.loss, error=r.error, texels=r.texels.tolist())
         print(f"RESULT {method} seed {seed}: centre {row['centre_final']:.3f}° (min {row['centre_min']:.3f}°) "

@@ -56,6 +56,10 @@ class Setup:
     irradiance: float = 3.0
     iterations: int = 120
     lr: float = 0.02
+    # None: Adam at the constant rate lr; else the rate falls geometrically from lr at the first
+    # iteration to lr_final at the last, so the texels settle where the gradient's noise would
+    # otherwise keep them moving by about lr per step
+    lr_final: float = None
     seed: int = 0                              # iteration k renders with seed + k
     unit_texels: bool = False                  # after each step, rescale each texel to a unit normal
     # The default model's map-wide slopes σ follow the map; False: their derivative is dropped
@@ -186,6 +190,7 @@ class Result:
     texels: np.ndarray   # the recovered map
     seconds: float
     first_step: float    # max |Δ texel| of the first step
+    lr: list = None      # the learning rate of each iteration's step
 
 
 def _faithful_models(scene):
@@ -204,7 +209,8 @@ def _detach_slopes(scene):
 
 def optimise(setup, method, targets, iterations=None, log=None):
     """Adam on the map's texels from a flat map, the L2 distance of ``method``'s prb renders to
-    ``targets`` (one per sun); texels clamped to [0, 1] after each step."""
+    ``targets`` (one per sun); texels clamped to [0, 1] after each step; the rate constant, or
+    falling to ``setup.lr_final``."""
     iterations = setup.iterations if iterations is None else iterations
     scenes = _plane_scenes(setup, method, flat_map(setup))
     params = [mi.traverse(s) for s in scenes]
@@ -212,9 +218,12 @@ def optimise(setup, method, targets, iterations=None, log=None):
     opt = mi.ad.Adam(lr=setup.lr)
     opt[key] = params[0][key]
     truth = true_normals(setup)
-    loss_hist, err_hist = [], []
+    loss_hist, err_hist, lr_hist = [], [], []
     start, first_step = time.time(), 0.0
     for it in range(iterations):
+        if setup.lr_final is not None:
+            opt.set_learning_rate(setup.lr * (setup.lr_final / setup.lr) ** (it / max(iterations - 1, 1)))
+        lr_hist.append(float(opt.learning_rate()))
         before = np.array(opt[key])
         err_hist.append(texel_error(before, truth))
         total = 0.0
@@ -238,7 +247,7 @@ def optimise(setup, method, targets, iterations=None, log=None):
             log(f"  {method:22s} it {it:4d}  loss {total:.3e}  texel error {err_hist[-1]:6.2f}°")
     final = np.array(opt[key])
     err_hist.append(texel_error(final, truth))
-    return Result(method, loss_hist, err_hist, final, time.time() - start, first_step)
+    return Result(method, loss_hist, err_hist, final, time.time() - start, first_step, lr_hist)
 
 
 def normal_image(texels):
