@@ -411,9 +411,9 @@ def test_eval_is_deterministic_and_smooth():
 def test_packet_skipping_gives_the_same_values(nested):
     """Model.eval_pdf with its terms skipped per SIMD packet (gated=True, what every query uses
     where nothing carries derivatives) equals the straight-line one bit for bit, on packets of
-    16 lanes that share a texel and ω_i (a pixel's samples) with random ω_o: texels tilted up to 40°, frontal and grazing views, so
-    that some packets have no lane that needs the retro-reflected preimages (w > 0) or the hidden
-    texel's term (V < 1) and others do (checked)."""
+    16 lanes that share a texel and ω_i (a pixel's samples) with random ω_o: texels tilted up to
+    40°, frontal and grazing views, so that some packets have no lane that needs the
+    retro-reflected preimages (w > 0) or the hidden texel's term (V < 1) and others do (checked)."""
     rng = np.random.default_rng(17)
     groups, width = 2048, 16
     texels = encode(sph(rng.uniform(0, 40, groups), rng.uniform(0, 2 * np.pi, groups)))
