@@ -26,55 +26,10 @@ import probes  # noqa: E402  (benchmarks/probes.py)
 import run as R  # noqa: E402  (benchmarks/run.py)
 
 OPS = probes.OPS
-COUNTERS = {}
-
-
-def register():
-    import drjit as dr
-    import mitsuba as mi
-
-    class Total(probes.forwarding_base()):
-        """The BSDF ``bsdf``, each call adding its active lanes to COUNTERS[label][op]."""
-
-        def __init__(self, props):
-            super().__init__(props)
-            self.label = props["label"]
-            COUNTERS[self.label] = {op: dr.zeros(mi.UInt64, 1) for op in OPS}
-
-        def _count(self, op, active):
-            active = mi.Bool(active)
-            dr.scatter_add(COUNTERS[self.label][op], mi.UInt64(1), mi.UInt32(0), active)
-
-        def to_string(self):
-            return f"Total[{self.label}: {self.inner}]"
-
-    mi.register_bsdf("bench_total", lambda props: Total(props))
-
-
-def wrap(scene: dict) -> dict:
-    """Every shape's BSDF, and its nested BSDF (a child ``bsdf*``) if any, wrapped in ``bench_total``."""
-    def bsdf_keys(d):
-        return [k for k, v in d.items() if k.startswith("bsdf") and isinstance(v, dict)]
-    for key, v in scene.items():
-        if not isinstance(v, dict):
-            continue
-        for kb in bsdf_keys(v):
-            outer = v[kb]
-            for kn in bsdf_keys(outer):
-                outer[kn] = {"type": "bench_total", "label": f"{key}.nested", "bsdf": outer[kn]}
-            v[kb] = {"type": "bench_total", "label": key, "bsdf": outer}
-    return scene
 
 
 def counted(scene, nested, method, W, H, spp, assets):
-    mi, dr = R.mi, R.dr
-    COUNTERS.clear()
-    d = wrap(R.scene_dict(scene, assets, method, nested, W, H, spp))
-    sc = mi.load_dict(d)
-    img = mi.render(sc, spp=spp, seed=100)
-    dr.eval(img)
-    n = W * H * spp
-    return {label: {op: int(c[op][0]) / n for op in OPS} for label, c in COUNTERS.items()}
+    return probes.count_calls(R.scene_dict(scene, assets, method, nested, W, H, spp), spp, W * H * spp)
 
 
 def kernels(scene, nested, method, W, H, spp, assets):
@@ -106,7 +61,6 @@ def main(argv=None):
     ap.add_argument("--out", type=Path)
     args = ap.parse_args(argv)
     R.import_mitsuba()
-    register()
     W, H = (int(x) for x in args.size.split("x"))
     rows = []
     with R.temporary_assets(args.scenes, "mfnormal_work_") as assets:

@@ -1,16 +1,20 @@
-"""Nested BSDFs that measure the plugin from the outside: a call counter and a closed-form stub.
+"""BSDFs that measure the plugin from the outside: call counters and a closed-form stub.
 
 The benchmark wraps the nested BSDF of ``normalmap_microfacet`` instead of patching
 the package: ``bench_counting`` counts, per query lane, the calls that reach the
 nested BSDF and the call sites each lane passes (masked or not); ``bench_stub`` is
 a grey Lambertian in closed form (no texture, no Fresnel), so that timing the plugin
-around it times the model's own logic. Call :func:`register` once the variant is set
-(``mi.BSDF`` is the variant's class).
+around it times the model's own logic; ``bench_total`` (:func:`wrap_totals`,
+:func:`count_calls`) adds every call's active lanes to one total per BSDF, for the path
+tracer's work per camera sample (:func:`path_vertices`). Call :func:`register` once the
+variant is set (``mi.BSDF`` is the variant's class).
 """
 
 from __future__ import annotations
 
 OPS = ("eval", "pdf", "eval_pdf", "sample")
+#: bench_total's totals: {label: {op: UInt64 array of one lane}}, filled by the BSDFs as they trace.
+COUNTERS = {}
 
 
 def forwarding_base():
@@ -106,5 +110,56 @@ def register():
         def to_string(self):
             return "Stub[Lambertian 0.5]"
 
+    class Total(forwarding_base()):
+        """The BSDF ``bsdf``, each call adding its active lanes to COUNTERS[label][op]."""
+
+        def __init__(self, props):
+            super().__init__(props)
+            self.label = props["label"]
+            COUNTERS[self.label] = {op: dr.zeros(mi.UInt64, 1) for op in OPS}
+
+        def _count(self, op, active):
+            active = mi.Bool(active)
+            dr.scatter_add(COUNTERS[self.label][op], mi.UInt64(1), mi.UInt32(0), active)
+
+        def to_string(self):
+            return f"Total[{self.label}: {self.inner}]"
+
     mi.register_bsdf("bench_counting", lambda props: Counting(props))
     mi.register_bsdf("bench_stub", lambda props: Stub(props))
+    mi.register_bsdf("bench_total", lambda props: Total(props))
+
+
+def wrap_totals(scene: dict) -> dict:
+    """Every shape's BSDF, and its nested BSDF (a child ``bsdf*``) if any, wrapped in
+    ``bench_total`` (labels: the shape's key, and ``KEY.nested``); ``scene`` is changed in place."""
+    def bsdf_keys(d):
+        return [k for k, v in d.items() if k.startswith("bsdf") and isinstance(v, dict)]
+    for key, v in scene.items():
+        if not isinstance(v, dict):
+            continue
+        for kb in bsdf_keys(v):
+            outer = v[kb]
+            for kn in bsdf_keys(outer):
+                outer[kn] = {"type": "bench_total", "label": f"{key}.nested", "bsdf": outer[kn]}
+            v[kb] = {"type": "bench_total", "label": key, "bsdf": outer}
+    return scene
+
+
+def count_calls(scene: dict, spp: int, samples: int, seed: int = 100) -> dict:
+    """{label: {op: calls per camera sample}} of one render of the scene dict ``scene`` (its
+    BSDFs wrapped by :func:`wrap_totals`; ``samples`` camera samples in all). The counters make
+    every call an indirect Python call: such a render is not for timing."""
+    import drjit as dr
+    import mitsuba as mi
+    COUNTERS.clear()
+    sc = mi.load_dict(wrap_totals(scene))
+    img = mi.render(sc, spp=spp, seed=seed)
+    dr.eval(img)
+    return {label: {op: int(c[op][0]) / samples for op in OPS} for label, c in COUNTERS.items()}
+
+
+def path_vertices(counts: dict) -> float:
+    """Path vertices per camera sample: the shapes' BSDF samples (one per vertex at which the
+    path tracer continues the path) in :func:`count_calls`' counts."""
+    return sum(c["sample"] for label, c in counts.items() if not label.endswith(".nested"))

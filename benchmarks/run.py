@@ -151,6 +151,9 @@ class Profile:
     compile_warm_reps: int
     metrics: tuple = ("render", "noise", "compile", "throughput")
     compile_scenes: tuple = ()      # the scenes of metric 2 (empty: every scene)
+    # Metric 1's path vertices per camera sample, counted at this (width, height) for every method
+    # (probes.count_calls; a counted render is not timed); None: not counted.
+    vertex_size: tuple | None = None
 
 
 FULL = Profile("full", SCENES, tuple(NESTED), METHOD_KEYS, width=192, height=144, spp=16, reps=5,
@@ -158,15 +161,16 @@ FULL = Profile("full", SCENES, tuple(NESTED), METHOD_KEYS, width=192, height=144
                compile_warm_reps=2)
 # 1280×720 with the scenes' own materials. Sized from single renders (llvm_ad_rgb, 2 cores shared
 # at load 7: the demo 3.9 s / 6.9 s for the built-in / nonseparable_same at 4 spp, the torus knot
-# 9.0 s / 10.3 s; linear in spp, so ~2.5× faster idle): 16 spp and 2 A/B pairs, per scene 7 warm-up
-# + 24 paired + 7 compile renders (the compile from the kernel history, no warm render), about
-# 5 + 10 min on 2 idle cores. (64 spp would take an hour.)
+# 9.0 s / 10.3 s; linear in spp, so ~2.5× faster idle): 16 spp and 4 A/B pairs, per scene 7 warm-up
+# + 48 paired + 7 compile renders (the compile from the kernel history, no warm render), about
+# 8 + 10 min on 2 idle cores. (64 spp would take an hour.) Two pairs were too few: on a shared
+# 2-core machine one pair's ratio moves by ±8 % (6 pairs of analytic on the demo: 1.03-1.37).
 PRODUCTION = Profile("production", ("demo", "model"), (NATIVE,), METHOD_KEYS, width=1280, height=720, spp=16,
-                     reps=2, ref_spp=0, ref_pass=1, noise_seeds=0, queries=0, tput_reps=0, stub_reps=1,
-                     compile_warm_reps=0, metrics=("render", "compile"))
+                     reps=4, ref_spp=0, ref_pass=1, noise_seeds=0, queries=0, tput_reps=0, stub_reps=1,
+                     compile_warm_reps=0, metrics=("render", "compile"), vertex_size=(192, 144))
 QUICK = Profile("quick", ("plane", "control"), ("diffuse",), METHOD_KEYS, width=32, height=24, spp=2, reps=2,
                 ref_spp=16, ref_pass=16, noise_seeds=1, queries=1 << 12, tput_reps=2, stub_reps=1,
-                compile_warm_reps=1, compile_scenes=("plane",))
+                compile_warm_reps=1, compile_scenes=("plane",), vertex_size=(32, 24))
 PROFILES = {"full": (FULL,), "production": (PRODUCTION,), "all": (FULL, PRODUCTION)}
 
 
@@ -720,7 +724,35 @@ def render_time(scene, nested, assets, prof, scenes) -> list:
                    render_nested_share=max(0.0, 1.0 - ts / row["method_s"]))
         log(f"         stubbed nested calls: {ts:6.3f} s (ratio {ts / row['builtin_s']:.2f}, nested "
             f"share {100 * row['render_nested_share']:.0f} %)")
+    if prof.vertex_size is not None:
+        add_path_vertices(timing, scene, nested, assets, prof)
     return timing
+
+
+def path_vertices(scene, nested, method, assets, prof) -> float:
+    """Path vertices per camera sample of ``method`` (probes.path_vertices) in a counted render at
+    ``prof.vertex_size``: the same camera, so the same count as at the profile's own size up to
+    the sampling noise of a 192×144 render (under 0.1 % at 16 spp)."""
+    import probes            # benchmarks/probes.py (registered by import_mitsuba)
+    W, H = prof.vertex_size
+    d = scene_dict(scene, assets, method, nested, W, H, prof.spp)
+    return probes.path_vertices(probes.count_calls(with_integrator(d, method_integrator(method)), prof.spp,
+                                                   W * H * prof.spp))
+
+
+def add_path_vertices(timing, scene, nested, assets, prof):
+    """Each timed row with the path vertices per camera sample of its method and of the built-in,
+    and its time ratio per path vertex (time ratio / vertex ratio): a method whose paths are longer
+    (it ends fewer of them) does more work per camera sample."""
+    base = path_vertices(scene, nested, "builtin", assets, prof)
+    for row in timing:
+        if row.get("integrator"):
+            continue
+        v = path_vertices(scene, nested, row["method"], assets, prof)
+        row.update(vertices=v, builtin_vertices=base, vertex_ratio=v / base,
+                   ratio_per_vertex=row["ratio"] / (v / base))
+        log(f"  vertices {scene:7s} {nested:12s} {row['method']:22s} {v:.4f} per sample vs {base:.4f} "
+            f"({v / base:.3f}x): time ratio per vertex {row['ratio_per_vertex']:.2f}")
 
 
 def noise_metrics(scene, nested, assets, prof, scenes, ratio_of) -> list:
@@ -903,16 +935,19 @@ def why_lines(results: dict) -> list:
     fails_n = [c for c in results["noise"] if c.get("pass") is False]
     fails_c = [c for c in results["compile"] if c.get("pass") is False]
     if fails_t:
-        lines.append("**Render time.** For each miss: the render time ratio with the nested calls "
+        lines.append("**Render time.** For each miss: the path vertices per camera sample against the "
+                     "built-in's and the time ratio per path vertex (profiles that count them), the "
+                     "render time ratio with the nested calls "
                      "replaced by a closed-form stub (what the model's own logic costs), the share "
                      "of the render spent in nested calls, and the BSDF-level costs of metric 4 "
                      "(nested calls per query executed / SIMD: every call site runs on all lanes of "
                      "a packet until its longest walk ends):")
         lines.append("")
-        lines.append("| scene | nested | method | time ratio | stubbed ratio | nested share of render | "
+        lines.append("| scene | nested | method | time ratio | path vertices per sample / built-in's | "
+                     "time ratio per path vertex | stubbed ratio | nested share of render | "
                      "eval / sample slowdown | nested calls / eval | nested calls / sample | "
                      "walk mean / p99 / SIMD bounces (coherent) |")
-        lines.append("|---|---|---|---|---|---|---|---|---|---|")
+        lines.append("|---|---|---|---|---|---|---|---|---|---|---|---|")
         for c in fails_t:
             r = tput.get((c["nested"], c["method"]), {})
             w, wc = r.get("sample_walk") or {}, r.get("sample_walk_coherent") or {}
@@ -923,7 +958,8 @@ def why_lines(results: dict) -> list:
                      for m in ("eval", "sample")}
             share = c.get("render_nested_share")
             lines.append(
-                f"| {c['scene']} | {c['nested']} | {c['method']} | {fmt(c['ratio'])} | {fmt(c.get('stub_ratio'))} | "
+                f"| {c['scene']} | {c['nested']} | {c['method']} | {fmt(c['ratio'])} | "
+                f"{fmt(c.get('vertex_ratio'), '.3f')} | {fmt(c.get('ratio_per_vertex'))} | {fmt(c.get('stub_ratio'))} | "
                 f"{fmt(None if share is None else 100 * share, '.0f')} % | "
                 f"{fmt(r.get('eval_slowdown'))}× / {fmt(r.get('sample_slowdown'))}× | {calls['eval']} | "
                 f"{calls['sample']} | {walk} |")
@@ -1008,6 +1044,21 @@ def cell_table(results: dict, prof: dict) -> list:
                  f"{fmt(cc.get('compile_s'))} | {fmt(cc.get('compile_ratio'))} | {mark(cc.get('pass'))} | "
                  f"{fmt(cc.get('rss_peak_mb'), '.0f')} ({fmt(cc.get('rss_render_mb'), '.0f')}) |")
     L.append("")
+    counted = [k for k in keys if "vertex_ratio" in t.get(k, {})]
+    if counted:
+        W, H = prof.get("vertex_size") or ("?", "?")
+        L += [f"Path vertices per camera sample (the shapes' BSDF samples, counted in a {W}×{H} render "
+              "of the same camera, `benchmarks/probes.py`), against the built-in's, and the time ratio "
+              "per path vertex (time ratio / vertex ratio): a method whose paths are longer (it ends "
+              "fewer of them: no sample below the macro surface, more energy kept past Russian "
+              "roulette) does more work per camera sample.", "",
+              "| scene | nested | method | vertices per sample (built-in's) | vertex ratio | time ratio | "
+              "time ratio per vertex |", "|---|---|---|---|---|---|---|"]
+        for k in counted:
+            tt = t[k]
+            L.append(f"| {k[0]} | {k[1]} | {k[2]} | {fmt(tt['vertices'], '.4f')} ({fmt(tt['builtin_vertices'], '.4f')}) "
+                     f"| {fmt(tt['vertex_ratio'], '.3f')} | {fmt(tt['ratio'])} | {fmt(tt['ratio_per_vertex'])} |")
+        L.append("")
     return L
 
 

@@ -55,6 +55,28 @@ def test_quick_benchmark_scores_noise_without_the_sun_disc_on_every_scene(quick_
         assert row["relmse_ratio"] > 0 and row["sunless_relmse_ratio"] > 0
 
 
+def test_quick_benchmark_counts_path_vertices_of_every_method(quick_run):
+    """Metric 1's path vertices per camera sample (probes.count_calls), for every timed method and
+    the built-in, and the time ratio per vertex. On the plane, the only shape, every camera ray that
+    hits it makes exactly one vertex (its continuation leaves to the sky), whatever the BSDF: the
+    same seeds give every method the built-in's count exactly, and that count is the plane's share of
+    the camera rays (0 < v < 1)."""
+    results = json.loads((quick_run / "results.json").read_text())
+    rows = [r for r in results["render_time"] if not r.get("integrator")]
+    assert {r["method"] for r in rows} == set(METHODS) - {"builtin"}
+    for r in rows:
+        assert r["vertices"] > 0 and r["builtin_vertices"] > 0, (r["scene"], r["method"])
+        assert r["vertex_ratio"] == pytest.approx(r["vertices"] / r["builtin_vertices"])
+        assert r["ratio_per_vertex"] == pytest.approx(r["ratio"] / r["vertex_ratio"])
+    plane = [r for r in rows if r["scene"] == "plane"]
+    assert plane
+    for r in plane:
+        assert r["vertices"] == r["builtin_vertices"], r["method"]
+        assert 0.0 < r["vertices"] < 1.0
+    text = (quick_run / "RESULTS.md").read_text()
+    assert "Path vertices per camera sample" in text and "time ratio per vertex" in text
+
+
 def test_quick_benchmark_writes_markdown_table_with_every_method(quick_run):
     text = (quick_run / "RESULTS.md").read_text()
     assert "## Targets" in text and "benchmarks/run.py --quick" in text
