@@ -28,13 +28,16 @@ from helpers import make_si, random_hemisphere, vec3
 @dataclass
 class Check:
     """One derivative: forward AD (mean, its standard error), reverse AD, FD (mean, its
-    standard error) and the paired standard error of AD − FD."""
+    standard error), the paired standard error of AD − FD, and the standard error of the FD's
+    mean over several steps (0 for one step; included in ``se``): its float32 rounding, and
+    for a sample's weight also the branches that flip between steps."""
     ad: float
     ad_se: float
     rev: float
     fd: float
     fd_se: float
     se: float
+    fd_step_se: float = 0.0
 
     def agrees(self, n_se=4.0, rel=0.03, atol=1e-7):
         """|AD − FD| within n_se paired standard errors plus rel × |FD| plus atol (float32
@@ -45,7 +48,17 @@ class Check:
 
     def __str__(self):
         return (f"AD {self.ad:+.5g} ± {self.ad_se:.2g} (rev {self.rev:+.5g}), FD {self.fd:+.5g} "
-                f"± {self.fd_se:.2g}, paired SE {self.se:.2g}")
+                f"± {self.fd_se:.2g} (steps ± {self.fd_step_se:.2g}), paired SE {self.se:.2g}")
+
+
+# The deterministic models' FD steps, as factors of h: nine steps from 0.8h to 1.2h, over which
+# the O(h²) truncation moves by far less than the 3 % tolerance, while the float32 rounding
+# changes from step to step. Measured (analytic, eval, the strength-zero one-sided FD at
+# h = 1e-3, which is 0 in exact arithmetic): single-step FDs from −4.8e-6 to +4.1e-6 at steps
+# 0.8e-3 … 1.2e-3 between two LLVM targets (AVX-512 and AVX2, Dr.Jit's jit_llvm_set_target);
+# a CI machine measured −2.5e-6 at h = 1e-3. The standard error over the steps is their
+# resolution.
+STEPS = tuple(np.linspace(0.8, 1.2, 9))
 
 
 def queries(n, n_texels, seed=0, z_min=0.02, wi_z_max=1.0):
@@ -108,10 +121,16 @@ def query_values(bsdf, si, wo, u, what="eval"):
     raise ValueError(what)
 
 
-def check(bsdf, key, si, wo, u, h, what="eval", one_sided=False):
+def check(bsdf, key, si, wo, u, h, what="eval", one_sided=False, steps=(1.0,)):
     """The :class:`Check` of dL/dθ for the parameter ``key`` at its current value, FD step h
     (``one_sided``: second-order forward difference (−3L(θ) + 4L(θ+h) − L(θ+2h))/2h, for θ on
-    the boundary of its domain, e.g. strength = 0)."""
+    the boundary of its domain, e.g. strength = 0).
+
+    ``steps``: the FD is the mean of the FDs at the steps h·s, s in ``steps``, and its rounding
+    error the standard error of that mean. The deterministic models need it: their FD's
+    float32 rounding does not average out over the queries, since it enters mostly through
+    values the queries of one texel share (the texel's normal at θ ± h; four texels), and it
+    depends on the CPU (LLVM's target: see :data:`STEPS`)."""
     params = mi.traverse(bsdf)
     theta = _value(params, key)
 
@@ -143,13 +162,21 @@ def check(bsdf, key, si, wo, u, h, what="eval", one_sided=False):
         _with_value(params, key, x)
         with dr.suspend_grad():
             return np.array(query_values(bsdf, si, wo, u, what), np.float64)
-    if one_sided:
-        fd_q = (-3.0 * at(theta) + 4.0 * at(theta + h) - at(theta + 2 * h)) / (2 * h)
-    else:
-        fd_q = (at(theta + h) - at(theta - h)) / (2 * h)
+    fds = []
+    base = at(theta) if one_sided else None
+    for s in steps:
+        hs = h * s
+        if one_sided:
+            fds.append((-3.0 * base + 4.0 * at(theta + hs) - at(theta + 2 * hs)) / (2 * hs))
+        else:
+            fds.append((at(theta + hs) - at(theta - hs)) / (2 * hs))
     _with_value(params, key, theta)
+    fd_q = np.mean(fds, axis=0)
+    k = len(steps)
+    step_se = float(np.std([f.mean() for f in fds], ddof=1) / np.sqrt(k)) if k > 1 else 0.0
 
     n = d_q.size
+    paired = float((d_q - fd_q).std() / np.sqrt(n))
     return Check(ad=float(d_q.mean()), ad_se=float(d_q.std() / np.sqrt(n)), rev=rev,
                  fd=float(fd_q.mean()), fd_se=float(fd_q.std() / np.sqrt(n)),
-                 se=float((d_q - fd_q).std() / np.sqrt(n)))
+                 se=float(np.hypot(paired, step_se)), fd_step_se=step_se)

@@ -11,8 +11,11 @@ with common random numbers (the walks hash their random numbers from the query, 
 (``gradients.Check.agrees``); the paired standard error is that of the per-query
 differences, so a deterministic model is held to a few float ulps and a walk to its noise.
 
-Steps, and why: the deterministic models (faithful, analytic) h = 1e-3 (float32 leaves
-FD ~1e-4 of relative rounding, the truncation error is O(h²)); the walks h = 0.02 at tilted
+Steps, and why: the deterministic models (faithful, analytic) h = 1e-3, their FD averaged
+over nine steps from 0.8h to 1.2h (``gradients.STEPS``: float32 rounds the FD by up to ~5e-6
+absolute, through the four texels' normals that all their queries share, so it does not
+average out over the queries and differs between CPUs; the steps' spread measures it, and it
+enters the paired SE; the truncation error is O(h²)); the walks h = 0.02 at tilted
 texels and for α (a walk's FD noise comes from decisions that flip between θ ± h, its
 variance ∝ 1/(h·N), and smaller steps drown in it; halving h moves the FD by less than its
 noise). At a flat texel and at strength = 0 every model uses h = 1e-3: there the walks'
@@ -86,7 +89,8 @@ def checks(model, facet, texels, keys, what="eval", one_sided=(), nested=DIFFUSE
     si, wo, u = G.queries(n, 4)
     out = {}
     for key, h in keys:
-        c = G.check(b, key, si, wo, u, h, what, one_sided=key in one_sided)
+        c = G.check(b, key, si, wo, u, h, what, one_sided=key in one_sided,
+                    steps=(1.0,) if walk(model) else G.STEPS)
         print(f"{model}-{facet} {what} {key}: {c}")
         out[key] = c
     return out
@@ -150,8 +154,10 @@ def test_eval_derivatives_at_strength_zero(model, facet):
     out = checks(model, facet, TILTED, keys, one_sided=("strength",), strength=0.0)
     c = out["strength"]
     if model == "analytic":
-        # Below the FD's float32 resolution (L moves by ~5e-10 over 2h; measured |FD| ~5e-7).
-        assert abs(c.ad) < 1e-6 and abs(c.rev) < 1e-6 and abs(c.fd) < 2e-6, c
+        # L moves by ~3e-8 over h (second order), so the FD is 0 up to its float32 rounding,
+        # which the steps resolve (gradients.STEPS: single steps measured up to ±5e-6).
+        assert abs(c.ad) < 1e-6 and abs(c.rev) < 1e-6, c
+        assert abs(c.fd) < 4 * c.fd_step_se + 1e-7 and c.fd_step_se < 2e-6, c
     elif facet == "specular":
         # Zero within the walk's noise (measured at h = 1e-2: separable AD -4e-9, FD -1.9e-4 ±
         # 1.1e-4; nonseparable AD +1.1e-4 ± 1.2e-4, FD -8.8e-5 ± 1.1e-4 paired).
