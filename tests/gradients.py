@@ -54,10 +54,10 @@ class Check:
 # The deterministic models' FD steps, as factors of h: nine steps from 0.8h to 1.2h, over which
 # the O(h²) truncation moves by far less than the 3 % tolerance, while the float32 rounding
 # changes from step to step. Measured (analytic, eval, the strength-zero one-sided FD at
-# h = 1e-3, which is 0 in exact arithmetic): single-step FDs from −4.8e-6 to +4.1e-6 at steps
-# 0.8e-3 … 1.2e-3 between two LLVM targets (AVX-512 and AVX2, Dr.Jit's jit_llvm_set_target);
-# a CI machine measured −2.5e-6 at h = 1e-3. The standard error over the steps is their
-# resolution.
+# h = 1e-3, which is 0 in exact arithmetic): single-step FDs from −2.8e-7 to +4.1e-6 at steps
+# 0.8e-3 … 1.2e-3 on an AVX-512 machine, −4.8e-6 to +2.1e-6 with Dr.Jit's LLVM target set to
+# AVX2 (jit_llvm_set_target), and a CI machine −2.5e-6 at h = 1e-3. The standard error over the
+# steps is their resolution.
 STEPS = tuple(np.linspace(0.8, 1.2, 9))
 
 

@@ -25,10 +25,11 @@ decisions flip between θ ± h; the FD's noise ∝ 1/h, see tests/test_gradients
 
 The rounding matters where the derivative is small beside the image: analytic's texel
 derivative (the mirror facet cancels the tilt to first order) is ~8e-4 on an image of ~0.5.
-Its single-step FD measured 7.73e-4 … 7.97e-4 at steps 0.8e-3 … 1.2e-3 under two LLVM targets
-(AVX-512 and AVX2), and 7.92e-4 on a CI machine, against the AD's 7.835e-4: a one-step FD with
-1 % tolerance passed on some CPUs and failed on others. Over the five steps: 7.856e-4 ± 3.0e-6
-(AVX-512), 7.872e-4 ± 4.5e-6 (AVX2), within 0.5 % of the AD.
+Its single-step FD measured 7.79e-4 … 7.93e-4 at steps 0.8e-3 … 1.2e-3 on an AVX-512 machine,
+7.73e-4 … 7.97e-4 with Dr.Jit's LLVM target set to AVX2, and 7.92e-4 on a CI machine, against
+the AD's 7.835e-4: a one-step FD with 1 % tolerance passed on some CPUs and failed on others.
+Over the five steps: 7.856e-4 ± 3.0e-6 (AVX-512), 7.872e-4 ± 4.5e-6 (AVX2 target), within 0.5 %
+of the AD.
 
 Tolerances: stated per case at ``CASES``.
 """
