@@ -61,6 +61,14 @@ class Check:
 STEPS = tuple(np.linspace(0.8, 1.2, 9))
 
 
+def mean_over_steps(fds):
+    """(the mean of the FD arrays ``fds``, one per step, and the standard error of its overall
+    mean over the steps: 0 for one step)."""
+    k = len(fds)
+    se = float(np.std([f.mean() for f in fds], ddof=1) / np.sqrt(k)) if k > 1 else 0.0
+    return np.mean(fds, axis=0), se
+
+
 def queries(n, n_texels, seed=0, z_min=0.02, wi_z_max=1.0):
     """(si, wo, u): n queries on texels k mod n_texels, random wi (cosθ_i ≤ wi_z_max) and wo,
     distinct positions."""
@@ -171,9 +179,7 @@ def check(bsdf, key, si, wo, u, h, what="eval", one_sided=False, steps=(1.0,)):
         else:
             fds.append((at(theta + hs) - at(theta - hs)) / (2 * hs))
     _with_value(params, key, theta)
-    fd_q = np.mean(fds, axis=0)
-    k = len(steps)
-    step_se = float(np.std([f.mean() for f in fds], ddof=1) / np.sqrt(k)) if k > 1 else 0.0
+    fd_q, step_se = mean_over_steps(fds)
 
     n = d_q.size
     paired = float((d_q - fd_q).std() / np.sqrt(n))

@@ -47,6 +47,7 @@ import pytest
 mi.set_variant(VARIANT)
 mfnormal.register()
 
+from gradients import mean_over_steps  # noqa: E402
 from helpers import encode, sph  # noqa: E402
 
 RES, SPP, SPP_WALK = 24, 16, 64
@@ -145,8 +146,7 @@ def fd_image(sc, params, what, base, h, spp, steps=(1.0,)):
             out.append(np.array(mi.render(sc, params, integrator=path, seed=0, spp=spp), np.float64))
         fds.append((out[0] - out[1]) / (2 * h * s))
     update(params, what, base, mi.Float(0.0))
-    se = float(np.std([f.mean() for f in fds], ddof=1) / np.sqrt(len(fds))) if len(fds) > 1 else 0.0
-    return np.mean(fds, axis=0), se
+    return mean_over_steps(fds)
 
 
 def prepare(model, facet, what, h, spp):
