@@ -149,6 +149,9 @@ class Profile:
     tput_reps: int
     stub_reps: int
     compile_warm_reps: int
+    # Metric 2's cold runs per method (fresh processes, interleaved over the methods): the row is
+    # the median run. One cold compile moves by ±20 % on a shared machine (run to run, stop 26).
+    compile_runs: int = 1
     metrics: tuple = ("render", "noise", "compile", "throughput")
     compile_scenes: tuple = ()      # the scenes of metric 2 (empty: every scene)
     # Metric 1's path vertices per camera sample, counted at this (width, height) for every method
@@ -158,7 +161,7 @@ class Profile:
 
 FULL = Profile("full", SCENES, tuple(NESTED), METHOD_KEYS, width=192, height=144, spp=16, reps=5,
                ref_spp=256, ref_pass=32, noise_seeds=6, queries=1 << 20, tput_reps=5, stub_reps=3,
-               compile_warm_reps=2)
+               compile_warm_reps=2, compile_runs=3)
 # 1280×720 with the scenes' own materials. Sized from single renders (llvm_ad_rgb, 2 cores shared
 # at load 7: the demo 3.9 s / 6.9 s for the built-in / nonseparable_same at 4 spp, the torus knot
 # 9.0 s / 10.3 s; linear in spp, so ~2.5× faster idle): 16 spp and 4 A/B pairs, per scene 7 warm-up
@@ -167,10 +170,10 @@ FULL = Profile("full", SCENES, tuple(NESTED), METHOD_KEYS, width=192, height=144
 # 2-core machine one pair's ratio moves by ±8 % (6 pairs of analytic on the demo: 1.03-1.37).
 PRODUCTION = Profile("production", ("demo", "model"), (NATIVE,), METHOD_KEYS, width=1280, height=720, spp=16,
                      reps=4, ref_spp=0, ref_pass=1, noise_seeds=0, queries=0, tput_reps=0, stub_reps=1,
-                     compile_warm_reps=0, metrics=("render", "compile"), vertex_size=(192, 144))
+                     compile_warm_reps=0, compile_runs=3, metrics=("render", "compile"), vertex_size=(192, 144))
 QUICK = Profile("quick", ("plane", "control"), ("diffuse",), METHOD_KEYS, width=32, height=24, spp=2, reps=2,
                 ref_spp=16, ref_pass=16, noise_seeds=1, queries=1 << 12, tput_reps=2, stub_reps=1,
-                compile_warm_reps=1, compile_scenes=("plane",), vertex_size=(32, 24))
+                compile_warm_reps=1, compile_runs=2, compile_scenes=("plane",), vertex_size=(32, 24))
 PROFILES = {"full": (FULL,), "production": (PRODUCTION,), "all": (FULL, PRODUCTION)}
 
 
@@ -1021,8 +1024,9 @@ def cell_table(results: dict, prof: dict) -> list:
          "method reaches in the built-in's time, each against its own high-spp reference: under the "
          "full sky (reported) and without the sun disc (scored, every scene); "
          "the mark is the scored one's. Compile: first render with an empty kernel cache minus a warm "
-         "render. RSS: peak resident memory of that subprocess (VmHWM), and in brackets its growth over "
-         "the loaded scene (the render's own memory)."
+         "render (without warm renders: the kernel history's codegen + backend time), the median of "
+         f"{prof.get('compile_runs', 1)} such run(s) in fresh processes. RSS: peak resident memory of "
+         "that subprocess (VmHWM), and in brackets its growth over the loaded scene (the render's own memory)."
          + (" `native`: the scenes' own materials." if name == "production" else ""), "",
          "| scene | nested | method | time s | time ratio | | spp @ equal time | relMSE | "
          "relMSE ratio (full sky) | relMSE ratio (without sun disc) | | compile s | compile ratio | | "
@@ -1289,19 +1293,38 @@ def run_profile(prof: Profile, assets: dict, results: dict, skip: set, variant: 
                 log(f"  failed: {exc}")
 
 
+def median_run(runs: list) -> dict:
+    """Of one cell's cold compile runs, the run with the median compile time (the lower middle
+    one for an even count), with every run's time in ``compile_s_runs`` (in run order); the
+    first failed run, if any failed."""
+    failed = [r for r in runs if "error" in r]
+    if failed:
+        return dict(failed[0])
+    row = dict(sorted(runs, key=lambda r: r["compile_s"])[(len(runs) - 1) // 2])
+    row["compile_s_runs"] = [r["compile_s"] for r in runs]
+    return row
+
+
 def compile_metrics(s: str, nested: str, assets: dict, prof: Profile, variant: str) -> list:
-    """Metrics 2 and 5 of one scene and nested BSDF: a subprocess per method with an empty kernel cache."""
+    """Metrics 2 and 5 of one scene and nested BSDF: a subprocess per method with an empty kernel
+    cache, ``prof.compile_runs`` times (interleaved over the methods, so that a change of load
+    reaches them all), the median run reported (:func:`median_run`)."""
     rows = []
     job = {"scene": s, "nested": nested, "assets": assets, "width": prof.width, "height": prof.height,
            "spp": prof.spp, "warm_reps": prof.compile_warm_reps, "variant": variant}
+    runs = {m: [] for m in prof.methods}
+    for _ in range(prof.compile_runs):
+        for m in prof.methods:
+            runs[m].append(run_worker(dict(job, method=m, integrator=method_integrator(m))))
     for m in prof.methods:
-        r = run_worker(dict(job, method=m, integrator=method_integrator(m)))
+        r = median_run(runs[m])
         r.update(profile=prof.name, scene=s, nested=nested, method=m)
         rows.append(r)
         log(f"  compile {s:7s} {nested:12s} {m:22s} "
             + (r["error"] if "error" in r else
                f"first {r['first_s']:.2f} s, warm {fmt(r['warm_s'])} s, compile "
-               f"{r['compile_s']:.2f} s, ops {r['max_kernel_ops']}, RSS {r['rss_peak_mb']:.0f} MB"))
+               f"{r['compile_s']:.2f} s (runs {', '.join(f'{x:.2f}' for x in r['compile_s_runs'])}), "
+               f"ops {r['max_kernel_ops']}, RSS {r['rss_peak_mb']:.0f} MB"))
     b = next((r for r in rows if r["method"] == "builtin" and "error" not in r), None)
     for r in rows:
         if "error" in r or b is None:

@@ -55,6 +55,31 @@ def test_quick_benchmark_scores_noise_without_the_sun_disc_on_every_scene(quick_
         assert row["relmse_ratio"] > 0 and row["sunless_relmse_ratio"] > 0
 
 
+def test_quick_benchmark_reports_the_median_of_its_cold_compile_runs(quick_run):
+    """Metric 2 runs each method's cold compile ``compile_runs`` times (2 in the quick profile) and
+    reports the median run (of two, the lower), every run's time beside it."""
+    results = json.loads((quick_run / "results.json").read_text())
+    runs = results["config"]["compile_runs"]
+    assert runs == 2
+    for row in results["compile"]:
+        assert len(row["compile_s_runs"]) == runs, row["method"]
+        assert row["compile_s"] == sorted(row["compile_s_runs"])[(runs - 1) // 2], row["method"]
+
+
+def test_median_run_is_the_middle_run_whole():
+    """run.median_run: the run with the median compile time, all of its fields (not a mix of runs),
+    the lower middle one of an even count, every run's time in order; a failed run wins."""
+    sys.path.insert(0, str(SCRIPT.parent))
+    try:
+        import run
+    finally:
+        sys.path.remove(str(SCRIPT.parent))
+    runs = [{"compile_s": 0.5, "ops": 1}, {"compile_s": 0.3, "ops": 2}, {"compile_s": 0.9, "ops": 3}]
+    assert run.median_run(runs) == {"compile_s": 0.5, "ops": 1, "compile_s_runs": [0.5, 0.3, 0.9]}
+    assert run.median_run(runs[:2])["ops"] == 2
+    assert run.median_run(runs + [{"error": "worker exited 1"}]) == {"error": "worker exited 1"}
+
+
 def test_quick_benchmark_counts_path_vertices_of_every_method(quick_run):
     """Metric 1's path vertices per camera sample (probes.count_calls), for every timed method and
     the built-in, and the time ratio per vertex. On the plane, the only shape, every camera ray that
