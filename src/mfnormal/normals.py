@@ -206,7 +206,7 @@ def _facet_normal(plugin, si, active):
                 wp = dr.select(rotation[3], from_tangent_frame(ts, si.sh_frame, tangent, sign), wp)
         return wp, rotation
     if plugin.normalmap is not None:
-        wp = decode_normal(plugin.normalmap.eval_3(si, active), plugin.strength, plugin.directx)
+        wp = decode_normal(plugin.map_rgb(si, active), plugin.strength, plugin.directx)
         if plugin.tangent_attr is not None:
             wp, rotation = plugin._from_vertex_tangents(si, wp, active)
         return wp, rotation

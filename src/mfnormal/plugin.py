@@ -300,6 +300,7 @@ class NormalMapMicrofacet:
             _fail(f"tangents must be '{MITSUBA_TANGENTS}' or a vertex attribute name such as "
                   f"'vertex_tangent', got '{tangents}'")
         self.tangent_attr = None if tangents == MITSUBA_TANGENTS else tangents
+        self._hoist_uv_transform()
         self._flat_texels = self._has_flat_texels()
         self.faithful = (faithful.Model(self.nested, self._map_slopes()[0], COS_P_MIN)
                          if self.model == "faithful" else None)
@@ -404,10 +405,54 @@ class NormalMapMicrofacet:
                 mi.set_property(self.strength, mi.Float(values))
             self._strength_ok = values
             dr.make_opaque(self.strength)
+        if not keys or any(k.startswith("normalmap") for k in keys):
+            self._hoist_uv_transform()
         if not keys or any(k == "strength" or k.startswith(("normalmap", "heightmap")) for k in keys):
             self._flat_texels = self._has_flat_texels()
             if self.faithful is not None:
                 self.faithful.set_slopes(*self._map_slopes(attached=True))
+
+    def _hoist_uv_transform(self):
+        """The normal map's uv transform (a bitmap's ``to_uv``) as kernel inputs, for :meth:`map_rgb`.
+
+        Mitsuba's bitmap bakes its ``to_uv`` into the traced code as constants, so two plugins
+        whose maps differ only in their transforms (the demo's sphere and its tiled floor) traced
+        different code, and Dr.Jit compiled the whole model twice into a kernel: it merges the
+        callables of a call's instances only where their code is the same (the demo with GGX 0.05,
+        non-separable walk: 11601 operations and 0.54 s of LLVM time, against 7179 and 0.35 s with
+        one transform for both). Identity, no ``to_uv`` or a scalar variant: None (``eval_3`` as it is)."""
+        import numpy as np
+        self._uv, self._uv_params, self._uv_original = None, None, None
+        if self.normalmap is None or not dr.is_jit_v(mi.Float):
+            return
+        params = mi.traverse(self.normalmap)
+        if "to_uv" not in params.keys():
+            return
+        original = type(params["to_uv"])(params["to_uv"])          # a copy: the entry aliases the texture's
+        m = np.array(original.matrix, dtype=np.float64)
+        if m.shape != (3, 3) or np.array_equal(m, np.eye(3)):
+            return
+        self._uv = [mi.Float(float(m[i, j])) for i in range(2) for j in range(3)]
+        dr.make_opaque(*self._uv)
+        self._uv_params, self._uv_original = params, original
+
+    def map_rgb(self, si, active=True):
+        """The normal map's RGB at ``si.uv``: ``eval_3``, with a hoisted uv transform
+        (:meth:`_hoist_uv_transform`) applied here from kernel inputs and the texture traced with
+        the identity transform (restored at once; nothing is left changed). The same values bit for
+        bit: the same fused multiply-adds as Mitsuba's ``Transform::transform_affine`` (the
+        translation first, then the x and the y column)."""
+        if self._uv is None:
+            return self.normalmap.eval_3(si, active)
+        m00, m01, m02, m10, m11, m12 = self._uv
+        u, v = si.uv.x, si.uv.y
+        si_uv = mi.SurfaceInteraction3f(si)
+        si_uv.uv = mi.Point2f(dr.fma(m01, v, dr.fma(m00, u, m02)), dr.fma(m11, v, dr.fma(m10, u, m12)))
+        self._uv_params["to_uv"] = type(self._uv_original)()
+        try:
+            return self.normalmap.eval_3(si_uv, active)
+        finally:
+            self._uv_params["to_uv"] = self._uv_original
 
     def _has_flat_texels(self) -> bool:
         """Whether the map may decode to the flat normal somewhere (then AD takes the flat
@@ -498,7 +543,7 @@ class NormalMapMicrofacet:
             sp = normals.shading_point(self, ctx, si, active)
             sp.attached = False
             return sp
-        rgb = self.normalmap.eval_3(si, active)
+        rgb = self.map_rgb(si, active)
         strength = self.strength
         if isinstance(nudge, str):          # "strength", "strength2": at STRENGTH_NUDGE, twice it
             rgb, strength = dr.detach(rgb), strength + STRENGTH_NUDGE * (2.0 if nudge == "strength2" else 1.0)
