@@ -80,6 +80,19 @@ def test_a_new_to_uv_from_traverse_takes_effect():
     assert not np.array_equal(bits(after), bits(before))
 
 
+def test_a_to_uv_set_on_the_texture_alone_is_honoured_and_kept():
+    """A to_uv set on the texture itself (this plugin not told: e.g. a texture two plugins share,
+    updated through one of them) is looked up as the texture has it, and stays set."""
+    b = bsdf(TRANSFORM)
+    si = queries()
+    params = mi.traverse(b.normalmap)
+    params["to_uv"] = mi.ScalarAffineTransform3f(mi.ScalarMatrix3f(np.diag([3.0, 2.0, 1.0])))
+    params.update()
+    got = b.map_rgb(si)
+    assert np.array_equal(np.array(mi.traverse(b.normalmap)["to_uv"].matrix), np.diag([3.0, 2.0, 1.0]))
+    assert np.array_equal(bits(got), bits(b.normalmap.eval_3(si)))
+
+
 def scene(transforms, model):
     """Two rectangles side by side, each with its own plugin over its own map, seen from above."""
     shapes = {}

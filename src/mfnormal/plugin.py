@@ -434,25 +434,32 @@ class NormalMapMicrofacet:
             return
         self._uv = [mi.Float(float(m[i, j])) for i in range(2) for j in range(3)]
         dr.make_opaque(*self._uv)
-        self._uv_params, self._uv_original = params, original
+        self._uv_params, self._uv_original = params, m
 
     def map_rgb(self, si, active=True):
         """The normal map's RGB at ``si.uv``: ``eval_3``, with a hoisted uv transform
         (:meth:`_hoist_uv_transform`) applied here from kernel inputs and the texture traced with
         the identity transform (restored at once; nothing is left changed). The same values bit for
         bit: the same fused multiply-adds as Mitsuba's ``Transform::transform_affine`` (the
-        translation first, then the x and the y column)."""
+        translation first, then the x and the y column). A texture whose ``to_uv`` changed since
+        (set on the texture itself, e.g. one that two plugins share, where this plugin was not
+        told) is evaluated as it is."""
+        import numpy as np
         if self._uv is None:
+            return self.normalmap.eval_3(si, active)
+        current = self._uv_params["to_uv"]
+        current = type(current)(current)                            # a copy, as above
+        if not np.array_equal(np.array(current.matrix, dtype=np.float64), self._uv_original):
             return self.normalmap.eval_3(si, active)
         m00, m01, m02, m10, m11, m12 = self._uv
         u, v = si.uv.x, si.uv.y
         si_uv = mi.SurfaceInteraction3f(si)
         si_uv.uv = mi.Point2f(dr.fma(m01, v, dr.fma(m00, u, m02)), dr.fma(m11, v, dr.fma(m10, u, m12)))
-        self._uv_params["to_uv"] = type(self._uv_original)()
+        self._uv_params["to_uv"] = type(current)()
         try:
             return self.normalmap.eval_3(si_uv, active)
         finally:
-            self._uv_params["to_uv"] = self._uv_original
+            self._uv_params["to_uv"] = current
 
     def _has_flat_texels(self) -> bool:
         """Whether the map may decode to the flat normal somewhere (then AD takes the flat
