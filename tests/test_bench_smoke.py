@@ -158,3 +158,16 @@ def test_integrator_option_swaps_every_methods_path_tracer():
         R.INTEGRATOR = old
     with pytest.raises(ValueError):
         R.with_integrator({"type": "scene"}, "mfnormal_path")
+
+
+def test_busy_note_judges_the_load_before_the_run_not_the_runs_own():
+    """run.busy_note: an idle machine (load 0.01 before) whose run ends at load 1.7 on 2 cores, its
+    own Dr.Jit threads, gets no note; one already at 1.5 before the run is flagged, both loads named."""
+    sys.path.insert(0, str(SCRIPT.parent))
+    try:
+        import run
+    finally:
+        sys.path.remove(str(SCRIPT.parent))
+    assert run.busy_note(0.01, 1.7, 2) is None
+    note = run.busy_note(1.5, 1.9, 2)
+    assert note is not None and "busy" in note and "1.5" in note and "1.9" in note
