@@ -19,6 +19,16 @@ METHODS = ("builtin", "faithful", "analytic", "separable_specular", "separable_s
            "nonseparable_specular", "nonseparable_same")
 
 
+def run_module():
+    """``benchmarks/run.py`` imported as a module (for its pure functions)."""
+    sys.path.insert(0, str(SCRIPT.parent))
+    try:
+        import run
+    finally:
+        sys.path.remove(str(SCRIPT.parent))
+    return run
+
+
 @pytest.fixture(scope="module")
 def quick_run(tmp_path_factory):
     out = tmp_path_factory.mktemp("bench")
@@ -69,11 +79,7 @@ def test_quick_benchmark_reports_the_median_of_its_cold_compile_runs(quick_run):
 def test_median_run_is_the_middle_run_whole():
     """run.median_run: the run with the median compile time, all of its fields (not a mix of runs),
     the lower middle one of an even count, every run's time in order; a failed run wins."""
-    sys.path.insert(0, str(SCRIPT.parent))
-    try:
-        import run
-    finally:
-        sys.path.remove(str(SCRIPT.parent))
+    run = run_module()
     runs = [{"compile_s": 0.5, "ops": 1}, {"compile_s": 0.3, "ops": 2}, {"compile_s": 0.9, "ops": 3}]
     assert run.median_run(runs) == {"compile_s": 0.5, "ops": 1, "compile_s_runs": [0.5, 0.3, 0.9]}
     assert run.median_run(runs[:2])["ops"] == 2
@@ -143,8 +149,7 @@ def test_fused_noise_benchmark_pools_blocks_under_both_integrators(tmp_path):
 def test_integrator_option_swaps_every_methods_path_tracer():
     """``--integrator mfnormal_path``: every method's scene gets it, the built-in's included (one
     integrator for the ratios); a scene without a path integrator is an error."""
-    sys.path.insert(0, str(SCRIPT.parent))
-    import run as R
+    R = run_module()
     scene = {"type": "scene", "integrator": {"type": "path", "max_depth": 8}, "x": {"type": "sphere"}}
     swapped = R.with_integrator(scene, "mfnormal_path")
     assert swapped["integrator"] == {"type": "mfnormal_path", "max_depth": 8}
@@ -163,11 +168,7 @@ def test_integrator_option_swaps_every_methods_path_tracer():
 def test_busy_note_judges_the_load_before_the_run_not_the_runs_own():
     """run.busy_note: an idle machine (load 0.01 before) whose run ends at load 1.7 on 2 cores, its
     own Dr.Jit threads, gets no note; one already at 1.5 before the run is flagged, both loads named."""
-    sys.path.insert(0, str(SCRIPT.parent))
-    try:
-        import run
-    finally:
-        sys.path.remove(str(SCRIPT.parent))
+    run = run_module()
     assert run.busy_note(0.01, 1.7, 2) is None
     note = run.busy_note(1.5, 1.9, 2)
     assert note is not None and "busy" in note and "1.5" in note and "1.9" in note
