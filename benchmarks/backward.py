@@ -4,7 +4,7 @@ r"""Reverse-mode cost of every method against Mitsuba's built-in ``normalmap`` (
     nice .venv/bin/python benchmarks/backward.py [--methods builtin,faithful,...] [--res 64]
         [--spp 16] [--reps 3] [--variant llvm_ad_rgb] [--out benchmarks]
 
-The scene is the inverse-rendering one (:mod:`mfnormal.inverse`: a plane under a 16² map,
+The scene is the inverse-rendering one (:mod:`validation.inverse`: a plane under a 16² map,
 roughplastic α 0.2, one directional sun, ``prb`` max_depth 2). Per method, in a fresh
 subprocess (so that peak memory is its own): the primal render (no derivatives), then a
 differentiable render of the same image plus ``dr.backward`` of its mean square error to
@@ -40,7 +40,7 @@ def rss_mb() -> float:
 
 
 def worker(method, res, spp, reps, start="true", variant="llvm_ad_rgb"):
-    sys.path.insert(0, str(ROOT / "src"))
+    sys.path.insert(0, str(ROOT))   # the validation package of this checkout
     import mfnormal  # noqa: F401  (before mitsuba)
     import drjit as dr
     import mitsuba as mi
@@ -48,7 +48,7 @@ def worker(method, res, spp, reps, start="true", variant="llvm_ad_rgb"):
 
     mi.set_variant(variant)
     mfnormal.register()
-    from mfnormal import inverse as I
+    from validation import inverse as I
 
     setup = I.Setup(res=res, spp=spp, suns=((40.0, 0.0),))
     target = I.same_method_targets(setup, method)[0]

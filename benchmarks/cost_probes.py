@@ -33,7 +33,7 @@ def patches():
     """{probe name: (method, context manager factory)}"""
     import contextlib
     import drjit as dr
-    from mfnormal import faithful, walk
+    from mfnormal.models import faithful, walk
     mi = R.mi
 
     @contextlib.contextmanager

@@ -240,7 +240,7 @@ def exp_mis_pdf(b: Bench, n: int = 1 << 21, bins=(32, 64)) -> list:
 def exp_control(b: Bench, assets, root: Path) -> list:
     """relMSE of scene (c) with its wave normal map against constant normal maps: noise of
     the estimator (constant map) versus sub-pixel detail of the image (wave map)."""
-    from mfnormal.metrics import rel_se
+    from mfnormal.report.metrics import rel_se
     W, H, spp, ref_passes = 192, 144, 16, 8
     rows = []
     for label, normal in (("waves", None), ("constant 40° away", (40, 90)), ("constant 40° toward", (40, -90)),

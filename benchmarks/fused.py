@@ -6,7 +6,7 @@
         [--out benchmarks/fused.json]
 
 ``path`` calls ``eval_pdf_sample`` per vertex, which for a Python BSDF runs ``eval_pdf`` and
-then ``sample`` (two walks for the random-walk models); ``mfnormal_path`` (mfnormal.integrator)
+then ``sample`` (two walks for the random-walk models); ``mfnormal_path`` (mfnormal.plugins.mfnormal_path)
 calls the plugin's own ``eval_pdf_sample`` (one walk). Per scene size and nested BSDF:
 
 - render time at equal spp: each configuration (method × integrator; the built-in also under

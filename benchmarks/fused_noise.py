@@ -48,7 +48,7 @@ SPP, SEEDS, REF_PASS = 16, 6, 64
 
 def block_relmse(scene, ref: np.ndarray, ref_spp: int, base: int) -> float:
     """run.py's metric-3 number for the seed block starting at ``base``."""
-    from mfnormal.metrics import rel_mse
+    from mfnormal.report.metrics import rel_mse
     errs = [rel_mse(x, ref) for x in R.noise_renders(scene, SPP, SEEDS, base)]
     return R.reference_noise_removed(float(np.mean(errs)), SPP, ref_spp)
 
@@ -62,7 +62,7 @@ def measure(cell: str, assets: dict, size, blocks: int, ref_spp: int) -> dict:
               for k, (m, i) in configs.items()}
     refs = {k: R.reference_image(sc, ref_spp, REF_PASS)[0] for k, sc in scenes.items()}
     shared = 0.5 * (refs["path"] + refs["mfnormal_path"])
-    from mfnormal.metrics import rel_mse
+    from mfnormal.report.metrics import rel_mse
     out = {"cell": cell, "size": f"{W}x{H}", "ref_spp": ref_spp,
            "ref_difference_relmse": rel_mse(refs["mfnormal_path"], refs["path"])}
     bases = [20_000 + 1000 * b for b in range(blocks)]

@@ -37,7 +37,7 @@ def worker(args: dict) -> dict:
     """In a fresh process with an empty DRJIT_CACHE_DIR: run.py's compile worker."""
     rss0 = R.memory_mb()["VmHWM"]
     R.import_mitsuba()
-    from mfnormal import walk
+    from mfnormal.models import walk
     walk.INDIRECT_NESTED_CALLS = args.pop("indirect", False)
     return R._worker(args, rss0)
 
@@ -78,7 +78,7 @@ def compile_ab(methods, nested, assets, reps):
 
 
 def time_ab(methods, nested, assets, reps):
-    from mfnormal import walk
+    from mfnormal.models import walk
     prof = R.FULL
     builtin = R.load_scene("demo", assets, "builtin", nested, prof.width, prof.height, prof.spp)
     R.timed_render(builtin, prof.spp, 0)

@@ -8,8 +8,8 @@ One run measures, side by side, every method on every scene and nested BSDF:
 - methods: ``builtin`` (Mitsuba's ``normalmap`` wrapping the same nested BSDF,
   its default fixes on), ``analytic``, ``separable`` x {specular, same},
   ``nonseparable`` x {specular, same};
-- scenes: (a) the bundled demo (:mod:`mfnormal.demo`), (b) the bundled torus
-  knot (:mod:`mfnormal.assets`, when present), (c) a plane with a generated
+- scenes: (a) the bundled demo (:mod:`mfnormal.cli.demo`), (b) the bundled torus
+  knot (:mod:`mfnormal.scenes.assets`, when present), (c) a plane with a generated
   normal map seen at grazing angles; every normal-mapped BSDF's nested BSDF is
   replaced by the one under test;
   (d) ``control``: scene (c) with a constant normal map (every texel 40° from the
@@ -79,7 +79,7 @@ import numpy as np
 
 HERE = Path(__file__).resolve().parent
 
-# The methods measured, by their key in the catalogue mfnormal.methods (which defines them;
+# The methods measured, by their key in the catalogue mfnormal.report.methods (which defines them;
 # only the names here: Mitsuba is imported later, see import_mitsuba). "builtin" is Mitsuba's
 # normalmap with its default fixes on, the catalogue's classic_fixed.
 METHOD_KEYS = ("builtin", "faithful", "analytic", "separable_specular", "separable_same",
@@ -87,8 +87,8 @@ METHOD_KEYS = ("builtin", "faithful", "analytic", "separable_specular", "separab
 
 
 def catalogue_method(key: str):
-    """The mfnormal.methods.Method measured as ``key``."""
-    from mfnormal.methods import METHOD_BY_KEY
+    """The mfnormal.report.methods.Method measured as ``key``."""
+    from mfnormal.report.methods import METHOD_BY_KEY
     return METHOD_BY_KEY["classic_fixed" if key == "builtin" else key]
 
 
@@ -116,7 +116,7 @@ CONTROL_NORMAL = (40.0, 0.0)
 
 VARIANT = "llvm_ad_rgb"          # --variant
 # The integrator every method renders under (--integrator): Mitsuba's "path", or "mfnormal_path"
-# (mfnormal.integrator: path calling the plugin's fused eval_pdf_sample). The built-in renders
+# (mfnormal.plugins.mfnormal_path: path calling the plugin's fused eval_pdf_sample). The built-in renders
 # under it too, so that the ratios compare BSDFs under one integrator (mfnormal_path renders the
 # built-in faster than path does, 0.82-0.97x, benchmarks/fused.md: that is not the plugin's merit),
 # and is timed once more under path (a row with no target, "integrator_ratio").
@@ -201,7 +201,7 @@ def import_mitsuba(variant: str | None = None):
     import mfnormal          # noqa: F401  (before mitsuba: selects a working libLLVM)
     import drjit as dr
     import mitsuba as mi
-    from mfnormal.cli import setup_variant
+    from mfnormal.cli.commands import setup_variant
     setup_variant(variant or VARIANT)
     import probes            # benchmarks/probes.py, beside this script
     probes.register()
@@ -237,7 +237,7 @@ def make_plane_normalmap(size: int = 256, waves: int = 7, max_tilt_deg: float = 
 
 def prepare_assets(root: Path, scenes) -> dict:
     """Generate every scene's assets under ``root``; returns what :func:`scene_dict` needs."""
-    from mfnormal import assets as bundled, sky
+    from mfnormal.scenes import assets as bundled, sky
     out = {}
     demo_assets = bundled.generate_demo_assets(root / "demo")
     out["demo"] = {"dir": str(root / "demo")}
@@ -267,7 +267,7 @@ def prepare_assets(root: Path, scenes) -> dict:
 def write_constant_normalmap(path: Path, theta_deg: float, phi_deg: float) -> Path:
     """A 4×4 normal map (PNG, raw encoding) whose every texel is the unit normal at polar angle θ
     and azimuth φ (degrees) in the tangent frame: the constant-map control."""
-    from mfnormal.assets import encode_normalmap
+    from mfnormal.scenes.assets import encode_normalmap
     t, f = math.radians(theta_deg), math.radians(phi_deg)
     n = np.array([math.sin(t) * math.cos(f), math.sin(t) * math.sin(f), math.cos(t)], np.float32)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -290,7 +290,7 @@ def nested_spec(nested: str, probe: str | None = None) -> dict | None:
 def swap_bsdfs(scene: dict, method: str, nested: dict) -> dict:
     """Rewrite every ``normalmap_microfacet`` in ``scene`` for ``method`` around ``nested``
     (None: around its own nested BSDF)."""
-    from mfnormal.scene_xml import rewrite_dict
+    from mfnormal.io.scene_xml import rewrite_dict
     m = catalogue_method(method)
 
     def rewrite(v):
@@ -312,8 +312,8 @@ def swap_bsdfs(scene: dict, method: str, nested: dict) -> dict:
 
 def scene_dict(name: str, assets: dict, method: str, nested: str, width: int, height: int,
                spp: int, probe: str | None = None) -> dict:
-    from mfnormal import demo
-    from mfnormal.scene_xml import xml_to_dict
+    from mfnormal.cli import demo
+    from mfnormal.io.scene_xml import xml_to_dict
     if name == "demo":
         base = demo.demo_scene(model="analytic", spp=spp, resolution=(width, height),
                                assets_dir=assets["demo"]["dir"], max_depth=MAX_DEPTH)
@@ -365,7 +365,7 @@ def load_scene(name, assets, method, nested, width, height, spp, sunless=False, 
 
 def with_integrator(scene: dict, integrator: str) -> dict:
     """``scene`` with its ``path`` integrator replaced by ``integrator`` (its parameters kept),
-    e.g. ``mfnormal_path`` (mfnormal.integrator); "path" leaves it as it is."""
+    e.g. ``mfnormal_path`` (mfnormal.plugins.mfnormal_path); "path" leaves it as it is."""
     if integrator == "path":
         return scene
     found = [k for k, v in scene.items() if isinstance(v, dict) and v.get("type") == "path"]
@@ -376,7 +376,7 @@ def with_integrator(scene: dict, integrator: str) -> dict:
 
 def with_envmap(scene: dict, filename: str) -> dict:
     """``scene`` with every ``envmap`` emitter reading ``filename``."""
-    from mfnormal.scene_xml import rewrite_dict
+    from mfnormal.io.scene_xml import rewrite_dict
 
     def rewrite(v):
         v["filename"] = filename
@@ -548,7 +548,7 @@ def make_queries(n: int, coherent: int = 1, seed: int = 11):
 
 def make_bsdf(method: str, nested: str, texture, probe: str | None = None, **params):
     """``method`` around the nested BSDF ``nested`` (see nested_spec), with plugin ``params``."""
-    from mfnormal.methods import plugin_bsdf
+    from mfnormal.report.methods import plugin_bsdf
     m = catalogue_method(method)
     if m.kind == "classic":
         return mi.load_dict(m.bsdf(nested_spec(nested, probe), texture))
@@ -589,7 +589,7 @@ def nested_calls(bsdf, mode: str, queries):
 def walk_lengths(bsdf, mode: str, queries):
     """Facet bounces per lane of the model's walk (the walk loops' own counter), or None for
     a model without a walk. Each lane walks as in ``bsdf.sample`` / ``bsdf.eval``."""
-    from mfnormal import walk
+    from mfnormal.models import walk
     if getattr(bsdf, "walk_params", None) is None:
         return None
     si, wo, s1, s2 = queries
@@ -817,7 +817,7 @@ def reference_noise_removed(relmse: float, spp: int, ref_spp: int) -> float:
 def equal_time_noise(scene, spp: int, prof: Profile) -> dict:
     """relMSE of ``spp``-sample renders (mean of ``prof.noise_seeds``) against a high-spp
     reference of the same scene, with the reference's own noise removed."""
-    from mfnormal.metrics import rel_mse, rel_se
+    from mfnormal.report.metrics import rel_mse, rel_se
     ref, ref_spp = reference_image(scene, prof.ref_spp, prof.ref_pass)
     imgs = noise_renders(scene, spp, prof.noise_seeds)
     errs = [rel_mse(x, ref) for x in imgs]
@@ -1095,7 +1095,7 @@ def write_markdown(results: dict, path: Path):
           f"{fmt(results['loadavg_end'][0])}; wall time {results['duration_s'] / 60:.1f} min; "
           f"started {results['started']}",
           *([f"- integrator: every method, the built-in included, under `{results['integrator']}` "
-             "(mfnormal.integrator); the built-in's time under it over its time under Mitsuba's `path` "
+             "(mfnormal.plugins.mfnormal_path); the built-in's time under it over its time under Mitsuba's `path` "
              "is the built-in row's time ratio"] if results.get("integrator", "path") != "path" else []),
           f"- code: commit `{results['git']['commit']}`"
           + (f", with uncommitted changes in {', '.join(results['git']['modified'])}"
@@ -1225,7 +1225,7 @@ def main(argv=None) -> int:
     out.mkdir(parents=True, exist_ok=True)
 
     t_start = time.time()
-    from mfnormal.cli import CLIError
+    from mfnormal.cli.commands import CLIError
     try:
         import_mitsuba(args.variant)
     except CLIError as exc:
@@ -1375,7 +1375,7 @@ def finish(results: dict, out: Path, t_start: float):
     if busy:
         results["notes"].append(busy)
     results["notes"].append(
-        "walk lengths are the walk loops' bounce counter (mfnormal.walk.sample_walk / eval_walk); "
+        "walk lengths are the walk loops' bounce counter (mfnormal.models.walk.sample_walk / eval_walk); "
         "nested calls are counted, and the nested BSDF stubbed, by the nested BSDFs of "
         "benchmarks/probes.py")
     (out / "results.json").write_text(json.dumps(results, indent=1, default=float))

@@ -8,7 +8,7 @@ optimised with Adam from a flat map through Mitsuba's ``prb`` integrator, the sa
 rendering both. Mitsuba's built-in ``normalmap`` is run beside it for comparison. Prints the
 loss and the mean texel error (angle to the true normals) as it goes, and writes a figure:
 the loss curves, the error curves, and the true and recovered maps. About a minute on a
-laptop's CPU (llvm_ad_rgb) with the defaults. See ``mfnormal.inverse`` for the pieces and
+laptop's CPU (llvm_ad_rgb) with the defaults. See ``validation.inverse`` for the pieces and
 ``validation/inverse_rendering.py`` for every model and the true-geometry target.
 """
 
@@ -18,7 +18,7 @@ import argparse
 import sys
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "src"))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))   # the validation package of this checkout
 
 import mfnormal  # noqa: E402  (before mitsuba: selects a working libLLVM)
 import mitsuba as mi  # noqa: E402
@@ -26,7 +26,7 @@ import mitsuba as mi  # noqa: E402
 
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--method", default="faithful", help="a key of mfnormal.inverse.METHODS")
+    p.add_argument("--method", default="faithful", help="a key of validation.inverse.METHODS")
     p.add_argument("--iterations", type=int, default=40)
     p.add_argument("--res", type=int, default=32)
     p.add_argument("--spp", type=int, default=8)
@@ -35,7 +35,7 @@ def main(argv=None):
 
     mi.set_variant("llvm_ad_rgb")
     mfnormal.register()
-    from mfnormal import inverse as I
+    from validation import inverse as I
 
     setup = I.Setup(res=args.res, spp=args.spp, iterations=args.iterations, lr=0.03)
     results = {}

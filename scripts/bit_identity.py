@@ -6,7 +6,9 @@
 
 For refactors that must not change behaviour: record on the code before the
 change (keep the file outside git), compare after it. Every configuration
-(model × tangent facet × nested BSDF, and a few with other ``max_bounces``,
+(model × tangent facet × nested BSDF, each normal source on a smooth-shaded
+mesh — vertex tangents, height map, the geometric macro normal with and
+without a map — reverse-mode derivatives w.r.t. the map, and a few with other ``max_bounces``,
 ``rr_depth``, ``mis_boost_max``, ``strength`` and convention values) answers
 the same ``N_QUERIES`` queries through the plugin's ``eval``, ``pdf``,
 ``eval_pdf`` and ``sample`` (direction, pdf, weight, sampled type and
@@ -221,8 +223,8 @@ def run_scalar(bsdf, q):
 
 def naive_estimates(tf, nested, q, tex):
     """The non-separable naive sampled-height estimator on the queries (ω_p from ``tex``)."""
-    from mfnormal.microsurface import decode_normal
-    from mfnormal.shading import ShadingPoint
+    from mfnormal.models.microsurface import decode_normal
+    from mfnormal.models.shading import ShadingPoint
     si = interaction(q)
     wo = mi.Vector3f(*(_f(q["wo"][:, i]) for i in range(3)))
     rgb = mi.load_dict(_texture(tex)).eval_3(si)
@@ -234,6 +236,140 @@ def naive_eval(sp, wo, specular):
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
     from reference.naive_walk import naive_eval as naive
     return naive(sp, wo, specular)
+
+
+# -- Normal sources on a mesh: vertex tangents, height maps, the geometric macro normal ------------
+
+#: Two non-planar quads (skewed uvs, the second mirrored in u), smooth-shaded: si.n != sh_frame.n.
+MESH_P = np.array([[0, 0, 0], [1, 0, 0.2], [1.2, 1, 0.1], [0.1, 1, -0.1],
+                   [2, 0, 0], [3, 0, -0.1], [3.1, 1, 0.15], [2.1, 0.9, 0]], np.float64)
+MESH_UV = np.array([[0.05, 0.1], [0.7, 0.15], [0.9, 0.8], [0.15, 0.6],
+                    [0.9, 0.1], [0.2, 0.05], [0.1, 0.7], [0.85, 0.75]], np.float64)
+MESH_F = np.array([[0, 1, 2], [0, 2, 3], [4, 5, 6], [4, 6, 7]])
+
+#: (normal source, extra plugin parameters); ``heightmap`` replaces the normal map.
+SOURCES = {
+    "tangents": {"tangents": "vertex_tangent"},
+    "heightmap": {"heightmap": None, "height_scale": 0.05},
+    "geometric": {"macro_normal": "geometric"},
+    "geometric_nomap": {"macro_normal": "geometric", "normalmap": None},
+    "geometric_heightmap": {"macro_normal": "geometric", "heightmap": None, "height_scale": 0.05},
+}
+
+
+def mesh_plugin(model, tf, nested, source, tex):
+    d = {"type": "normalmap_microfacet", "normalmap": _texture(tex), "bsdf": nested}
+    for k, v in SOURCES[source].items():
+        if k == "heightmap":
+            h = np.ascontiguousarray(tex[..., :1] + 0.3 * tex[..., 1:2], np.float32)
+            h = np.nan_to_num(h, nan=0.5)
+            d.pop("normalmap")
+            d["heightmap"] = {"type": "bitmap", "bitmap": mi.Bitmap(h), "raw": True, "filter_type": "bilinear"}
+        elif v is None:
+            d.pop(k)
+        else:
+            d[k] = v
+    if model is not None:
+        d["model"] = model
+    if model not in (None, "analytic", "faithful"):
+        d["tangent_facet"] = tf
+    return mi.load_dict(d)
+
+
+def mesh_hits(bsdf, q):
+    """Interactions on the two quads (the plugin as their material), rays along −(face normal)."""
+    rng = np.random.default_rng(11)
+    n = len(q["wi"])
+    props = mi.Properties()
+    props["bsdf"] = bsdf
+    mesh = mi.Mesh("quads", len(MESH_P), len(MESH_F), props, has_vertex_normals=True, has_vertex_texcoords=True)
+    params = mi.traverse(mesh)
+    t = np.radians(rng.uniform(0, 25, len(MESH_P)))
+    ph = rng.uniform(0, 2 * np.pi, len(MESH_P))
+    normals = np.stack([np.sin(t) * np.cos(ph), np.sin(t) * np.sin(ph), np.cos(t)], -1)
+    params["vertex_positions"] = mi.Float(MESH_P.astype(np.float32).ravel())
+    params["vertex_normals"] = mi.Float(np.float32(normals).ravel())
+    params["vertex_texcoords"] = mi.Float(MESH_UV.astype(np.float32).ravel())
+    params["faces"] = mi.UInt32(MESH_F.astype(np.uint32).ravel())
+    params.update()
+    tangent = unit(np.cross(normals, unit(rng.normal(size=(len(MESH_P), 3)))))
+    mesh.add_attribute("vertex_tangent", 3, np.float32(tangent).ravel())
+    mesh.add_attribute("vertex_tangent_sign", 1, np.float32(np.where(np.arange(len(MESH_P)) < 4, 1.0, -1.0)))
+    scene = mi.load_dict({"type": "scene", "mesh": mesh})
+    f = rng.integers(0, len(MESH_F), n)
+    b = rng.dirichlet([1, 1, 1], n) * 0.98 + 0.02 / 3
+    tri = MESH_P[MESH_F[f]]
+    p = np.einsum("nk,nkd->nd", b, tri)
+    fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    fn /= np.linalg.norm(fn, axis=1, keepdims=True)
+    o = p + 0.5 * fn
+    ray = mi.Ray3f(mi.Point3f(*(_f(o[:, i]) for i in range(3))), mi.Vector3f(*(_f(-fn[:, i]) for i in range(3))))
+    si = scene.ray_intersect(ray)
+    si.wi = mi.Vector3f(*(_f(q["wi"][:, i]) for i in range(3)))
+    return si, bsdf
+
+
+def run_mesh(model, tf, nested, source, tex, q, mode=mi.TransportMode.Radiance):
+    """run_jit's outputs at interactions on a smooth-shaded mesh (the normal sources' inputs)."""
+    si, bsdf = mesh_hits(mesh_plugin(model, tf, nested, source, tex), q)
+    ctx = mi.BSDFContext(mode)
+    wo = mi.Vector3f(*(_f(q["wo"][:, i]) for i in range(3)))
+    out = {"eval": _np(bsdf.eval(ctx, si, wo)), "pdf": _np(bsdf.pdf(ctx, si, wo))}
+    value, pdf = bsdf.eval_pdf(ctx, si, wo)
+    out.update(eval_pdf_value=_np(value), eval_pdf_pdf=_np(pdf))
+    bs, w = bsdf.sample(ctx, si, _f(q["u"][:, 0]), mi.Point2f(_f(q["u"][:, 1]), _f(q["u"][:, 2])))
+    out.update(sample_wo=_np(bs.wo), sample_pdf=_np(bs.pdf), sample_weight=_np(w),
+               sample_type=_np(bs.sampled_type, np.uint32))
+    return out
+
+
+def run_grad(model, tf, nested, tex, q):
+    """The reverse-mode derivative of sum(eval) and of sum(sample weight) w.r.t. the normal map's texels."""
+    bsdf = plugin(model, tf, nested, {}, tex)
+    params = mi.traverse(bsdf)
+    key = "normalmap.data"
+    out = {}
+    for what in ("eval", "sample_weight"):
+        data = mi.TensorXf(params[key])
+        dr.enable_grad(data)
+        params[key] = data
+        params.update()
+        si = interaction(q)
+        ctx = mi.BSDFContext()
+        if what == "eval":
+            y = bsdf.eval(ctx, si, mi.Vector3f(*(_f(q["wo"][:, i]) for i in range(3))))
+        else:
+            y = bsdf.sample(ctx, si, _f(q["u"][:, 0]), mi.Point2f(_f(q["u"][:, 1]), _f(q["u"][:, 2])))[1]
+        dr.backward(dr.sum(dr.sum(y)))
+        out[f"grad_{what}"] = _np(dr.grad(data))
+    return out
+
+
+def record_sources(out, only, tex):
+    """The normal sources (SOURCES) for every model × tangent facet on two nested BSDFs, and gradients."""
+    q = queries(N_QUERIES // 4, seed=5)
+    nested = nested_bsdfs()
+    for model, tf in MODELS:
+        for name in ("diffuse", "ggx03"):
+            for source in SOURCES:
+                key = f"mesh/{model}-{tf}-{name}-{source}"
+                if only and only not in key:
+                    continue
+                for what, a in run_mesh(model, tf, nested[name], source, tex, q).items():
+                    out[f"{key}/{what}"] = a
+                if model == "faithful" or source.startswith("geometric"):
+                    for what, a in run_mesh(model, tf, nested[name], source, tex, q,
+                                            mi.TransportMode.Importance).items():
+                        out[f"{key}/importance_{what}"] = a
+                print(f"  {key}", flush=True)
+    qg = queries(N_QUERIES // 16, seed=6)
+    for model, tf in MODELS:
+        key = f"grad/{model}-{tf}-ggx03"
+        if only and only not in key:
+            continue
+        for what, a in run_grad(model, tf, nested["ggx03"], tex, qg).items():
+            out[f"{key}/{what}"] = a
+        print(f"  {key}", flush=True)
 
 
 def record(only=None):
@@ -253,6 +389,7 @@ def record(only=None):
             for what, a in run_jit(bsdf, q, mi.TransportMode.Importance).items():
                 out[f"llvm/{name}/importance_{what}"] = a
         print(f"  llvm {name}", flush=True)
+    record_sources(out, only, tex)
     qn = queries(N_NAIVE, seed=2)
     for tf in ("specular", "same"):
         for name in ("diffuse", "ggx03"):

@@ -2,7 +2,7 @@
 
 Starting a process per command costs ~2 s (importing Mitsuba); the fuzzers run
 hundreds of commands. :class:`Worker` keeps one child (``python cli_worker.py``)
-that runs ``mfnormal.cli.main(args)`` for each request and answers with the exit
+that runs ``mfnormal.cli.commands.main(args)`` for each request and answers with the exit
 code, what the command wrote to stdout and stderr (file descriptors 1 and 2, so
 Mitsuba's native output is included), the files it opened and whether an
 exception escaped ``main``. The child's address space is capped (RLIMIT_AS,
@@ -143,7 +143,7 @@ def _serve():
                 opened.append(os.fsdecode(args[0]))
 
     sys.addaudithook(audit)
-    from mfnormal import cli   # noqa: F401  (imports Mitsuba once)
+    from mfnormal.cli import commands as cli   # noqa: F401  (imports Mitsuba once)
 
     replies = os.fdopen(os.dup(1), "w")
     for line in sys.stdin:

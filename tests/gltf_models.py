@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mfnormal.images import png_bytes
+from mfnormal.io.images import png_bytes
 
 
 def _normal_map(size=8):

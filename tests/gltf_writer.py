@@ -1,4 +1,4 @@
-"""Write small glTF 2.0 binaries (.glb) with pygltflib, for the tests of ``mfnormal.gltf``."""
+"""Write small glTF 2.0 binaries (.glb) with pygltflib, for the tests of ``mfnormal.io.gltf``."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pygltflib as g
 
-from mfnormal.images import png_bytes  # noqa: F401  (re-exported for the tests)
+from mfnormal.io.images import png_bytes  # noqa: F401  (re-exported for the tests)
 
 
 @dataclass

@@ -204,7 +204,7 @@ def xml_scene(shapes: str, defaults: dict, *, spp="1", width="24", height="16", 
 def write_maps(folder) -> None:
     """``normalmap.png`` (8 × 8, flat but for a tilted 4 × 4 square) and ``gray.png`` (the same
     size, one channel: not a normal map) in ``folder``, for the command line's scenes."""
-    from mfnormal.images import png_bytes
+    from mfnormal.io.images import png_bytes
 
     bumps = np.zeros((8, 8, 3), np.uint8)
     bumps[...] = (128, 128, 255)

@@ -1,18 +1,26 @@
-"""The package's shape (issue 15): data flows one way, and every function fits on a screen.
+"""The package's shape: data flows one way, and every function fits on a screen.
 
 Read from the source with ``ast`` (nothing is imported): the import graph of
-``src/mfnormal`` has no cycle, counting every import statement, those inside
-functions too (a deferred import is still a dependency), except the ones under
-``if __name__ == "__main__":`` (a module run as a program is not imported);
-``report.py`` imports nothing of the package but image writing (it only writes
-HTML); no function in ``src/`` is longer than ``MAX_FUNCTION_LINES``.
+``src/mfnormal`` (modules named by their dotted path below it, ``models.walk``)
+has no cycle, counting every import statement, those inside functions too (a
+deferred import is still a dependency), except the ones under ``if __name__ ==
+"__main__":`` (a module run as a program is not imported); the core (``models``,
+``normals``, ``plugins``) imports no tool, and nothing below the plugin reaches
+back into it (``models`` imports only ``models``; ``normals`` only ``models`` and
+``normals``); the installed package imports nothing of the repository's
+``validation`` harnesses; ``report.html`` imports nothing of the package but image
+writing (it only writes HTML); no function in ``src/`` is longer than
+``MAX_FUNCTION_LINES``; nothing in the repository monkeypatches.
 """
 
 import ast
+import subprocess
 from pathlib import Path
 
-PACKAGE = Path(__file__).resolve().parents[1] / "src" / "mfnormal"
-MAX_FUNCTION_LINES = 90
+ROOT = Path(__file__).resolve().parents[1]
+PACKAGE = ROOT / "src" / "mfnormal"
+MAX_FUNCTION_LINES = 60
+CORE = ("models", "normals", "plugins")
 
 
 def _is_main_guard(node) -> bool:
@@ -20,30 +28,48 @@ def _is_main_guard(node) -> bool:
             and isinstance(node.test.left, ast.Name) and node.test.left.id == "__name__")
 
 
+def module_name(path: Path) -> str:
+    """``models.walk`` for src/mfnormal/models/walk.py, ``cli`` for src/mfnormal/cli/__init__.py."""
+    parts = path.relative_to(PACKAGE).with_suffix("").parts
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+def _targets(node, here: str) -> list:
+    """The dotted module names (below ``mfnormal``, or ``validation...``) that one import names."""
+    if isinstance(node, ast.Import):
+        return [a.name.partition(".")[2] if a.name.startswith("mfnormal.") else a.name
+                for a in node.names if a.name.startswith(("mfnormal.", "validation"))]
+    if node.level:
+        base = here.split(".")[:len(here.split(".")) - node.level + (1 if here.endswith("__init__") else 0)]
+        module = ".".join(base + ([node.module] if node.module else []))
+    elif node.module == "mfnormal" or (node.module or "").startswith("mfnormal."):
+        module = node.module.partition(".")[2]
+    elif (node.module or "").startswith("validation"):
+        return [node.module]
+    else:
+        return []
+    return [f"{module}.{a.name}".strip(".") for a in node.names] + [module]
+
+
 def _imported_modules(path: Path, modules: set) -> set:
-    """The package's modules that ``path`` imports (``from . import x``, ``from .x import y``,
-    ``import mfnormal.x``, ``from mfnormal import x``)."""
+    """The package's modules (and validation harnesses) that ``path`` imports."""
     tree = ast.parse(path.read_text())
     skipped = {id(n) for guard in ast.walk(tree) if _is_main_guard(guard) for n in ast.walk(guard)}
+    here = module_name(path)
     found = set()
     for node in ast.walk(tree):
-        if id(node) in skipped:
+        if id(node) in skipped or not isinstance(node, (ast.Import, ast.ImportFrom)):
             continue
-        if isinstance(node, ast.ImportFrom):
-            package = node.level == 1 or (node.level == 0 and (node.module or "").split(".")[0] == "mfnormal")
-            if not package:
-                continue
-            module = (node.module or "").split(".")[1 if node.level == 0 else 0:]
-            names = module[:1] if module and module[0] else [a.name for a in node.names]
-            found.update(names)
-        elif isinstance(node, ast.Import):
-            found.update(a.name.split(".")[1] for a in node.names if a.name.startswith("mfnormal."))
-    return found & modules - {path.stem}
+        for target in _targets(node, here):
+            if target.startswith("validation") or target in modules:
+                found.add(target)
+    return found - {here, ""}
 
 
 def import_graph() -> dict:
-    modules = {p.stem for p in PACKAGE.glob("*.py")}
-    return {p.stem: _imported_modules(p, modules) for p in PACKAGE.glob("*.py")}
+    paths = sorted(PACKAGE.rglob("*.py"))
+    modules = {module_name(p) for p in paths}
+    return {module_name(p): _imported_modules(p, modules) for p in paths}
 
 
 def cycles(graph: dict) -> list:
@@ -82,13 +108,37 @@ def test_the_cycle_finder_finds_a_cycle():
 
 def test_the_package_has_no_import_cycle():
     graph = import_graph()
-    assert {"cli", "compare", "report", "demo", "plugin"} <= set(graph)
-    assert "report" in graph["compare"] and "demo" in graph["cli"]     # the graph sees real imports
+    assert {"cli.commands", "report.compare", "report.html", "cli.demo", "plugins.normalmap_microfacet"} <= set(graph)
+    assert "report.html" in graph["report.compare"] and "cli.demo" in graph["cli.commands"]  # real imports
     assert cycles(graph) == []
 
 
+def _package(module: str) -> str:
+    return module.split(".")[0]
+
+
+def test_the_core_imports_no_tool_and_nothing_reaches_back_into_the_plugin():
+    allowed = {"models": {"models"}, "normals": {"models", "normals"},
+               "plugins": {"models", "normals", "plugins"}}
+    wrong = [f"{m} imports {t}" for m, targets in import_graph().items() if _package(m) in allowed
+             for t in targets if _package(t) not in allowed[_package(m)]]
+    assert wrong == []
+
+
+def test_the_installed_package_imports_no_validation_harness():
+    assert [m for m, targets in import_graph().items() if any(t.startswith("validation") for t in targets)] == []
+
+
 def test_the_report_only_writes_html():
-    assert import_graph()["report"] <= {"images"}
+    assert import_graph()["report.html"] <= {"io.images", "io"}
+
+
+def test_the_import_graph_sees_a_back_reference():
+    """The checks above fail on what they forbid: a model importing the plugin."""
+    fake = PACKAGE / "models" / "walk.py"
+    tree_targets = _targets(ast.parse("from mfnormal.plugins import normalmap_microfacet").body[0],
+                            module_name(fake))
+    assert "plugins.normalmap_microfacet" in tree_targets
 
 
 def test_no_function_is_longer_than_a_screen():
@@ -98,5 +148,23 @@ def test_no_function_is_longer_than_a_screen():
             if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
                 start = min([node.lineno] + [d.lineno for d in node.decorator_list])
                 if node.end_lineno - start + 1 > MAX_FUNCTION_LINES:
-                    long.append(f"{path.name}:{node.lineno} {node.name} ({node.end_lineno - start + 1} lines)")
+                    long.append(f"{path.relative_to(PACKAGE)}:{node.lineno} {node.name} "
+                                f"({node.end_lineno - start + 1} lines)")
     assert long == []
+
+
+def test_nothing_monkeypatches():
+    """No test or tool replaces a module's attributes at run time (pytest's ``monkeypatch``,
+    ``setattr`` on a module, ``unittest.mock.patch``): what a test needs to vary is a parameter."""
+    files = subprocess.run(["git", "ls-files", "*.py"], cwd=ROOT, capture_output=True, text=True).stdout.split()
+    me = Path(__file__).relative_to(ROOT).as_posix()
+    hits = []
+    for name in files:
+        path = ROOT / name
+        if name == me or not path.exists():
+            continue
+        for i, line in enumerate(path.read_text().splitlines(), 1):
+            if ("monkeypatch" in line or "mock.patch" in line
+                    or (("setattr(" in line) and "__setattr__" not in line and "object.__setattr__" not in line)):
+                hits.append(f"{name}:{i}: {line.strip()}")
+    assert hits == []

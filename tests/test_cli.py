@@ -349,7 +349,7 @@ import sys
 import mfnormal
 import mitsuba as mi
 import numpy as np
-from mfnormal.messages import one_line
+from mfnormal.io.messages import one_line
 mi.set_variant("llvm_ad_rgb")
 mfnormal.register()
 scene = mi.load_dict({
@@ -411,7 +411,8 @@ def test_compare_resolves_each_scenes_files_in_its_own_folder(worker, hard, tmp_
 DRIVER = """
 import os, sys, tempfile, time
 import mitsuba as mi
-from mfnormal import cli, images
+from mfnormal.cli import commands as cli
+from mfnormal.io import images
 real_mkstemp, real_write = tempfile.mkstemp, mi.Bitmap.write
 def mkstemp(*args, **kwargs):
     fd, path = real_mkstemp(*args, **kwargs)
@@ -431,7 +432,7 @@ def write(self, path, *args, **kwargs):       # Mitsuba writing the file itself
         slow()
     return real_write(self, path, *args, **kwargs)
 real_fsync = os.fsync
-def fsync(fd):                                # Python writing the file (mfnormal.images.write_bytes)
+def fsync(fd):                                # Python writing the file (mfnormal.io.images.write_bytes)
     if os.readlink(f"/proc/self/fd/{fd}").endswith(".png") and MODE == "slow":
         slow()
     return real_fsync(fd)
@@ -504,7 +505,7 @@ def test_passes_bound_the_paths_per_pass_and_keep_the_seeds():
     MAX_PASS_LANES paths unless one sample per pixel already does; the default stays 8
     passes (fewer below 8 spp); pass seeds are 32-bit, equal to seed·1000003 + i where that
     fits (the images of small seeds did not change), and distinct for distinct seeds."""
-    from mfnormal.rendering import MAX_PASS_LANES, pass_count, pass_seed, pass_spp
+    from mfnormal.cli.rendering import MAX_PASS_LANES, pass_count, pass_seed, pass_spp
 
     for total, pixels in [(1, 384), (5, 384), (64, 1920 * 1080), (1000, 1920 * 1080), (1 << 31, 16),
                           (3, 1 << 25), (17, 1 << 24)]:
@@ -523,7 +524,7 @@ def test_passes_bound_the_paths_per_pass_and_keep_the_seeds():
 def test_image_headers_give_the_size_without_decoding(tmp_path):
     """image_headers.image_header reads a PNG's IHDR and a JPEG's frame header (after APPn
     segments such as EXIF) as Mitsuba writes them, and refuses anything else."""
-    from mfnormal.image_headers import image_header
+    from mfnormal.io.image_headers import image_header
 
     img = (np.random.default_rng(3).random((37, 53, 3)) * 255).astype(np.uint8)
     for fmt, name in [(mi.Bitmap.FileFormat.PNG, "png"), (mi.Bitmap.FileFormat.JPEG, "jpeg")]:
@@ -563,7 +564,7 @@ def test_file_image_size_reads_every_format_mitsuba_reads(tmp_path):
     Bitmap reads (written by Mitsuba itself, BMP and TGA by hand; each decoded by Mitsuba to
     the same size), from the header alone, and None
     for a broken or unknown file; the XML scene check relies on it."""
-    from mfnormal.image_headers import file_image_size
+    from mfnormal.io.image_headers import file_image_size
 
     F = mi.Bitmap.FileFormat
     u8 = (np.random.default_rng(3).random((37, 53, 3)) * 255).astype(np.uint8)

@@ -1,4 +1,4 @@
-"""``mfnormal render|compare --cluster``: rendering on a Dask.distributed cluster (mfnormal.cluster).
+"""``mfnormal render|compare --cluster``: rendering on a Dask.distributed cluster (mfnormal.cli.cluster).
 
 The cluster is a ``LocalCluster`` of two worker processes of one thread each on this
 machine, shared by the tests of this module (its address is what ``--cluster ADDRESS``
@@ -35,9 +35,9 @@ import mitsuba as mi  # noqa: E402
 
 from cli_checks import assert_one_line_error  # noqa: E402
 from helpers import write_maps, xml_plugin, xml_scene  # noqa: E402
-from mfnormal import cli  # noqa: E402
-from mfnormal.cluster import xml_bundle  # noqa: E402
-from mfnormal.rendering import average_passes, film_image, schedule  # noqa: E402
+from mfnormal.cli import commands as cli  # noqa: E402
+from mfnormal.cli.cluster import xml_bundle  # noqa: E402
+from mfnormal.cli.rendering import average_passes, film_image, schedule  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 TOL = 1e-6
@@ -181,7 +181,7 @@ def test_with_shared_files_the_workers_read_the_scene_from_its_path(tmp_path, cl
                        "--shared-files", "--cluster", cluster[0].scheduler_address], capsys)
     assert rc == 0, err
     assert np.abs(_exr(tmp_path / "out.exr") - _sequential(scene, 16, 3, 0)).max() <= TOL
-    from mfnormal.cluster import scene_spec
+    from mfnormal.cli.cluster import scene_spec
 
     spec, files = scene_spec(scene, {"nm": "gray.png"}, shared=True)
     assert files == {} and spec.shared and spec.source == str(scene.resolve())
@@ -193,7 +193,7 @@ def test_workers_with_other_versions_are_refused_with_one_line(tmp_path, cluster
     client = cluster[1]
 
     def patch(version):            # on each worker: report another mfnormal, or its own again
-        import mfnormal.cluster as c
+        import mfnormal.cli.cluster as c
         c.__dict__.setdefault("_own_version", c._package_version)
         c._package_version = (lambda: version) if version else c._own_version
 
@@ -321,7 +321,7 @@ def test_compare_on_a_local_cluster_gives_the_same_report(tmp_path, capsys):
         assert np.abs(a - b).max() <= TOL, key
 
 
-# -- A worker's own variant (mfnormal.worker) -----------------------------------------------------
+# -- A worker's own variant (mfnormal.cli.worker) -----------------------------------------------------
 
 
 def _preloaded_cluster(variant: str):
@@ -329,7 +329,7 @@ def _preloaded_cluster(variant: str):
 
     return distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=True,
                                     dashboard_address=":0", silence_logs=logging.CRITICAL,
-                                    preload=["mfnormal.worker"], preload_argv=["--variant", variant])
+                                    preload=["mfnormal.cli.worker"], preload_argv=["--variant", variant])
 
 
 def test_a_worker_started_with_a_variant_renders_its_chunks_in_it(tmp_path, capsys):
@@ -358,7 +358,7 @@ def test_a_worker_that_cannot_use_its_variant_is_refused_with_one_line(tmp_path,
 def test_a_gltf_bundle_holds_its_buffers_and_images_and_nothing_else(tmp_path):
     import json
 
-    from mfnormal.cluster import scene_spec
+    from mfnormal.cli.cluster import scene_spec
 
     (tmp_path / "mesh.bin").write_bytes(b"\0" * 12)
     (tmp_path / "albedo map.png").write_bytes(b"png bytes")

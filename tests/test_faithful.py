@@ -18,7 +18,7 @@ import pytest
 from helpers import (NESTED, WHITE, encode, make_bsdf, make_si, normalmap, np1, np3, random_hemisphere,
                      sph, vec3)
 
-from mfnormal import faithful
+from mfnormal.models import faithful
 
 WHITE_GGX = {"type": "roughconductor", "distribution": "ggx", "alpha": 0.05,
              "specular_reflectance": {"type": "rgb", "value": [1.0, 1.0, 1.0]}}
@@ -110,7 +110,7 @@ def test_strength_change_rebuilds_the_masking():
 
 def _bumps_row(max_tilt=35.0):
     """The 16² map of bumps of ``max_tilt`` (inverse rendering's: 35°) as a 1×256 row of unit normals."""
-    from mfnormal import heightfield as H
+    from validation import heightfield as H
     return H.texel_normals(H.bumps(periods=2, max_tilt=max_tilt), 16).reshape(-1, 3)
 
 
@@ -128,7 +128,7 @@ CLAMPED = np.array([-0.022, 0.066, -0.1])   # 2·rgb − 1 below the horizon: de
 def test_ordinary_maps_keep_their_plain_rms_slopes():
     """No texel of bumps, egg crates or noise (mild to 85°, 16² to 128²) is over the cap, so σ is
     the plain rms: within float64 rounding of the reference covariance's eigenvalues."""
-    from mfnormal import heightfield as H
+    from validation import heightfield as H
     for kind in ("bumps", "eggcrate", "noise"):
         for steep in (28.0, 65.0, 85.0):
             for res in (16, 128):

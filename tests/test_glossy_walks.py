@@ -23,7 +23,7 @@ mi.set_variant("llvm_ad_rgb")
 mfnormal.register()
 
 from helpers import encode, make_bsdf, make_si, np1, np3, sph, vec3  # noqa: E402
-from mfnormal import walk  # noqa: E402
+from mfnormal.models import walk  # noqa: E402
 
 GGX = {"type": "roughconductor", "distribution": "ggx", "alpha": 0.05}
 MODELS = ("separable", "nonseparable")

@@ -1,4 +1,4 @@
-"""glTF 2.0 scenes (``mfnormal.gltf``) and MikkTSpace tangent frames (``mfnormal.tangents``).
+"""glTF 2.0 scenes (``mfnormal.io.gltf``) and MikkTSpace tangent frames (``mfnormal.normals.mikktspace``).
 
 The references are independent of the code under test:
 - Mitsuba's ``bumpmap`` of the analytic height field that a normal map encodes
@@ -32,9 +32,9 @@ mfnormal.register()
 
 from gltf_writer import Material, Primitive, png_bytes, write_glb  # noqa: E402
 
-from mfnormal import cli, rendering  # noqa: E402
-from mfnormal.gltf import load_gltf  # noqa: E402
-from mfnormal.tangents import mikktspace, split_vertices  # noqa: E402
+from mfnormal.cli import commands as cli, rendering  # noqa: E402
+from mfnormal.io.gltf import load_gltf  # noqa: E402
+from mfnormal.normals.mikktspace import mikktspace, split_vertices  # noqa: E402
 
 
 def relmse(a, b, mask=None):
@@ -202,7 +202,7 @@ def test_mirrored_uv_island_renders_like_the_bump_mapped_height_field(tmp_path):
 def multi_chart_knot():
     """The bundled torus knot (smooth normals) unwrapped by box projection: six charts
     (one per axis direction) split into many islands, half of them mirrored."""
-    from mfnormal.assets import torus_knot_mesh
+    from mfnormal.scenes.assets import torus_knot_mesh
 
     positions, normals, _, faces = torus_knot_mesh(n_u=120, n_v=12)
     p = positions[faces]

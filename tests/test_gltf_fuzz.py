@@ -54,7 +54,7 @@ from hypothesis import strategies as st
 
 from fuzzing import Stats, fuzz_test, input_count, render_or_one_line_error
 from gltf_models import base_document, glb_bytes
-from mfnormal.images import png_bytes
+from mfnormal.io.images import png_bytes
 
 CI_INPUTS, LONG_INPUTS = 800, 3000
 INPUTS = input_count(CI_INPUTS, LONG_INPUTS)

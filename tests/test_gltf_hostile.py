@@ -36,7 +36,7 @@ import numpy as np
 import pytest
 
 from gltf_models import base_document, glb_bytes, write_gltf
-from mfnormal.images import png_bytes
+from mfnormal.io.images import png_bytes
 
 SMALL = ["-D", "height=12", "-D", "spp=1", "-D", "max_depth=2"]
 

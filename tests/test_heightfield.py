@@ -1,4 +1,4 @@
-"""The true-geometry harness (``mfnormal.heightfield``): its conventions, generators and scenes.
+"""The true-geometry harness (``validation.heightfield``): its conventions, generators and scenes.
 
 The harness compares a coarse plane carrying a baked normal map with the dense mesh
 the map was baked from; if the map's frame or orientation were off, every number it
@@ -22,7 +22,7 @@ from variant import VARIANT  # noqa: E402  (MFNORMAL_VARIANT, tests/variant.py)
 mi.set_variant(VARIANT)
 mfnormal.register()
 
-from mfnormal import heightfield as H  # noqa: E402
+from validation import heightfield as H  # noqa: E402
 
 
 def wrong_maps(nm):

@@ -555,7 +555,7 @@ def test_huge_strength_tilts_the_map_instead_of_overflowing_to_flat():
     huge, huge_value = render_with(1e30)
     assert np.abs(huge - flat).mean() > 0.01 * flat.mean(), "strength 1e30 renders flat"
 
-    from mfnormal.plugin import STRENGTH_MAX
+    from mfnormal.plugins.normalmap_microfacet import STRENGTH_MAX
     capped, value = render_with(STRENGTH_MAX)
     assert value == [STRENGTH_MAX] and huge_value == [STRENGTH_MAX]
     assert np.array_equal(huge, capped)

@@ -1,4 +1,4 @@
-"""Inverse rendering from a flat map (mfnormal.inverse), a small version of the issue-16 setup.
+"""Inverse rendering from a flat map (validation.inverse), a small version of the issue-16 setup.
 
 A plane under a 16² map (roughplastic α 0.2), 3 suns, Adam from a flat map, the target
 rendered by the same method with the true map; res 16², 4 spp, 20 iterations (~25 s CPU on 2
@@ -16,7 +16,7 @@ import pytest
 mi.set_variant(VARIANT)
 mfnormal.register()
 
-from mfnormal import inverse as I  # noqa: E402
+from validation import inverse as I  # noqa: E402
 
 SETUP = dict(res=16, spp=4, target_spp=64, iterations=20, lr=0.03)
 
@@ -49,7 +49,7 @@ def test_bilinear_normals_match_mitsubas_bitmap_filter():
     inside and outside the unit square (repeat wrap): equal to float32 rounding."""
     import drjit as dr
     import numpy as np
-    from mfnormal import heightfield as H
+    from validation import heightfield as H
     rng = np.random.default_rng(3)
     texels = rng.random((5, 7, 3)).astype(np.float32)
     tex = mi.load_dict(H.bitmap_texture(texels))
@@ -66,7 +66,7 @@ def test_surface_error_closed_forms():
     constant is exact), the tilt for the flat map, and the centre-sampled true map's own
     error is > 0 (a 16² map cannot follow the bumps between its centres)."""
     import numpy as np
-    from mfnormal import heightfield as H
+    from validation import heightfield as H
     setup = I.Setup()
     tilt = np.radians(20.0)
     n = np.array([np.sin(tilt), 0.0, np.cos(tilt)])
@@ -108,7 +108,8 @@ def test_slope_derivatives_switch(slope_derivatives):
     map's principal rms slopes); True, the default, keeps it."""
     import drjit as dr
     import numpy as np
-    from mfnormal import faithful, heightfield as H
+    from mfnormal.models import faithful
+    from validation import heightfield as H
     setup = I.Setup(res=8, spp=2, slope_derivatives=slope_derivatives)
     texels = H.encode_normals(I.true_normals(setup))
     scene = I._plane_scenes(setup, "faithful", texels)[0]

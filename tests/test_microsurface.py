@@ -1,4 +1,4 @@
-"""Tests of ``mfnormal.microsurface`` against an independent brute-force sawtooth tracer.
+"""Tests of ``mfnormal.models.microsurface`` against an independent brute-force sawtooth tracer.
 
 The reference is ``tests/reference/sawtooth.py`` (numpy only, no mfnormal code, no closed-form
 λ or G1): it intersects rays with the line segments of the periodic sawtooth of
@@ -17,7 +17,7 @@ from variant import VARIANT  # noqa: E402  (MFNORMAL_VARIANT, tests/variant.py)
 mi.set_variant(VARIANT)
 mfnormal.register()
 
-from mfnormal import microsurface as ms  # noqa: E402
+from mfnormal.models import microsurface as ms  # noqa: E402
 
 from helpers import np3, vec3  # noqa: E402
 from reference import sawtooth as sw  # noqa: E402

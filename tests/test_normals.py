@@ -31,7 +31,7 @@ mfnormal.register()
 
 from helpers import WHITE, encode, np1, np3, p_two_sided, random_hemisphere, sph, vec3  # noqa: E402
 
-from mfnormal import heightfield as H  # noqa: E402
+from validation import heightfield as H  # noqa: E402
 
 RADIANCE, IMPORTANCE = mi.TransportMode.Radiance, mi.TransportMode.Importance
 NESTED = {
@@ -608,8 +608,8 @@ def test_facet_normal_turned_into_the_triangles_frame_is_clamped_above_its_horiz
     below it; worst cases included (ω_p on the clamp, si.n on the horizon leaning the other way),
     where the turned ω_p is still ≥ 1.1° from straight down (sin²θ ≥ 4e-4, the premise of
     to_upper_hemisphere having no straight-down case). Tolerance 2e-6 (float32)."""
-    from mfnormal import normals
-    from mfnormal.microsurface import COS_P_MIN
+    from mfnormal.normals import sources as normals
+    from mfnormal.models.microsurface import COS_P_MIN
     rng = np.random.default_rng(41)
     k = 20_000
     t_p = np.concatenate([np.full(k // 2, math.acos(COS_P_MIN)), np.arccos(rng.uniform(COS_P_MIN, 1, k - k // 2))])
@@ -670,8 +670,8 @@ def test_gltf_macro_normal_geometric_wraps_every_smooth_shaded_mesh(tmp_path):
     one-line error."""
     from gltf_writer import Material, Primitive, png_bytes, write_glb
 
-    from mfnormal import terminator
-    from mfnormal.gltf import is_smooth_shaded, load_gltf
+    from validation import terminator
+    from mfnormal.io.gltf import is_smooth_shaded, load_gltf
     pos, faces = terminator.icosphere(1)
     flat_map = np.full((4, 4, 3), [128, 128, 255], np.uint8)
     prims = [Primitive(pos.astype(np.float32), pos.astype(np.float32), None, faces, material=0),
@@ -703,13 +703,13 @@ def test_gltf_macro_normal_geometric_wraps_every_smooth_shaded_mesh(tmp_path):
 @pytest.mark.parametrize("level", [1, 2])
 def test_geometric_macro_normal_is_closer_to_the_true_sphere_in_the_terminator_band(level):
     """A smooth-shaded icosphere (80 / 320 triangles, diffuse) under a grazing sun against the
-    analytic sphere (mfnormal.terminator, 64² pixels, 128 spp, truth at 512 spp): per 4×4 block
+    analytic sphere (validation.terminator, 64² pixels, 128 spp, truth at 512 spp): per 4×4 block
     of the terminator band, |error| of plain interpolated normals minus that of ours (faithful,
     no map, macro_normal="geometric") has a positive mean at z > 2.5 (one-sided 0.6 %; measured
     3.1 / 5.2); ours has no near-black pixel there; and the analytic model with the geometric macro
     normal is > 2.5× further off (measured 4.2×, as far as face normals: its mirror tangent facet
     cancels the interpolated normal's relief, so the facets come back)."""
-    from mfnormal import terminator as T
+    from validation import terminator as T
     methods = ("plain", "geometric", "geometric_analytic")
     r = T.render_case(T.Case(level, "diffuse"), methods=methods, res=64, spp=128)
     band = r["band"] & r["cover"]

@@ -2,7 +2,7 @@
 
 Small scenes at low resolution and sample counts: they check that whole images
 come out finite and lit (not that they are converged), plus the bundled demo
-(``mfnormal.demo``): its command line (``mfnormal demo``, ``mfnormal-demo``), its XML scene and
+(``mfnormal.cli.demo``): its command line (``mfnormal demo``, ``mfnormal-demo``), its XML scene and
 the dict built from it.
 """
 
@@ -17,9 +17,10 @@ mi.set_variant(VARIANT)
 mfnormal.register()
 
 from helpers import bumps_normalmap, small_scene  # noqa: E402
-from mfnormal import assets, cli, demo  # noqa: E402
-from mfnormal.methods import PLUGIN  # noqa: E402
-from mfnormal.scene_xml import dicts_of_type  # noqa: E402
+from mfnormal.scenes import assets  # noqa: E402
+from mfnormal.cli import commands as cli, demo
+from mfnormal.report.methods import PLUGIN  # noqa: E402
+from mfnormal.io.scene_xml import dicts_of_type  # noqa: E402
 
 
 def test_plugin_scene_renders_finite_and_lit():

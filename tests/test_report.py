@@ -31,9 +31,11 @@ from variant import VARIANT  # noqa: E402  (MFNORMAL_VARIANT, tests/variant.py)
 mi.set_variant(VARIANT)
 mfnormal.register()
 
-from mfnormal import assets, compare, coverage, metrics, scene_xml  # noqa: E402
-from mfnormal.methods import METHODS, PLUGIN  # noqa: E402
-from mfnormal.images import png_bytes  # noqa: E402
+from mfnormal.scenes import assets  # noqa: E402
+from mfnormal.report import compare, coverage, metrics
+from mfnormal.io import scene_xml
+from mfnormal.report.methods import METHODS, PLUGIN  # noqa: E402
+from mfnormal.io.images import png_bytes  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -1,7 +1,7 @@
 """The default model against the true geometry a normal map was baked from (issue 14).
 
 Each test renders a heightfield as a dense displaced mesh (the truth) and as a plane with
-the normal map baked from the same heights (``mfnormal.heightfield``), and compares methods.
+the normal map baked from the same heights (``validation.heightfield``), and compares methods.
 Small renders (48-64 px, 16-64 spp), fixed seeds; each bound holds with a margin over the
 noise floor the harness reports (the truth rendered again at the methods' spp), stated per
 test. The full grid is ``validation/true_geometry.py`` (validation/results/true_geometry.md).
@@ -12,7 +12,7 @@ import mfnormal  # noqa: F401  (first: selects a working libLLVM)
 import mitsuba as mi
 import pytest
 
-from mfnormal import heightfield as H
+from validation import heightfield as H
 
 METHODS = [H.METHODS["classic"], H.METHODS["classic_fixed"], H.METHODS["analytic"],
            H.plugin_method(None, key="default")]

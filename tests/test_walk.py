@@ -32,7 +32,7 @@ mfnormal.register()
 
 from helpers import (WHITE, encode, make_bsdf, make_si, np1, np3, p_two_sided, random_hemisphere,  # noqa: E402
                      sph, vec3)
-from mfnormal import shading, walk  # noqa: E402
+from mfnormal.models import shading, walk  # noqa: E402
 from reference.naive_walk import naive_eval  # noqa: E402
 
 WALKS = [("separable", "specular"), ("separable", "same"),

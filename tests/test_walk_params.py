@@ -129,7 +129,7 @@ def test_a_max_bounces_update_caps_the_walk():
     sampling walk's longest bounce count over 4096 queries is above 8, and exactly 8 after an
     update to 8 (the walks that reach the cap stop there)."""
     from helpers import WHITE, encode, make_bsdf, make_si, random_hemisphere, sph
-    from mfnormal import walk
+    from mfnormal.models import walk
 
     rng = np.random.default_rng(3)
     bsdf = make_bsdf(WHITE, encode(sph([80.0])), "nonseparable", "specular")

@@ -5,7 +5,7 @@
         [--out validation/results]
 
 A plane under a 16² map (roughplastic, GGX α 0.2) is optimised with Adam from a flat map
-against 3 renders, each lit by one directional sun (mfnormal.inverse). Targets: ``same``,
+against 3 renders, each lit by one directional sun (validation.inverse). Targets: ``same``,
 the plane rendered by the same method with the true map; ``true``, the true geometry (the
 heightfield as a dense displaced mesh of the bare material, path traced). Reports per
 method and target: the first step (max |Δ texel|), the mean texel angle to the true
@@ -24,7 +24,7 @@ import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "src"))
+sys.path.insert(0, str(ROOT))   # the validation package (harnesses) of this checkout
 
 import mfnormal  # noqa: E402,F401  (before mitsuba: selects a working libLLVM)
 import mitsuba as mi  # noqa: E402
@@ -46,7 +46,7 @@ def main(argv=None):
 
     mi.set_variant("llvm_ad_rgb")
     mfnormal.register()
-    from mfnormal import inverse as I
+    from validation import inverse as I
 
     methods = args.methods or list(I.METHODS)
     setup = I.Setup(res=args.res, spp=args.spp, lr=args.lr)

@@ -4,7 +4,7 @@
         [--spp 512] [--res 128] [--levels 1,2,3] [--grid validation/results/heightmap/true_geometry.json]
 
 1. **Shadow terminator**: a smooth-shaded low-poly icosphere (80, 320, 1280 triangles) against
-   Mitsuba's analytic ``sphere`` under a grazing sun (:mod:`mfnormal.terminator`), diffuse and
+   Mitsuba's analytic ``sphere`` under a grazing sun (:mod:`validation.terminator`), diffuse and
    glossy: luminance error in the terminator band (true normal within 25° of the sun's horizon)
    and on the disc, and the share of near-black pixels, for plain interpolated normals,
    Mitsuba's ``normalmap`` with a flat map (its shadowing term), a Chiang-style term, ours
@@ -34,6 +34,7 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))   # the validation package (harnesses) of this checkout
 
 import mfnormal  # noqa: E402  (first: selects a working libLLVM)
 
@@ -44,9 +45,9 @@ import numpy as np  # noqa: E402
 mi.set_variant("llvm_ad_rgb")
 mfnormal.register()
 
-from mfnormal import heightfield as H  # noqa: E402
-from mfnormal import terminator as T  # noqa: E402
-from mfnormal.images import atomic_write, tonemap  # noqa: E402
+from validation import heightfield as H  # noqa: E402
+from validation import terminator as T  # noqa: E402
+from mfnormal.io.images import atomic_write, tonemap  # noqa: E402
 
 TERMINATOR_METHODS = ("plain", "normalmap_flat", "chiang", "geometric", "geometric_analytic",
                       "geometric_separable", "geometric_nonseparable", "flat")
@@ -117,7 +118,7 @@ def _about(ng, d):
 def bsdf_properties(tilts=(5.0, 10.0, 20.0), pairs=1 << 16, furnace_n=1 << 20, seed=0):
     """Reciprocity and white furnace of every method on a triangle whose normal n_g is ``tilt``
     off the shading normal (+z), toward +x."""
-    import mfnormal.terminator  # noqa: F401  (registers chiang_terminator)
+    import validation.terminator  # noqa: F401  (registers chiang_terminator)
     T.register()
     rng = np.random.default_rng(seed)
     out = {}

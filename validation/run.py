@@ -28,6 +28,7 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))   # the validation package (harnesses) of this checkout
 sys.path.insert(0, str(ROOT / "tests"))   # for the package tests/reference
 
 import mfnormal  # noqa: E402  (first: selects a working libLLVM)
@@ -172,9 +173,9 @@ def furnace(out, quick, results):
 
 
 def variance(out, quick, results):
-    from mfnormal import walk
-    from mfnormal.microsurface import decode_normal
-    from mfnormal.shading import ShadingPoint
+    from mfnormal.models import walk
+    from mfnormal.models.microsurface import decode_normal
+    from mfnormal.models.shading import ShadingPoint
     from reference.naive_walk import naive_eval
 
     n = 50_000 if quick else 200_000

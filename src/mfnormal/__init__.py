@@ -2,15 +2,15 @@
 
 ``import mfnormal`` first makes sure Dr.Jit will load a compatible libLLVM (see
 ``mfnormal._llvm``), then registers the ``normalmap_microfacet`` BSDF plugin, the
-``mfnormal_path`` integrator (``mfnormal.integrator``) and, in the ``*_ad_*`` variants, the
-``mfnormal_prb`` AD integrator (``mfnormal.ad_integrator``: unbiased render derivatives for the
+``mfnormal_path`` integrator (``mfnormal.plugins.mfnormal_path``) and, in the ``*_ad_*`` variants, the
+``mfnormal_prb`` AD integrator (``mfnormal.plugins.mfnormal_prb``: unbiased render derivatives for the
 random-walk models) for the active Mitsuba variant. Call ``mfnormal.register()`` again
 after ``mi.set_variant(...)``.
 """
 
 from __future__ import annotations  # ``str | None`` annotations on Python 3.9
 
-from ._llvm import LLVMError, ensure_llvm
+from mfnormal._llvm import LLVMError, ensure_llvm
 
 LLVM_PATH = ensure_llvm()
 
@@ -41,13 +41,13 @@ def register(variant: str | None = None) -> str | None:
         warnings.warn(f"mfnormal: the Python BSDF runs ~100x slower in '{variant}' than in "
                       "'llvm_ad_rgb'; use a JIT variant for rendering", RuntimeWarning, stacklevel=2)
     if variant not in _registered:
-        from . import integrator, plugin
+        from mfnormal.plugins import mfnormal_path as integrator, normalmap_microfacet as plugin
         cls = plugin.bsdf_class()
         mi.register_bsdf("normalmap_microfacet", lambda props: cls(props))
         path_cls = integrator.integrator_class()
         mi.register_integrator("mfnormal_path", lambda props: path_cls(props))
         if "_ad_" in variant:
-            from . import ad_integrator
+            from mfnormal.plugins import mfnormal_prb as ad_integrator
             integ = ad_integrator.integrator_class()
             mi.register_integrator("mfnormal_prb", lambda props: integ(props))
         _registered.add(variant)

@@ -3,7 +3,7 @@
 Supplemental §3: evaluating Algorithm 1 with next-event estimation needs a height
 on the microsurface; this estimator draws it once, uniformly in the part of the
 first facet seen from ω_i, and tests every NEE and every escape against it. The
-supplemental's Algorithms 2/3 (``mfnormal.walk.eval_walk``) track the interval of
+supplemental's Algorithms 2/3 (``mfnormal.models.walk.eval_walk``) track the interval of
 possible heights instead, which is this estimator's expectation given the path:
 same mean, less variance (tests/test_walk.py, validation/run.py's ``variance``).
 
@@ -18,7 +18,7 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from mfnormal import rng, walk
+from mfnormal.models import rng, walk
 
 
 def naive_eval(sp, wo, specular_tangent, max_bounces=walk.MAX_BOUNCES):

@@ -1,0 +1,106 @@
+"""Rendering in passes: one accumulator, two pass schedules.
+
+A render of N samples per pixel is split into passes, each one ``mi.render`` call,
+whose images are averaged weighted by their sample counts (:func:`weighted_mean`, the
+one accumulator: :func:`average_passes` feeds it renders made here,
+:mod:`mfnormal.cli.cluster` the chunks its workers rendered, in schedule order).
+Two schedules use it:
+
+- :func:`render_scene`, the command line's (``mfnormal render``, the demo at large
+  sizes, and ``mfnormal render --cluster``, whose chunks are these passes): :func:`schedule`,
+  :func:`pass_count` passes (8 by default, more where a pass would trace more
+  than :data:`MAX_PASS_LANES` paths, which bounds its memory), :func:`pass_spp` samples
+  and seed :func:`pass_seed` each; every channel of the film;
+- :func:`render_rgb`, the comparisons' (``mfnormal compare``, the true-geometry
+  harness): passes of at most ``per_pass`` samples with seeds ``seed``, ``seed + 1``,
+  ...; the RGB channels.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+import mitsuba as mi
+
+__all__ = ["MAX_PASS_LANES", "pass_count", "pass_spp", "pass_seed", "schedule", "weighted_mean",
+           "average_passes", "render_scene", "film_image", "render_rgb"]
+
+#: A render pass traces at most this many paths at once (pixels × samples per pass),
+#: which bounds its memory; more samples take more passes.
+MAX_PASS_LANES = 1 << 24
+
+
+def pass_count(total: int, pixels: int, passes: int | None = None) -> int:
+    """How many passes a render of ``total`` spp takes: ``passes`` (default 8, fewer for
+    < 8 spp), more where a pass would trace more than :data:`MAX_PASS_LANES` paths.
+    Pass ``i`` takes :func:`pass_spp` samples per pixel."""
+    passes = max(1, min(total, passes or (8 if total >= 8 else total)))
+    per_pass = max(1, MAX_PASS_LANES // max(1, pixels))      # samples per pixel a pass may take
+    return max(passes, min(total, -(-total // per_pass)))
+
+
+def pass_spp(total: int, passes: int, i: int) -> int:
+    return total // passes + (1 if i < total % passes else 0)
+
+
+def pass_seed(seed: int, i: int) -> int:
+    """The seed of pass ``i`` of a render with ``seed`` (any 32-bit seed; the same as
+    ``seed · 1000003 + i`` where that fits, which is one-to-one in ``seed``)."""
+    return (seed * 1000003 + i) % (1 << 32)
+
+
+def schedule(total: int, pixels: int, passes: int | None = None, seed: int = 0) -> list:
+    """The passes ``(spp, seed)`` of :func:`render_scene`'s render of ``total`` spp on a film
+    of ``pixels`` pixels (:func:`pass_count` of them)."""
+    n = pass_count(total, pixels, passes)
+    return [(pass_spp(total, n, i), pass_seed(seed, i)) for i in range(n)]
+
+
+def weighted_mean(renders, count: int | None = None, progress=None) -> np.ndarray:
+    """The mean of the images in ``renders``, an iterable of ``(spp, image)``, weighted by
+    their spp (float64, summed in the iterable's order). ``progress(done, count)`` is called
+    after each image."""
+    acc, total = None, 0
+    for i, (spp, img) in enumerate(renders):
+        img = np.asarray(img, dtype=np.float64)
+        acc = img * spp if acc is None else acc + img * spp
+        total += spp
+        if progress:
+            progress(i + 1, count)
+    return acc / total
+
+
+def average_passes(scene, passes, count: int | None = None, progress=None) -> np.ndarray:
+    """The mean of the renders ``(spp, seed)`` in ``passes`` weighted by their spp:
+    every channel of the film (H × W × C, float64). ``progress(done, count)`` is called
+    after each pass."""
+    renders = ((spp, np.array(mi.render(scene, spp=spp, seed=seed))) for spp, seed in passes)
+    return weighted_mean(renders, count, progress)
+
+
+def render_scene(scene, spp: int | None = None, passes: int | None = None, seed: int = 0,
+                 progress=None) -> np.ndarray:
+    """The command line's render of ``scene`` at ``spp`` (default: its sampler's), in
+    :func:`pass_count` passes; returns the film's channels (H × W × C, float32: RGB, Y,
+    or with AOVs)."""
+    sensor = scene.sensors()[0]
+    total = int(spp or sensor.sampler().sample_count())
+    pixels = int(np.prod([int(v) for v in sensor.film().crop_size()]))
+    passes = schedule(total, pixels, passes, seed)
+    return film_image(average_passes(scene, passes, len(passes), progress))
+
+
+def film_image(mean: np.ndarray) -> np.ndarray:
+    """:func:`render_scene`'s result from the mean of its passes: H × W × C, float32."""
+    out = mean.astype(np.float32)
+    return out if out.ndim == 3 else out[..., None]
+
+
+def render_rgb(scene, spp: int, seed: int, per_pass: int = 16) -> np.ndarray:
+    """Linear RGB (H × W × 3, float64) of ``scene`` (loaded, or a scene dict) at ``spp``,
+    in passes of at most ``per_pass`` samples with seeds ``seed``, ``seed + 1``, ... (mod 2^32)."""
+    if isinstance(scene, dict):
+        scene = mi.load_dict(scene)
+    n = -(-spp // per_pass)
+    passes = ((min(per_pass, spp - i * per_pass), (seed + i) % (1 << 32)) for i in range(n))
+    return average_passes(scene, passes, n)[..., :3]

@@ -1,0 +1,99 @@
+"""Checks of a loaded scene that Mitsuba itself does not make (or makes only at render time).
+
+Normal mapping needs two things from a shape that Mitsuba does not verify when it
+loads a scene: texture coordinates (a mesh without UVs gets ``uv = 0`` and a
+degenerate tangent frame everywhere) and a normal map with three channels (a
+one-channel map fails deep inside the JIT at render time).
+"""
+
+from __future__ import annotations
+
+import re
+
+import mitsuba as mi
+
+__all__ = ["is_normal_mapped", "normal_mapped_shapes", "check_scene"]
+
+
+def _is_plugin(bsdf) -> bool:
+    from mfnormal.plugins.normalmap_microfacet import bsdf_class
+    return isinstance(bsdf, bsdf_class())
+
+
+def is_normal_mapped(bsdf) -> bool:
+    """Whether ``bsdf`` is ``normalmap_microfacet`` or Mitsuba's ``normalmap``."""
+    return bsdf is not None and (_is_plugin(bsdf) or bsdf.class_name() == "NormalMap")
+
+
+def normal_mapped_shapes(scene) -> list:
+    return [s for s in scene.shapes() if is_normal_mapped(s.bsdf())]
+
+
+def _shape_name(shape) -> str:
+    """``'id' (file)``, ``'file'`` or ``'id'``: how the user can find the shape."""
+    sid = shape.id()
+    sid = "" if sid in ("", shape.class_name()) else sid
+    match = re.search(r'^\s*name = "([^"]+)"', str(shape), re.M) if shape.is_mesh() else None
+    file = match.group(1) if match else ""
+    if sid and file:
+        return f"'{sid}' ({file})"
+    return f"'{sid or file or shape.class_name()}'"
+
+
+def _normalmap_texture(bsdf):
+    if _is_plugin(bsdf):
+        return bsdf.normalmap
+    return None
+
+
+def _channels(bsdf):
+    """(channel count, texture name) of the normal map's bitmap, or (None, None)."""
+    tex = _normalmap_texture(bsdf)
+    params = mi.traverse(tex if tex is not None else bsdf)
+    key = "data" if tex is not None else "normalmap.data"
+    if key not in params.keys():
+        return None, None          # not a bitmap (e.g. a procedural texture)
+    shape = params[key].shape
+    text = str(tex if tex is not None else bsdf)
+    match = re.search(r'name = "([^"]*)"', text)
+    return (shape[-1] if len(shape) == 3 else 1), (match.group(1) if match else "")
+
+
+def _evaluates_rgb(tex) -> bool:
+    """Whether the texture ``tex`` (None: not the plugin's) can be evaluated as RGB."""
+    if tex is None:
+        return True
+    import drjit as dr
+    try:
+        tex.eval_3(dr.zeros(mi.SurfaceInteraction3f))
+    except Exception:  # noqa: BLE001  (Mitsuba: "Texture::eval_3(): not implemented!")
+        return False
+    return True
+
+
+def check_scene(scene, error: type = ValueError, where: str = "") -> None:
+    """Raise ``error`` (one line, after ``where: `` when given) for the first normal-mapped
+    shape that cannot work: a mesh without UVs, or a normal map that does not have 3 channels."""
+    try:
+        _check_shapes(scene)
+    except ValueError as exc:
+        raise error(f"{where}: {exc}" if where else str(exc)) from None
+
+
+def _check_shapes(scene) -> None:
+    for shape in normal_mapped_shapes(scene):
+        bsdf = shape.bsdf()
+        kind = "normalmap_microfacet" if _is_plugin(bsdf) else "normalmap"
+        if shape.is_mesh() and not shape.has_vertex_texcoords():
+            raise ValueError(f"shape {_shape_name(shape)} has no texture coordinates (UVs), "
+                             f"which its {kind} BSDF needs for the normal map and tangent frame")
+        channels, name = _channels(bsdf)
+        if channels is None and not _evaluates_rgb(_normalmap_texture(bsdf)):
+            tex = _normalmap_texture(bsdf)
+            raise ValueError(f"the normal map of shape {_shape_name(shape)} is a "
+                             f"'{tex.class_name()}' texture, which has no RGB evaluation (eval_3); "
+                             "a tangent-space normal map needs an RGB texture such as a bitmap")
+        if channels is not None and channels != 3:
+            what = f"'{name}'" if name else "of shape " + _shape_name(shape)
+            raise ValueError(f"normal map {what} has {channels} channel{'s' if channels != 1 else ''}; "
+                             "a tangent-space normal map needs 3 (RGB)")

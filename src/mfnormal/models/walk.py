@@ -1,0 +1,865 @@
+"""The random-walk models: separable (main paper) and non-separable (supplemental).
+
+One walk serves both (docs/model.md §4). It starts on the facet that a ray
+from ω_i hits first and bounces between the two facets until it leaves the
+microsurface. The non-separable model tracks the interval H of heights the walk
+can be at on the current facet, stored as depths below the crest (§1, §2.2): rays
+from a uniform height in H stay uniform after each bounce, because the facets
+are planar. The separable model is the same walk with H reset to [0, 1] at
+every vertex, which forgets height correlation (§4.1).
+
+- ``sample_walk``: the sampling loop (supplemental Algorithm 1, the exit decided
+  from the interval's escape fraction, the same random variable as tracing a ray
+  from a uniformly drawn height); ``sample`` wraps its exit as a BSDF sample;
+- ``eval_walk``: the evaluation loop, next-event estimation toward ω_o at every
+  vertex (Algorithm 2; with a mirror tangent facet, Algorithm 3 and its H_r
+  term), an unbiased estimate of f·⟨ω_o, ω_g⟩. Its first nested vertex is
+  Rao-Blackwellised (§4.5): taken in expectation over the start facet (and the
+  mirror's escape), so the low-order part of ``eval`` is deterministic; with a
+  same-material tangent facet each vertex also connects to the next facet by a
+  sample from ω_o, MIS-weighted against the walk's own (``connect``, §4.8);
+- ``mis_pdf``: a deterministic function for MIS (§5): the exact density of the
+  low-order terms plus a cosine lobe for the rest, boosted by the nested lobe's
+  sharpness where longer walks are likely (variance-aware MIS).
+- ``eval_sample``: both from one walk (§4.10, primal only): ``eval_walk`` run with
+  ``sample_walk``'s numbers, so its walker is ``sample``'s and its L an unbiased ``eval``.
+
+Both loops are built from the same steps: ``mirror_fold`` (a mirror tangent
+facet), ``add_nee`` (NEE at a vertex), ``bounce`` (nested sample, ``cross`` to
+the other facet or out, ``roulette``). Each takes a :class:`WalkParams`; each
+loop returns its :class:`Walker`, whose ``depth`` is the walk's bounce count.
+
+Derivatives (docs/model.md §9): both loops carry everything they read as loop state
+and have a ``max_iterations`` hint (``max_bounces``: no walk iterates more), so forward
+and reverse mode run through them. The estimators' derivatives are unbiased: every
+decision (start facet, escape, roulette) is taken with detached numbers, and the
+throughput carries p/detach(p) for the branch taken (value 1: ``score``), so that
+the probability's derivative is accounted for; a nested sample's direction is detached
+and its weight replaced by the attached eval over the detached pdf (Mitsuba's detached
+sampling), except for delta lobes, whose direction is a differentiable function of the
+geometry; roulette's probability is detached. None of this changes a value: in primal
+kernels the extra terms are constant-folded away.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import drjit as dr
+import mitsuba as mi
+
+from mfnormal.models import microsurface as ms
+from mfnormal.models.microsurface import negate, replace_grad
+from mfnormal.models.rng import (SALT_WALK_EVAL, SALT_WALK_SAMPLE, SLOT_START_FACET, choose, hash_floats, slot_connect,
+                  slot_escape, slot_nested, slot_roulette, uniform)
+from mfnormal.models.shading import broadcast, select_frame
+
+# Default cap of a walk's facet bounces; walks still on the microsurface after it are dropped.
+MAX_BOUNCES = 1024
+# Default depth (facet bounces) from which walks play Russian roulette on their throughput.
+RR_DEPTH = 3
+# Default cap of the boost of the longer walks' share in the MIS pdf (GGX α ≤ 1/16 reaches it).
+MIS_BOOST_MAX = 64.0
+# Call the nested BSDF through one callable per method (ShadingPoint.with_indirect_calls) instead
+# of inlining it at each of the walks' call sites: on the demo, kernels −13-20 % operations, the
+# first-render compile −5-15 % (ggx_0.05; roughplastic: none), the render time +6-14 % (docs/model.md
+# §4.9). Off: the render-time targets come first. Read when a kernel is traced.
+INDIRECT_NESTED_CALLS = False
+
+
+@dataclass(frozen=True)
+class WalkParams:
+    """What a random-walk model is: the plugin builds one per BSDF.
+
+    ``separable`` and ``specular_tangent`` choose the kernel's code. The other three are
+    read as values (Python numbers, or the plugin's opaque ``mi.UInt32`` / ``mi.Float``
+    of width 1, which kernels take as inputs: a new value, e.g. from ``mi.traverse``, runs
+    the kernels already compiled)."""
+
+    separable: bool                      # reset H to [0, 1] at every vertex (the main paper's model)
+    specular_tangent: bool               # the tangent facet is a mirror (Algorithm 3), else the nested BSDF
+    max_bounces: int = MAX_BOUNCES       # facet bounces before a walk is dropped
+    rr_depth: int = RR_DEPTH             # Russian roulette from this many bounces on (0: never)
+    mis_boost_max: float = MIS_BOOST_MAX  # cap of the variance-aware MIS boost (1: none)
+
+
+@dataclass
+class Walker:
+    """The state of one walk per lane: the loop state of both loops."""
+
+    d: mi.Vector3f          # travel direction
+    e: mi.Spectrum          # throughput
+    on_p: mi.Bool           # the current facet is p (else t)
+    a: mi.Float             # H = [a, b] on the current facet, as depths below the crest
+    b: mi.Float
+    depth: mi.UInt32        # facet bounces so far; at the exit, the walk's length
+    walking: mi.Bool        # still on the microsurface
+    escaped: mi.Bool        # left it (sample() returns only escaped walks)
+    nondelta: mi.Bool       # sampled a non-delta lobe on the way
+    ja: mi.Vector3f = None  # replayed non-separable walks: ∂a/∂ω_p and ∂b/∂ω_p (``Replay``)
+    jb: mi.Vector3f = None
+    p_in: mi.Float = None   # eval walks with a same-material t: the nested pdf of the sample that
+                            # led here (0 at the start and after a delta lobe; ``connect``)
+
+
+# -- Derivatives: the replayed walk (docs/model.md §9) -------------------------------------
+
+
+def _rel(f):
+    """f/detach(f) − 1: value 0, derivative df/f (per channel)."""
+    fd = dr.detach(f)
+    ok = fd != 0.0
+    return dr.select(ok, f / dr.select(ok, fd, 1.0) - 1.0, 0.0)
+
+
+@dataclass
+class Replay:
+    """A walk's derivative, built while the walk is replayed (loop state of the replay).
+
+    The replayed walk carries only detached values from vertex to vertex; what a vertex
+    adds or multiplies is recomputed attached to the microsurface (ω_p) and the nested
+    BSDF, and ``G`` sums zero-valued terms whose derivative is the estimate's. For eval,
+    L = Σ_k e_k N_k and dL = Σ_k e_k dN_k + Σ_j (what L gains after factor j)·df_j/f_j
+    (the reformulation of path replay backpropagation, Vicini et al. 2021), which needs
+    the walk's L from a first, primal pass (``total``) and the contributions so far
+    (``done``); for sample, de = e·Σ_j df_j/f_j. The loop's derivative is thereby a sum
+    over its iterations, which Dr.Jit reverses without storing the walk (its sum-style
+    reverse mode, ``max_iterations=-1``). The non-separable walk's interval [a, b]
+    depends on ω_p through every crossing before: the walker carries its Jacobian
+    (``Walker.ja``, ``jb``), and a vertex uses a + ja·Δ with Δ = ω_p − detach(ω_p).
+    """
+
+    G: mi.Spectrum
+    done: mi.Spectrum = None    # eval only
+    total: mi.Spectrum = None
+    exit: mi.Vector3f = None    # sample only: zero-valued, the exit direction's derivative
+
+    def leave(self, d, mask):
+        """The walk leaves along d (attached after a delta event: the mirror or a delta lobe):
+        the exit direction takes d's derivative. (Directions are detached from one vertex
+        to the next: a walk keeps the derivative of its last delta event only.)"""
+        if self.exit is not None:
+            self.exit = self.exit + dr.select(mask, d - dr.detach(d), 0.0)
+
+    def factor(self, f, mask, after_extra=0.0):
+        """e ← e·f for attached f (value detach(f)): G += (what L gains after it)·df/f."""
+        rel = _rel(f)
+        if self.total is not None:
+            rel = (self.total - self.done + after_extra) * rel
+        self.G = self.G + dr.select(mask, rel, 0.0)
+
+    def add(self, c, mask):
+        """L ← L + c for an attached contribution c (its throughput detached)."""
+        self.G = self.G + dr.select(mask, c - dr.detach(c), 0.0)
+        self.done = self.done + dr.select(mask, dr.detach(c), 0.0)
+
+
+def replays(sp):
+    """Whether a walk at ``sp`` needs its derivative: ω_p, ω_i or the nested BSDF (a probe
+    evaluation, which costs nothing in kernels) carry derivatives."""
+    if not dr.is_diff_v(mi.Float):
+        return False
+    return dr.grad_enabled(sp.wp) or dr.grad_enabled(sp.wi) or sp.nested_attached()
+
+
+def calls(sp):
+    """``sp`` with indirect nested calls where INDIRECT_NESTED_CALLS is set and no derivative
+    is taken (``replays``): forward mode through a callable's implicit inputs (the nested
+    BSDF's parameters) inside the walk loops fails in Dr.Jit 1.5 (an edge outside the
+    dr.isolate_grad scope)."""
+    return sp.with_indirect_calls() if INDIRECT_NESTED_CALLS and not replays(sp) else sp
+
+
+def attached_interval(sp, w, rp):
+    """The walker's [a, b] with the derivative of its dependence on ω_p (replayed
+    non-separable walks), else as it is."""
+    if rp is None or w.ja is None:
+        return w.a, w.b
+    delta = sp.wp - dr.detach(sp.wp)
+    return w.a + dr.dot(w.ja, delta), w.b + dr.dot(w.jb, delta)
+
+
+def _crest_jacobian(sp, on_p, d, d_pre, sign):
+    """(∂τ/∂ω_p, ∂κ/∂ω_p) of ``sp.crest_map(on_p, d)`` for a ray along d (detached) whose
+    across-groove component is x = −⟨d, ω_t⟩ = sign·⟨d_pre, p_xy⟩/sinθ_p: d = d_pre leaving
+    a vertex (sign 1), or d = flip_t(d_pre) leaving the mirror (sign −1; d_z = d_pre_z, and
+    only ω_t moves). With r = cotθ_p d_z/|x|: toward the wall τ = r/(1 + r), κ = 1 + r;
+    from it τ = r, κ = 1/(1 − r) (microsurface.crest_map)."""
+    wp, s, cot = dr.detach(sp.wp), dr.detach(sp.sin_p), dr.detach(sp.cot_p)
+    ok = s > 0
+    inv = dr.select(ok, dr.rcp(dr.select(ok, s, 1.0)), 0.0)
+    c = d_pre.x * wp.x + d_pre.y * wp.y
+    x = sign * c * inv
+    g_x = (sign * inv) * mi.Vector3f(d_pre.x - c * wp.x * inv * inv, d_pre.y - c * wp.y * inv * inv, 0.0)
+    g_cot = mi.Vector3f(-wp.z * wp.x, -wp.z * wp.y, s * s) * (inv * inv * inv)
+    ax = dr.maximum(dr.abs(x), 1e-30)
+    raw = cot * d.z / ax
+    r = dr.clip(raw, -1e30, 1e30)
+    free = ok & (dr.abs(raw) < 1e30) & (dr.abs(x) > 1e-30)
+    g_r = dr.select(free, (d.z / ax) * g_cot - (cot * d.z * dr.sign(x) / (ax * ax)) * g_x, 0.0)
+    to_wall = on_p & (x > 0)
+    from_wall = negate(on_p) & (x < 0) & (r < 1.0)
+    k_p, k_t = 1.0 + r, 1.0 - r
+    g_tau = dr.select(to_wall & (k_p > 1e-30), g_r / (k_p * k_p), dr.select(from_wall, g_r, 0.0))
+    g_k = dr.select(to_wall & (k_p > 1e-30), g_r,
+                    dr.select(from_wall & (k_t > 1e-30), g_r / (k_t * k_t), 0.0))
+    return g_tau, g_k
+
+
+def _land_jacobian(lo, hi, j_lo, j_hi, tau, k, g_tau, g_k):
+    """The Jacobians of microsurface.land's [lo', hi'] from those of lo, hi, τ and κ."""
+    finite = k < ms.INF
+    k, tau = dr.select(finite, k, 1.0), dr.select(finite, tau, 0.0)
+    hi_raw, lo_raw = k * (hi - tau), k * (lo - tau)
+    hi_new = dr.clip(hi_raw, 0.0, 1.0)
+    g_hi = dr.select((hi_raw > 0.0) & (hi_raw < 1.0), (hi - tau) * g_k + k * (j_hi - g_tau), 0.0)
+    g_lo = dr.select(lo_raw > hi_new, g_hi, dr.select(lo_raw > 0.0, (lo - tau) * g_k + k * (j_lo - g_tau), 0.0))
+    return dr.select(finite, g_lo, 0.0), dr.select(finite, g_hi, 0.0)
+
+
+def _g1_jacobian(sp, w, on_p):
+    """∂G1(w, ω_m)/∂ω_p (microsurface.G1; ω_m = ω_p where on_p, else ω_t): the first
+    interval's, G1 = wp_z w_z / Ã(w) below 1, Ã = ⟨w, ω_p⟩₊ + ⟨w_xy, −p_xy⟩₊."""
+    wp = dr.detach(sp.wp)
+    a_p, a_t = dr.dot(w, wp), -(w.x * wp.x + w.y * wp.y)
+    total = dr.maximum(a_p, 0.0) + dr.maximum(a_t, 0.0)
+    ok = total > 0
+    inv = dr.select(ok, dr.rcp(dr.select(ok, total, 1.0)), 0.0)
+    wz = dr.maximum(w.z, 0.0)
+    g = wp.z * wz * inv
+    g_total = dr.select(a_p > 0, w, 0.0) + dr.select(a_t > 0, mi.Vector3f(-w.x, -w.y, 0.0), 0.0)
+    grad = (mi.Vector3f(0.0, 0.0, wz) - g * g_total) * inv
+    facing = dr.select(on_p, a_p > 0, a_t > 0)
+    return dr.select(facing & ok & (g < 1.0), grad, 0.0)
+
+
+# -- Steps --------------------------------------------------------------------------------
+
+
+def first_interval(sp, params, on_p):
+    """(a, b): the depths on the first facet that a ray from ω_i can hit, [0, G1(ω_i, m)]
+    (the top G1 of its height, Algorithm 2); [0, 1] for the separable walk."""
+    return mi.Float(0.0), mi.Float(1.0) if params.separable else sp.G1(sp.wi, on_p)
+
+
+def start(sp, on_p, a, b, active):
+    """A walker on facet ``on_p`` at depths [a, b], travelling along −ω_i."""
+    n = dr.width(sp.wi)
+    return Walker(d=dr.zeros(mi.Vector3f, n) - sp.wi, e=dr.full(mi.Spectrum, 1.0, n), on_p=mi.Bool(on_p),
+                  a=dr.zeros(mi.Float, n) + a, b=dr.zeros(mi.Float, n) + b, depth=dr.zeros(mi.UInt32, n),
+                  walking=mi.Bool(active), escaped=dr.zeros(mi.Bool, n), nondelta=dr.zeros(mi.Bool, n))
+
+
+def vertex_frame(sp, params, on_p):
+    """The frame of the facet a vertex is on (with a mirror t, a nested vertex is always on p)."""
+    return sp.frame_p if params.specular_tangent else select_frame(on_p, sp.frame_p, sp.frame_t)
+
+
+def cross(sp, params, on_p, d, a, b, ok, u):
+    """A ray from depths [a, b] on facet ``on_p`` along d: leave the microsurface with the
+    escape fraction (u decides), or land on the other facet (κ, docs/model.md §2.2).
+
+    Returns (leaves, stays, a, b, prob, (τ, κ)): the depths are those on the other facet where
+    it stays; prob is the probability of the branch taken (1 where not ok), with the
+    derivatives of a, b and the geometry. For a point interval (a = b) the escape is the
+    binary test D < τ whatever u is.
+    """
+    tau, k = sp.crest_map(on_p, d)
+    p_leave = ms.escape_fraction(a, b, tau)
+    leaves = ok & (u < dr.detach(p_leave))
+    stays = ok & negate(leaves)
+    a_new, b_new = ms.land(a, b, tau, k)
+    a = dr.select(stays, 0.0 if params.separable else a_new, a)
+    b = dr.select(stays, 1.0 if params.separable else b_new, b)
+    prob = dr.select(leaves, p_leave, dr.select(stays, 1.0 - p_leave, 1.0))
+    return leaves, stays, a, b, prob, (tau, k)
+
+
+def _moved_interval(sp, w, stays, a, b, tau, k, d, d_pre, on_p, sign):
+    """The walker's Jacobians after a crossing (replayed non-separable walks; a, b: before it)."""
+    g_tau, g_k = _crest_jacobian(sp, on_p, d, d_pre, sign)
+    ja, jb = _land_jacobian(dr.detach(a), dr.detach(b), w.ja, w.jb, dr.detach(tau), dr.detach(k), g_tau, g_k)
+    w.ja, w.jb = dr.select(stays, ja, w.ja), dr.select(stays, jb, w.jb)
+
+
+def mirror_fold(sp, w, params, seed, rp=None):
+    """Reflect the walkers on a mirror t off it (flip_t) to p or out of the microsurface.
+
+    A mirror vertex needs no nested call and gives no NEE: its bounce is folded into
+    the iteration of the next p vertex, so a packet runs the nested calls once per p
+    vertex. Its escape takes the slot of its own depth: the same random numbers, and
+    the same results, as one vertex per iteration.
+
+    Returns the direction after it, with its derivative (replay), for the vertex that follows
+    in this iteration, and the probability of the escape decision's branch (1 off the mirror).
+    """
+    mirror = w.walking & negate(w.on_p)
+    d_m = ms.flip_t(w.d, sp.wt)
+    a, b = attached_interval(sp, w, rp)
+    leaves, stays, a_m, b_m, prob, (tau, k) = cross(sp, params, mi.Bool(False), d_m, a, b,
+                                                    mirror & (dr.dot(d_m, sp.wt) > 0),
+                                                    uniform(seed, slot_escape(w.depth)))
+    if rp is not None:
+        rp.leave(d_m, leaves)
+        if w.ja is not None:
+            _moved_interval(sp, w, stays, a, b, tau, k, dr.detach(d_m), w.d, mi.Bool(False), -1.0)
+    d_att = dr.select(mirror, d_m, w.d)
+    w.d = dr.detach(d_att)
+    w.a, w.b = dr.select(mirror, dr.detach(a_m), w.a), dr.select(mirror, dr.detach(b_m), w.b)
+    w.depth = dr.select(mirror, w.depth + 1, w.depth)
+    w.escaped = w.escaped | leaves
+    w.on_p = w.on_p | stays
+    w.walking = w.walking & (negate(mirror) | (stays & (w.depth < params.max_bounces)))
+    return d_att, dr.select(mirror, prob, 1.0)
+
+
+def roulette(e, stays, depth, rr_depth, u):
+    """Russian roulette on the throughput after the bounce at ``depth`` (from ``rr_depth`` on, 0: never):
+    continue with probability q = min(1, max channel of e) and divide e by q. Unbiased; it
+    ends the long walks of dark materials that cost a packet most of its time. q is a
+    detached number to the estimator, so e/q stays unbiased for e's derivative. (e, stays)."""
+    q = dr.minimum(dr.max(e), 1.0)
+    play = stays & (rr_depth > 0) & (depth + 1 >= rr_depth) & (q < 1.0)
+    survive = u < q
+    e = dr.select(play & survive, e / dr.maximum(q, 1e-30), e)
+    return e, stays & (negate(play) | survive)
+
+
+def bounce(sp, w, params, seed, frame, s1, s2, d_in=None, rp=None):
+    """The nested BSDF's sample at the walker's vertex (facet ``frame``, sample numbers s1, s2),
+    lit along ``d_in`` (default the walker's direction), then cross to the other facet or out
+    of the microsurface, then roulette.
+
+    Replay: the sample's direction is detached and its weight's derivative is that of the
+    attached nested eval (a delta lobe: of its weight), the escape's that of its probability."""
+    d_in = w.d if d_in is None else d_in
+    bs, weight = sp.sample(frame, -d_in, s1, s2, w.walking)
+    delta = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
+    d_new = dr.detach(bs.wo)
+    ok = (w.walking & (dr.dot(d_new, frame.n) > 0) & (bs.pdf > 0) & dr.any(weight > 0)
+          & dr.all(dr.isfinite(weight)))
+    if rp is not None:
+        f = sp.eval(frame, -d_in, d_new, ok & negate(delta))
+        rp.factor(dr.select(delta, weight, f), ok)
+    w.nondelta = w.nondelta | (w.walking & negate(delta))
+    if w.p_in is not None:
+        w.p_in = dr.select(w.walking, dr.select(ok & negate(delta), dr.detach(bs.pdf), 0.0), w.p_in)
+    w.e = dr.select(w.walking, w.e * dr.detach(weight), w.e)
+    a, b = attached_interval(sp, w, rp)
+    leaves, stays, a_new, b_new, prob, (tau, k) = cross(sp, params, w.on_p, d_new, a, b, ok,
+                                                        uniform(seed, slot_escape(w.depth)))
+    if rp is not None:
+        rp.factor(prob, ok)
+        rp.leave(bs.wo, leaves & delta)
+        if w.ja is not None:
+            _moved_interval(sp, w, stays, a, b, tau, k, d_new, d_new, w.on_p, 1.0)
+    w.a, w.b = dr.detach(a_new), dr.detach(b_new)
+    w.e, stays = roulette(w.e, stays, w.depth, params.rr_depth, uniform(seed, slot_roulette(w.depth)))
+    w.d = dr.select(w.walking, d_new, w.d)
+    w.depth = dr.select(w.walking, w.depth + 1, w.depth)
+    w.escaped = w.escaped | leaves
+    w.on_p = w.on_p ^ stays
+    w.walking = stays & (w.depth < params.max_bounces)
+
+
+def nested_numbers(seed, depth):
+    """(sample1, sample2) of the nested sample at facet bounce ``depth``."""
+    return (uniform(seed, slot_nested(depth, 0)),
+            mi.Point2f(uniform(seed, slot_nested(depth, 1)), uniform(seed, slot_nested(depth, 2))))
+
+
+@dataclass
+class NeeTarget:
+    """ω_o and what NEE toward it needs at every vertex: G1(ω_o, p), G1(ω_o, t) and, with a
+    mirror t, ω'_o = flip_t(ω_o) with H_r = [r_lo, r_hi] (``mirror_leg``)."""
+
+    wo: mi.Vector3f
+    g_o_p: mi.Float
+    g_o_t: mi.Float
+    wo_m: mi.Vector3f = None
+    r_lo: mi.Float = None
+    r_hi: mi.Float = None
+
+    @classmethod
+    def toward(cls, sp, params, wo):
+        target = cls(wo, sp.G1_p(wo), sp.G1_t(wo))
+        if params.specular_tangent:
+            target.wo_m, target.r_lo, target.r_hi = mirror_leg(sp, wo, target.g_o_t)
+        return target
+
+
+def mirror_leg(sp, wo, g_o_t):
+    """(ω'_o, lo, hi): the depths [lo, hi] on p whose ray along ω'_o = flip_t(ω_o)
+    reflects off the mirror t toward ω_o (H_r, docs/model.md §4.4: heights
+    [(1 − G1(ω_o, t))·h_r, h_r] with h_r = 1 − G1(ω'_o, p)); ``g_o_t`` = G1(ω_o, t)."""
+    wo_m = sp.flip_t(wo)
+    r_lo = sp.G1_p(wo_m)
+    return wo_m, r_lo, dr.select(g_o_t > 0, r_lo + g_o_t * (1.0 - r_lo), r_lo)
+
+
+def add_nee(L, sp, params, to, on_p, w_in, h_a, h_b, scale, active, p_in=None):
+    """L plus the NEE toward ω_o from a vertex on facet ``on_p`` lit from ``w_in``, at depths
+    [h_a, h_b], times ``scale`` (Algorithms 2 and 3): f_m(w_in, ω_o)⟨ω_o, ω_m⟩·G₂/|H| with
+    G₂ = |H ∩ [0, G1(ω_o, m)]|; with a mirror t also f_p(w_in, ω'_o)⟨ω'_o, ω_p⟩·|H ∩ H_r|/|H|.
+    ``p_in``: the walk's ``Walker.p_in`` (a same-material t), for ``connected_nee``."""
+    g_o = to.g_o_p if params.specular_tangent else dr.select(on_p, to.g_o_p, to.g_o_t)
+    w2 = ms.fraction_inside(h_a, h_b, 0.0, g_o)
+    frame = vertex_frame(sp, params, on_p)
+    if p_in is None:
+        L += scale * sp.eval(frame, w_in, to.wo, active & (w2 > 0)) * w2
+    else:
+        L += scale * connected_nee(sp, frame, w_in, to.wo, p_in, active & (w2 > 0)) * w2
+    if params.specular_tangent:
+        wr = dr.select(to.g_o_t > 0, ms.fraction_inside(h_a, h_b, to.r_lo, to.r_hi), 0.0)
+        L += scale * sp.eval(sp.frame_p, w_in, to.wo_m, active & (wr > 0)) * wr
+    return L
+
+
+def connect(sp, params, w, to, seed, a, b, rp=None):
+    """The eval walk's MIS connection from the walker's vertex to the other facet (a
+    same-material tangent facet, docs/model.md §4.8): the next vertex's NEE term
+
+        e·∫ f_m(w_in, d)⟨d, ω_m⟩·(1 − escape(d))·G₂'(d)·f_m'(−d, ω_o)⟨ω_o, ω_m'⟩ dd
+
+    estimated from a direction sampled at the other facet m' lit from ω_o (u ~ f_m'(ω_o, ·),
+    d = −u; f_m'(−d, ω_o) = f_m'(ω_o, u) by the nested BSDF's reciprocity), weighted by the
+    balance heuristic against the walk's own sample d ~ f_m(w_in, ·), whose NEE at the next
+    vertex takes the complementary weight (``connection_weight``). Where both lobes are narrow
+    the walk's sample rarely meets the next lobe's peak toward ω_o; this sample starts there.
+    The escape and the landed depths [a', b'] are taken in expectation. Only where the walk
+    can have a next vertex (``max_bounces``); delta samples are left to the walk.
+
+    Returns (the contribution, times the walker's throughput; the lanes it is defined on).
+    Replay: f_m' is the attached nested eval at the detached direction, the pdfs detached."""
+    on_p = w.on_p
+    frame_m = select_frame(on_p, sp.frame_p, sp.frame_t)
+    frame_n = select_frame(on_p, sp.frame_t, sp.frame_p)
+    on = w.walking & (w.depth + 1 < params.max_bounces)
+    s2 = mi.Point2f(uniform(seed, slot_connect(w.depth, 1)), uniform(seed, slot_connect(w.depth, 2)))
+    bs, weight = sp.sample(frame_n, to.wo, uniform(seed, slot_connect(w.depth, 0)), s2, on)
+    u = dr.detach(bs.wo)
+    cos_u, p_n = dr.dot(u, frame_n.n), dr.detach(bs.pdf)
+    ok = (on & negate(mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)) & (p_n > 0) & (cos_u > 0)
+          & (dr.dot(u, frame_m.n) < 0) & dr.all(dr.isfinite(weight)))
+    # (Elsewhere a direction off the facet: the crest map's derivative is not finite there.)
+    d = dr.select(ok, -u, frame_m.n)
+    f_m, p_m = sp.eval_pdf(frame_m, -w.d, d, ok)
+    tau, k = sp.crest_map(on_p, d)
+    a_n, b_n = (mi.Float(0.0), mi.Float(1.0)) if params.separable else ms.land(a, b, tau, k)
+    g2 = (1.0 - ms.escape_fraction(a, b, tau)) * ms.fraction_inside(a_n, b_n, 0.0,
+                                                                      dr.select(on_p, to.g_o_t, to.g_o_p))
+    ok &= g2 > 0
+    if rp is None:
+        f_n = weight * (p_n * dr.dot(to.wo, frame_n.n) / dr.select(ok, cos_u, 1.0))
+    else:
+        f_n = sp.eval(frame_n, u, to.wo, ok)
+    c = w.e * f_m * g2 * f_n / dr.select(ok, dr.detach(p_m) + p_n, 1.0)
+    return dr.select(ok, c, 0.0), ok
+
+
+def connected_nee(sp, frame, w_in, wo, p_in, active):
+    """f_m(w_in, ω_o)⟨ω_o, ω_m⟩ at a vertex that the walk reached by its own nested sample
+    (density p_in > 0), times the balance-heuristic weight against ``connect``'s sample of
+    the same direction from ω_o (``connection_weight``). One nested call, eval_pdf from ω_o
+    toward w_in: its pdf is p_o, its value f_m(ω_o, w_in)⟨w_in, ω_m⟩, which reciprocity
+    turns into the NEE's (×⟨ω_o, ω_m⟩/⟨w_in, ω_m⟩). Where p_in = 0 (the first vertex, after a
+    delta lobe) the plain eval from w_in, weight 1."""
+    swap = p_in > 0
+    value, p_o = sp.eval_pdf(frame, dr.select(swap, wo, w_in), dr.select(swap, w_in, wo), active)
+    cos_in = dr.dot(w_in, frame.n)
+    f = dr.select(swap, value * (dr.dot(wo, frame.n) / dr.select(swap & (cos_in > 0), cos_in, 1.0)), value)
+    return f * connection_weight(p_in, dr.detach(p_o))
+
+
+def connection_weight(p_in, p_o):
+    """The balance-heuristic weight p_in/(p_in + p_o) of the walk's own sample (density p_in)
+    against ``connect``'s sample of the same direction from ω_o (density p_o); 1 where p_in = 0."""
+    return dr.select(p_in > 0, p_in / dr.maximum(p_in + p_o, 1e-30), 1.0)
+
+
+def t_start_share(sp, params, wo, lp, active):
+    """λ_t(ω_i)·E[NEE toward wo at the first nested vertex of a walk that starts on t].
+
+    With a mirror tangent facet the walk reflects to p first: λ_t·(1 − escape)·NEE
+    at p lit from flip_t(ω_i) on the landed depth interval, including the p→t→ω_o
+    leg (H_r); otherwise the NEE at t itself. (The p start's share, λ_p·NEE at p lit
+    from ω_i, is the evaluation loop's first iteration; docs/model.md §4.5.) The same
+    terms, with pdf for eval, are in mis_pdf's explicit part.
+    """
+    wi = sp.wi
+    g_o_t = sp.G1_t(wo)
+    b_t = first_interval(sp, params, False)[1]
+    if not params.specular_tangent:
+        w_t = (1.0 - lp) * ms.fraction_inside(0.0, b_t, 0.0, g_o_t)
+        return sp.eval(sp.frame_t, wi, wo, active & (w_t > 0)) * w_t
+    # The mirror sends the ray along d_m = flip_t(−ω_i), toward p or out.
+    d_m = ms.flip_t(-wi, sp.wt)
+    tau, k = sp.crest_map(mi.Bool(False), d_m)
+    stay = (1.0 - lp) * (1.0 - ms.escape_fraction(0.0, b_t, tau)) * dr.select(params.max_bounces > 1, 1.0, 0.0)
+    a, b = (mi.Float(0.0), mi.Float(1.0)) if params.separable else ms.land(0.0, b_t, tau, k)
+    wo_m, r_lo, r_hi = mirror_leg(sp, wo, g_o_t)
+    w2 = stay * ms.fraction_inside(a, b, 0.0, sp.G1_p(wo))
+    wr = stay * dr.select(g_o_t > 0, ms.fraction_inside(a, b, r_lo, r_hi), 0.0)
+    return (sp.eval(sp.frame_p, -d_m, wo, active & (w2 > 0)) * w2
+            + sp.eval(sp.frame_p, -d_m, wo_m, active & (wr > 0)) * wr)
+
+
+# -- The loops ----------------------------------------------------------------------------
+
+
+def _first_vertex(sp, params, u, active, replay=False):
+    """A walker on the facet a ray from ω_i hits first, chosen by λ_p(ω_i) with the number u;
+    (walker, the probability of its choice, λ_p, the rest of u rescaled). ``replay``: the
+    walker's values detached, with the non-separable interval's Jacobian."""
+    lp = sp.lambda_p(sp.wi)
+    on_p, rest = choose(u, dr.detach(lp))
+    a, b = first_interval(sp, params, on_p)
+    walker = start(sp, on_p, dr.detach(a), dr.detach(b), active)
+    if replay and not params.separable:
+        walker.ja = dr.zeros(mi.Vector3f, dr.width(walker.a))
+        walker.jb = _g1_jacobian(sp, dr.detach(sp.wi), on_p) + walker.ja
+    return walker, dr.select(on_p, lp, 1.0 - lp), lp, rest
+
+
+def _loop(state, body, label):
+    """A walk loop: everything it reads is in ``state`` (broadcast to the walk's width); its
+    derivative is a sum over iterations (``Replay``), so reverse mode needs no stored walk."""
+    state = broadcast(state, dr.width(state[0].walking))
+    return dr.while_loop(state, lambda w, *_: w.walking, body, max_iterations=-1, label=label)
+
+
+def sample_walk(sp, params, sample1, sample2, active):
+    """Supplemental Algorithm 1: walk from ω_i until the ray leaves; the walker at its exit.
+
+    The first facet is chosen by λ_p(ω_i) with ``sample1``, whose rescaled rest and
+    ``sample2`` drive the first nested sample; later numbers come from a hash of them.
+    """
+    return _sample_walk(sp, params, sample1, sample2, active)[0]
+
+
+def _sample_walk(sp, params, sample1, sample2, active):
+    """:func:`sample_walk` and its Replay (the throughput's derivative; None without)."""
+    sp = calls(sp)
+    active = mi.Bool(active) & (sp.wi.z > 0)
+    seed = hash_floats(SALT_WALK_SAMPLE, sample1, sample2.x, sample2.y)
+    replay = replays(sp)
+    walker, p_start, _, s1_first = _first_vertex(sp, params, sample1, active, replay)
+    n = dr.width(active)
+    rp = Replay(dr.zeros(mi.Spectrum, n), exit=dr.zeros(mi.Vector3f, n)) if replay else None
+
+    def body(w, rp, geometry, seed, s1_first, sample2, p_start):
+        at = sp.with_state(geometry)
+        if rp is not None:
+            rp.factor(p_start, w.depth == 0)
+        d_in = w.d
+        if params.specular_tangent:
+            d_in, p_fold = mirror_fold(at, w, params, seed, rp)
+            if rp is not None:
+                rp.factor(p_fold, True)
+        first = w.depth == 0
+        s1, s2 = nested_numbers(seed, w.depth)
+        bounce(at, w, params, seed, vertex_frame(at, params, w.on_p),
+               dr.select(first, s1_first, s1), dr.select(first, sample2, s2), d_in, rp)
+        return w, rp, geometry, seed, s1_first, sample2, p_start
+
+    w, rp = _loop((walker, rp, sp.state(), seed, s1_first, mi.Point2f(sample2), p_start), body,
+                  "mfnormal_sample_walk")[:2]
+    return w, rp
+
+
+def eval_walk(sp, params, wo, active, numbers=None):
+    """Supplemental Algorithms 2 (3 with a mirror t): NEE toward ω_o along a walk from ω_i.
+
+    Returns (L, walker): L estimates f·⟨ω_o, ω_g⟩ without bias. The NEE at the first
+    nested vertex is taken in expectation over the start facet (docs/model.md §4.5):
+    the first iteration adds λ_p·NEE at p lit from ω_i for every walk, whichever facet
+    it started on, ``t_start_share`` the t start's share, and later iterations the
+    vertices after the first nested sample. Random numbers: a hash of (ω_i, ω_o, si.p).
+    With derivatives the walk runs twice: for L, then replayed for L's derivative (Replay).
+
+    ``numbers`` = (sample1, sample2, walk_active): the fused walk of :func:`eval_sample`
+    (primal only). The walk then takes the sample walk's numbers (its start facet, first
+    nested sample and seed), so its walker is ``sample_walk``'s, and runs on ``walk_active``
+    (ω_i above the horizon) while the NEE is only taken on ``active``.
+    """
+    sp = calls(sp)
+    wi = sp.wi
+    active = mi.Bool(active) & (wi.z > 0)
+    if numbers is None:
+        seed = hash_floats(SALT_WALK_EVAL, dr.detach(wi.x), dr.detach(wi.y), dr.detach(wo.x), dr.detach(wo.y),
+                           sp.si.p.x, sp.si.p.y, sp.si.p.z)
+        u_start, walk_active = uniform(seed, SLOT_START_FACET), active
+    else:
+        sample1, sample2, walk_active = numbers
+        seed = hash_floats(SALT_WALK_SAMPLE, sample1, sample2.x, sample2.y)
+        u_start, walk_active = sample1, mi.Bool(walk_active) & (wi.z > 0)
+
+    def run(sp, rp):
+        walker, p_start, lp, s1_first = _first_vertex(sp, params, u_start, walk_active, rp is not None)
+        first = None if numbers is None else (s1_first, mi.Point2f(numbers[1]))
+        if not params.specular_tangent:
+            walker.p_in = dr.zeros(mi.Float, dr.width(walker.a))
+        to = NeeTarget.toward(sp, params, wo)
+        b_p = first_interval(sp, params, True)[1]
+
+        def body(w, L, rp, geometry, seed, to, lp, b_p, active, p_start, first):
+            at = sp.with_state(geometry)
+            at_start = w.depth == 0   # the first vertex (before a folded mirror bounce counts)
+            d_in, p_fold = w.d, None
+            if params.specular_tangent:
+                folded = w.walking & negate(w.on_p)
+                d_in, p_fold = mirror_fold(at, w, params, seed, rp)
+            # NEE toward ω_o from this vertex; in the first iteration, the p start's share.
+            a, b = attached_interval(at, w, rp)
+            on = dr.select(at_start, active, w.walking & active)   # (eval: w.walking ⊆ active)
+            nee = (at, params, to, w.on_p | at_start, dr.select(at_start, at.wi, -d_in), dr.select(at_start, 0.0, a),
+                   dr.select(at_start, b_p, b), dr.select(at_start, mi.Spectrum(lp), w.e), on, w.p_in)
+            if not params.specular_tangent:
+                c_next, on_next = connect(at, params, w, to, seed, a, b, rp)
+                if rp is None:
+                    L += c_next
+                else:
+                    rp.add(c_next, on_next)
+            if rp is None:
+                L = add_nee(L, *nee)
+            else:
+                c = add_nee(mi.Spectrum(0.0), *nee)
+                rp.add(c, on)
+                # The start's choice and the mirror's escape came before this NEE, which only
+                # the latter affects (the first NEE is the start's expectation); the
+                # connection from the start facet depends on the choice.
+                rp.factor(p_start, at_start & active, 0.0 if params.specular_tangent else dr.detach(c_next))
+                if p_fold is not None:
+                    rp.factor(p_fold, folded, dr.select(at_start, 0.0, dr.detach(c)))
+            s1, s2 = nested_numbers(seed, w.depth)
+            if first is not None:       # the fused walk: the sample walk's first nested sample
+                s1, s2 = dr.select(w.depth == 0, first[0], s1), dr.select(w.depth == 0, first[1], s2)
+            bounce(at, w, params, seed, vertex_frame(at, params, w.on_p), s1, s2, d_in, rp)
+            return w, L, rp, geometry, seed, to, lp, b_p, active, p_start, first
+
+        state = (walker, dr.zeros(mi.Spectrum, dr.width(active)), rp, sp.state(), seed, to, lp, b_p, active,
+                 p_start, first)
+        w, L, rp = _loop(state, body, "mfnormal_eval_walk")[:3]
+        return w, L, rp, lp
+
+    if not replays(sp):
+        walker, L, _, lp = run(sp, None)
+        return L + t_start_share(sp, params, wo, lp, active), walker
+    # (Not dr.suspend_grad(): inside a virtual call, e.g. Mitsuba's BSDF dispatch, it loses the
+    # replay's derivatives in Dr.Jit 1.5. The nested BSDF's parameters may still reach L.)
+    walker, L, _, _ = run(sp.detached(), None)
+    L = dr.detach(L)
+    _, _, rp, lp = run(sp, Replay(dr.zeros(mi.Spectrum, dr.width(active)), dr.zeros(mi.Spectrum, dr.width(active)),
+                                  L))
+    return replace_grad(L, rp.G) + t_start_share(sp, params, wo, lp, active), walker
+
+
+# -- The BSDF's sample, eval and pdf --------------------------------------------------------
+
+
+def sample(sp, params, sample1, sample2, active):
+    """Walk from wi until the ray leaves: (BSDFSample3f with the MIS pdf, throughput)."""
+    w, rp = _sample_walk(sp, params, sample1, sample2, active)
+    if rp is not None:
+        w.e = replace_grad(w.e, w.e * rp.G)
+        w.d = replace_grad(w.d, w.d + rp.exit)
+    return exit_sample(sp, params, w)
+
+
+def exit_sample(sp, params, w):
+    """A finished walker as the BSDF's sample: (BSDFSample3f with the MIS pdf, throughput);
+    walks that did not escape, or escaped below the horizon, give pdf and weight 0."""
+    valid = w.escaped & (w.d.z > 0) & dr.all(dr.isfinite(w.e)) & dr.all(dr.isfinite(w.d))
+    bs = dr.zeros(mi.BSDFSample3f, dr.width(w.d))
+    bs.wo = dr.select(w.escaped & dr.all(dr.isfinite(w.d)), w.d, mi.Vector3f(0.0, 0.0, 1.0))
+    bs.eta = 1.0
+    bs.sampled_component = 0
+    bs.sampled_type = dr.select(w.nondelta, mi.UInt32(+mi.BSDFFlags.GlossyReflection),
+                                mi.UInt32(+mi.BSDFFlags.DeltaReflection))
+    pdf = mis_pdf(sp, params, w.d, valid & w.nondelta)
+    bs.pdf = dr.select(w.nondelta, pdf, 1.0)
+    valid &= bs.pdf > 0
+    bs.pdf = dr.select(valid, bs.pdf, 0.0)
+    return bs, dr.select(valid, dr.maximum(w.e, 0.0), 0.0)
+
+
+def eval(sp, params, wo, active):
+    """Unbiased NEE estimate of f·⟨wo, z⟩, deterministic per query."""
+    active = mi.Bool(active) & (sp.wi.z > 0) & (wo.z > 0)
+    L = eval_walk(sp, params, wo, active)[0]
+    return dr.select(active & dr.all(dr.isfinite(L)), dr.maximum(L, 0.0), 0.0)
+
+
+def eval_sample(sp, params, wo, sample1, sample2, active):
+    """``eval`` at wo and ``sample`` from one walk (primal only: without derivatives).
+
+    The walk is ``sample``'s (the same numbers, so the same exit, sample and weight, bit for
+    bit) and does ``eval_walk``'s NEE toward wo at its vertices. The value is an unbiased
+    estimate of f·⟨wo, z⟩ like ``eval``'s, but from the sample's numbers instead of a hash of
+    the query; its correlation with the sample leaves a path tracer unbiased (the NEE and the
+    continuation are added). Returns (value, (BSDFSample3f, weight))."""
+    walking = mi.Bool(active) & (sp.wi.z > 0)
+    on = walking & (wo.z > 0)
+    L, w = eval_walk(sp, params, wo, on, (sample1, sample2, walking))
+    value = dr.select(on & dr.all(dr.isfinite(L)), dr.maximum(L, 0.0), 0.0)
+    return value, exit_sample(sp, params, w)
+
+
+def _escape(sp, h, on_p, d):
+    """The fraction of rays from depths h = (a, b) on facet ``on_p`` along d that leave.
+
+    Only above the facet's plane: below it, κ = ∞ must not count as an escape
+    (nested pdfs such as llvm roughplastic's are not zero there)."""
+    above = dr.dot(d, dr.select(on_p, sp.wp, sp.wt)) > 0
+    return dr.select(above, ms.escape_fraction(h[0], h[1], sp.crest_map(on_p, d)[0]), 0.0)
+
+
+def _land(sp, params, h, on_p, d):
+    """The depths on the other facet reached by the rays from h along d that do not escape."""
+    if params.separable:
+        return mi.Float(0.0), mi.Float(1.0)
+    return ms.land(h[0], h[1], *sp.crest_map(on_p, d))
+
+
+def second_visit(sp, params, h, w_in):
+    """P(a walk on p lit from w_in, its nested sample at the lobe centre (the mirror
+    direction about ω_p), crosses to t and, reflected there as by a mirror, lands on p
+    again): how likely a second nested vertex is. Exact for a mirror-like nested
+    BSDF, which is where the boost is large."""
+    p, t = mi.Bool(True), mi.Bool(False)
+    d1 = 2.0 * dr.dot(w_in, sp.wp) * sp.wp - w_in
+    q = (1.0 - _escape(sp, h, p, d1)) * (1.0 - _escape(sp, _land(sp, params, h, p, d1), t, sp.flip_t(d1)))
+    return dr.select(dr.dot(d1, sp.wp) > 0, q, 0.0)
+
+
+def glossy_wall_terms(sp, params, wo, lp, active):
+    """The MIS pdf's terms for the walks that ``eval`` estimates stochastically with a
+    same-material tangent facet (they take the boost, docs/model.md §5): the two-vertex
+    walks i→p→t→o and i→t→p→o with the t bounce taken as a mirror (the centre of a glossy
+    wall's lobe; without them BSDF samples reflected off a glossy wall got almost no MIS
+    weight: this pdf was 7-14× below the walk's density at α = 0.05), and the three-vertex
+    walks (``third_vertex``), which the plain density leaves to its cosine rest. Their reach
+    and escape probabilities are the separable model's, for both models: the non-separable
+    model's depth intervals make them exactly zero at some lobe centres whose neighbourhood
+    the glossy walks still reach (the pdf was 33× below the walk's density there).
+    Returns (the two-vertex terms, the three-vertex terms)."""
+    loose = replace(params, separable=True)
+    p, t = mi.Bool(True), mi.Bool(False)
+    wi = sp.wi
+    wo_m, wi_m = sp.flip_t(wo), sp.flip_t(wi)
+    h = first_interval(sp, loose, p)
+    e_pto = lp * (1.0 - _escape(sp, h, p, wo_m)) * _escape(sp, h, t, wo)           # i→p→t→o
+    e_tpo = (1.0 - lp) * _escape(sp, h, p, wo)                                      # i→t→p→o
+    two = (sp.pdf(sp.frame_p, wi, wo_m, active & (e_pto > 0)) * e_pto
+           + sp.pdf(sp.frame_p, wi_m, wo, active & (e_tpo > 0)) * e_tpo)
+    return two, third_vertex(sp, loose, h, wo, lp, active)
+
+
+def third_vertex(sp, params, h, wo, lp, active):
+    """The density toward wo of the walks whose first two nested samples take their lobes'
+    centres (the mirror directions about the first facet and then about the other) and whose
+    third vertex, on the first facet again, leaves toward wo: share·P(reach it)·(escape
+    toward wo)·its nested pdf. With a same-material tangent facet these three-vertex walks
+    (p → t → p, share λ_p; t → p → t, share λ_t) give narrow lobes of their own, far from the
+    two-vertex terms (the pdf was 50-100× below the walk's density there at GGX α = 0.05,
+    docs/model.md §5). Of the two starts the one with the larger weight gives the term (one
+    nested call; a deterministic choice, which MIS allows)."""
+    q_p, v_p = _third_vertex_reach(sp, params, h, mi.Bool(True), wo, lp)
+    q_t, v_t = _third_vertex_reach(sp, params, h, mi.Bool(False), wo, 1.0 - lp)
+    use_p = q_p >= q_t
+    q = dr.maximum(q_p, q_t)
+    return sp.pdf(select_frame(use_p, sp.frame_p, sp.frame_t), dr.select(use_p, v_p, v_t), wo, active & (q > 0)) * q
+
+
+def _third_vertex_reach(sp, params, h, on_p, wo, share):
+    """(share·P(reach the third vertex)·escape toward wo, the direction it is lit from) for a
+    walk from ω_i that starts on facet ``on_p`` at depths h (``third_vertex``)."""
+    off = negate(on_p)
+    frame = select_frame(on_p, sp.frame_p, sp.frame_t)
+    n_other = dr.select(on_p, sp.wt, sp.wp)
+    d1 = 2.0 * dr.dot(sp.wi, frame.n) * frame.n - sp.wi
+    d2 = d1 - 2.0 * dr.dot(d1, n_other) * n_other
+    h2 = _land(sp, params, h, on_p, d1)
+    q = (share * (1.0 - _escape(sp, h, on_p, d1)) * (1.0 - _escape(sp, h2, off, d2))
+         * _escape(sp, _land(sp, params, h2, off, d2), on_p, wo))
+    return dr.select((dr.dot(d1, frame.n) > 0) & (dr.dot(d2, n_other) > 0), q, 0.0), -d2
+
+
+def mis_pdf(sp, params, wo, active):
+    """Deterministic MIS pdf (docs/model.md §5): a density approximation, variance-aware boosted.
+
+    The exact density of walks that leave after their first nested sample (with a
+    mirror tangent facet: including the mirror legs i→p→t→o, i→t→p→o and i→t→p→t→o;
+    with a same-material one, i→p→t→o and i→t→p→o with the t bounce approximated by
+    a mirror), using the model's own escape probabilities, plus a cosine lobe of
+    weight 1 − cosθ_p for the longer walks. For white Lambertian facets and a mirror
+    tangent facet the separable walk's density is exactly cosθ_o/π (§4.7), and so is
+    this pdf.
+
+    The terms that ``eval`` estimates stochastically are multiplied by the boost c of
+    ``stochastic_share_boost`` (variance-aware MIS; ``mis_boost_max`` = 1 leaves the
+    plain density approximation): with a same-material tangent facet the two-bounce
+    terms, and for the longer walks a cosine lobe of weight (c − 1)·q2 is added, q2
+    the chance of a second nested vertex for a walk whose first nested sample takes
+    its lobe's centre (zero where that centre leaves the microsurface, so that light
+    samples keep their weight where longer walks are rare).
+    """
+    sp = calls(sp)
+    wi = sp.wi
+    active = mi.Bool(active) & (wi.z > 0) & (wo.z > 0)
+    p, t = mi.Bool(True), mi.Bool(False)
+    lp = sp.lambda_p(wi)
+    wo_m, wi_m = sp.flip_t(wo), sp.flip_t(wi)
+    h_p = first_interval(sp, params, p)
+    h_tp = _land(sp, params, first_interval(sp, params, t), t, -wi_m)   # on p after a t start's mirror bounce
+    e_po = lp * _escape(sp, h_p, p, wo)                                                            # i→p→o
+    e_pto = lp * (1.0 - _escape(sp, h_p, p, wo_m)) * _escape(sp, _land(sp, params, h_p, p, wo_m), t, wo)  # i→p→t→o
+    e_tpo = (1.0 - lp) * _escape(sp, h_tp, p, wo)                                                  # i→t→p→o
+    stochastic = longer = 0.0
+    if params.specular_tangent:
+        e_tpto = ((1.0 - lp) * (1.0 - _escape(sp, h_tp, p, wo_m))
+                  * _escape(sp, _land(sp, params, h_tp, p, wo_m), t, wo))                          # i→t→p→t→o
+        explicit = (sp.pdf(sp.frame_p, wi, wo, active & (e_po > 0)) * e_po
+                    + sp.pdf(sp.frame_p, wi, wo_m, active & (e_pto > 0)) * e_pto
+                    + sp.pdf(sp.frame_p, wi_m, wo, active & (e_tpo > 0)) * e_tpo
+                    + sp.pdf(sp.frame_p, wi_m, wo_m, active & (e_tpto > 0)) * e_tpto)
+    else:
+        e_to = (1.0 - lp) * _escape(sp, first_interval(sp, params, t), t, wo)                     # i→t→o
+        explicit = (sp.pdf(sp.frame_p, wi, wo, active & (e_po > 0)) * e_po
+                    + sp.pdf(sp.frame_t, wi, wo, active & (e_to > 0)) * e_to)
+        stochastic, longer = glossy_wall_terms(sp, params, wo, lp, active)
+    # 1 − cosθ_p as sin²θ_p/(1 + cosθ_p): never negative (a float32 unit ω_p can have z > 1)
+    # and non-zero for tilts below float32's 1 − cos resolution (θ_p ≲ 3e-4).
+    rest = sp.sin_p * sp.sin_p / (1.0 + sp.wp.z) * dr.maximum(wo.z, 0.0) * dr.inv_pi
+    # The longer walks' share by the chance q2 that a walk has them: a cosine lobe of weight
+    # c·q2 instead of the plain density's 1 − cosθ_p, where c > 1, and with a same-material
+    # tangent facet the three-vertex lobes (a select, not a branch: mis_boost_max is a
+    # kernel input).
+    c = stochastic_share_boost(sp, params.mis_boost_max, active)
+    q2 = lp * second_visit(sp, params, h_p, wi) + (1.0 - lp) * second_visit(sp, params, h_tp, wi_m)
+    boosted = explicit + stochastic * c + rest + (c - 1.0) * q2 * dr.maximum(wo.z, 0.0) * dr.inv_pi
+    if not params.specular_tangent:
+        boosted += (c - 1.0) * longer
+    pdf = dr.select(params.mis_boost_max > 1.0, boosted, explicit + stochastic + rest)
+    return dr.select(active & dr.isfinite(pdf), pdf, 0.0)
+
+
+def stochastic_share_boost(sp, boost_max, active):
+    """Variance-aware MIS factor for the longer walks' share of the MIS pdf.
+
+    ``eval`` is exact-in-expectation but noisy for the walks past their first
+    nested sample: one random direction per vertex, evaluated against a nested lobe
+    that is as sharp as the material. Light samples weighted by that noisy value
+    give fireflies on glossy facets; BSDF samples of the same paths have weights
+    near the albedo. Variance-aware MIS (Grittmann et al. 2019) divides a
+    technique's weight by the relative variance of its estimate; here it is
+    applied as a boost of the BSDF technique's weight on the longer walks,
+    proportional to the nested lobe's sharpness: π × the nested pdf of the
+    mirror direction at normal incidence (1 for Lambertian, 1/(4α²) for GGX),
+    clamped to [1, boost_max] (mis_pdf selects the density approximation for
+    boost_max = 1). Deterministic per shading point, so MIS
+    stays unbiased; the low-order terms, whose ``eval`` is deterministic, keep
+    their exact density.
+    """
+    sharp = dr.pi * sp.pdf(sp.frame_p, sp.wp, sp.wp, active)
+    return dr.clip(sharp, 1.0, boost_max)

@@ -1,0 +1,130 @@
+"""``mfnormal_path``: Mitsuba's path tracer, calling each BSDF's ``eval_pdf_sample``.
+
+Mitsuba 3.9.1's ``path`` calls ``bsdf->eval_pdf_sample(ctx, si, wo, s1, s2)`` at every
+vertex (the NEE toward the light sample ``wo`` and the continuation sample), but its Python
+trampoline does not forward that method: for a Python BSDF the C++ default runs
+``eval_pdf`` and then ``sample``. For the random-walk models these are two walks, two loops
+with their own SIMD tails; :meth:`plugin.NormalMapMicrofacet.eval_pdf_sample` does both with
+one walk. This integrator is ``path`` (the same algorithm and the same order of the
+sampler's numbers: an image of built-in BSDFs equals ``path``'s to float rounding) whose
+BSDF call is a ``dr.dispatch`` over the shapes' BSDFs, so that a Python BSDF's own
+``eval_pdf_sample`` runs (a built-in's is its C++ method).
+
+Parameters: ``max_depth`` (default -1: unbounded), ``rr_depth`` (default 5),
+``hide_emitters`` (default false), as ``path``'s. Primal rendering only: it does not
+re-evaluate the BSDF for derivatives as ``path`` does; under AD (a ray that carries
+derivatives) it raises, use ``prb`` there (``mfnormal_prb`` for the random walks). Unpolarised variants only.
+"""
+
+from __future__ import annotations
+
+import drjit as dr
+import mitsuba as mi
+
+from mfnormal.plugins.variant_class import variant_subclass
+
+RR_PROB_MAX = 0.95      # path's cap of the Russian roulette survival probability
+
+
+def mis_weight(pdf_a, pdf_b):
+    """The power heuristic (exponent 2) of technique a against b, 0 where not finite, detached."""
+    a, b = pdf_a * pdf_a, pdf_b * pdf_b
+    w = a / (a + b)
+    return dr.detach(dr.select(dr.isfinite(w), w, 0.0))
+
+
+def _eval_pdf_sample(bsdf, ctx, si, wo, sample1, sample2):
+    """The BSDF's ``eval_pdf_sample`` through ``dr.dispatch``: a Python BSDF's own method."""
+    return dr.dispatch(bsdf, lambda inst, *args: inst.eval_pdf_sample(*args), ctx, si, wo, sample1, sample2)
+
+
+class MfnormalPath:
+    """The integrator's methods; :func:`integrator_class` binds them to the variant's
+    ``mi.SamplingIntegrator``."""
+
+    def __init__(self, props: mi.Properties):
+        type(self).__mro__[1].__init__(self, props)   # the variant's mi.SamplingIntegrator
+        max_depth = int(props.get("max_depth", -1))
+        if max_depth < -1:
+            raise ValueError(f"mfnormal_path: max_depth must be -1 (unbounded) or >= 0, got {max_depth}")
+        self.rr_depth = int(props.get("rr_depth", 5))
+        if self.rr_depth <= 0:
+            raise ValueError(f"mfnormal_path: rr_depth must be > 0, got {self.rr_depth}")
+        self.max_depth = 0xFFFFFFFF if max_depth == -1 else max_depth    # path's uint32 cast of -1
+        self.hide_emitters = bool(props.get("hide_emitters", False))
+        if mi.is_polarized:
+            raise ValueError("mfnormal_path: polarised variants are not supported (use 'path')")
+
+    def sample(self, scene, sampler, ray, medium=None, active=True):
+        if self.max_depth == 0:
+            return mi.Spectrum(0.0), mi.Bool(False), []
+        ray = mi.Ray3f(ray)
+        active = mi.Bool(active)
+        valid_ray = mi.Bool((not self.hide_emitters) and scene.environment() is not None)
+        pi = scene.ray_intersect_preliminary(ray, True, False, 0, 0, active)
+        if self.hide_emitters:
+            skip = pi.is_valid() & (pi.shape.emitter() != None) & active  # noqa: E711  (a Dr.Jit mask)
+            si = pi.compute_surface_interaction(ray, mi.RayFlags.Minimal, skip)
+            pi[skip] = self.skip_area_emitters(scene, si.spawn_ray(ray.d), True, skip)
+        state = (ray, pi, mi.Spectrum(1.0), mi.Spectrum(0.0), mi.Float(1.0), mi.UInt32(0), valid_ray,
+                 dr.zeros(mi.Interaction3f), mi.Float(1.0), mi.Bool(True), active, sampler)
+        out = dr.while_loop(state, lambda *s: s[10], lambda *s: self._vertex(scene, *s),
+                            label="mfnormal_path")
+        result, valid_ray = out[3], out[6]
+        return dr.select(valid_ray, result, 0.0), valid_ray, []
+
+    def _vertex(self, scene, ray, pi, throughput, result, eta, depth, valid_ray, prev_si, prev_pdf,
+                prev_delta, active, sampler):
+        """One iteration of the path loop: emission hit, NEE, BSDF sample, Russian roulette."""
+        si = pi.compute_surface_interaction(ray, mi.RayFlags.All)
+        result = self._emission(scene, si, prev_si, prev_pdf, prev_delta, throughput, result)
+        active_next = (depth + 1 < self.max_depth) & si.is_valid()
+        bsdf = si.bsdf(mi.RayDifferential3f(ray))
+        active_em = active_next & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
+        ds, em_weight = scene.sample_emitter_direction(si, sampler.next_2d(), True, active_em)
+        active_em &= ds.pdf != 0.0
+        wo = si.to_local(ds.d)
+        sample1 = sampler.next_1d()
+        sample2 = sampler.next_2d()
+        value, pdf, bs, weight = _eval_pdf_sample(bsdf, mi.BSDFContext(), si, wo, sample1, sample2)
+        mis_em = dr.select(ds.delta, 1.0, mis_weight(ds.pdf, pdf))
+        result[active_em] = dr.fma(throughput, value * em_weight * mis_em, result)
+        ray = si.spawn_ray(si.to_world(bs.wo))
+        if dr.grad_enabled(ray):
+            raise NotImplementedError("mfnormal_path renders primal images only: use 'prb' for "
+                                      "derivatives ('mfnormal_prb' for the random-walk models)")
+        throughput = throughput * weight
+        eta = eta * bs.eta
+        valid_ray |= active & si.is_valid() & ~mi.has_flag(bs.sampled_type, mi.BSDFFlags.Null)
+        prev_si = mi.Interaction3f(si)
+        prev_pdf = bs.pdf
+        prev_delta = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
+        depth[si.is_valid()] += 1
+        throughput_max = dr.max(mi.unpolarized_spectrum(throughput))
+        rr_prob = dr.minimum(throughput_max * (eta * eta), RR_PROB_MAX)
+        rr_active = depth >= self.rr_depth
+        rr_continue = sampler.next_1d() < rr_prob
+        throughput[rr_active] *= dr.rcp(dr.detach(rr_prob))
+        active = active_next & (~rr_active | rr_continue) & (throughput_max != 0.0)
+        pi = scene.ray_intersect_preliminary(ray, False, dr.flag(dr.JitFlag.SymbolicLoops), 0, 0, active)
+        return (ray, pi, throughput, result, eta, depth, valid_ray, prev_si, prev_pdf, prev_delta, active,
+                sampler)
+
+    def _emission(self, scene, si, prev_si, prev_pdf, prev_delta, throughput, result):
+        """``result`` plus the emission of the surface or environment the ray hit, MIS-weighted
+        against the emitter sample of the previous vertex."""
+        ds = mi.DirectionSample3f(scene, si, prev_si)
+        em_pdf = scene.pdf_emitter_direction(prev_si, ds, ~prev_delta)
+        mis_bsdf = mis_weight(prev_pdf, em_pdf)
+        return dr.fma(throughput, ds.emitter.eval(si, prev_pdf > 0.0) * mis_bsdf, result)
+
+    def aov_names(self):
+        return []
+
+    def to_string(self):
+        return f"MfnormalPath[max_depth={self.max_depth}, rr_depth={self.rr_depth}]"
+
+
+def integrator_class() -> type:
+    """``MfnormalPath`` as a subclass of the active variant's ``mi.SamplingIntegrator``."""
+    return variant_subclass(MfnormalPath, mi.SamplingIntegrator)
