@@ -112,8 +112,9 @@ def _package_version() -> str:
     except importlib.metadata.PackageNotFoundError:
         version = "unknown"
     digest = hashlib.sha256()
-    for path in sorted(Path(__file__).parent.glob("*.py")):
-        digest.update(path.name.encode() + b"\0" + path.read_bytes())
+    package = Path(__file__).resolve().parents[1]
+    for path in sorted(package.rglob("*.py")):
+        digest.update(path.relative_to(package).as_posix().encode() + b"\0" + path.read_bytes())
     return f"{version}+{digest.hexdigest()[:10]}"
 
 

@@ -39,7 +39,7 @@ __all__ = ["BUNDLED", "Bundled", "DEMO_XML", "MODEL_XML", "EGGCRATE_XML", "encod
            "model_parameters", "make_eggcrate_normalmap", "generate_eggcrate_assets",
            "file_parameters", "map_and_sky_parameters"]
 
-SCENES = Path(__file__).resolve().parent / "scenes"
+SCENES = Path(__file__).resolve().parent
 #: Scene (a): the demo (single source of truth).
 DEMO_XML = SCENES / "demo.xml"
 #: Scene (b): the model scene.
