@@ -590,14 +590,14 @@ def walk_lengths(bsdf, mode: str, queries):
     """Facet bounces per lane of the model's walk (the walk loops' own counter), or None for
     a model without a walk. Each lane walks as in ``bsdf.sample`` / ``bsdf.eval``."""
     from mfnormal.models import walk
-    if getattr(bsdf, "walk_params", None) is None:
+    if not hasattr(bsdf.model, "params"):
         return None
     si, wo, s1, s2 = queries
     sp = bsdf.shading_point(mi.BSDFContext(), si)
     if mode == "sample":
-        w = walk.sample_walk(sp, bsdf.walk_params, s1, s2, mi.Bool(True))
+        w = walk.sample_walk(sp, bsdf.model.params, s1, s2, mi.Bool(True))
     else:
-        w = walk.eval_walk(sp, bsdf.walk_params, wo, wo.z > 0)[1]
+        w = walk.eval_walk(sp, bsdf.model.params, wo, wo.z > 0)[1]
     dr.eval(w.depth)
     return np.array(w.depth, dtype=np.float64)
 

@@ -85,16 +85,16 @@ def test_map_slopes_are_measured_from_the_decoded_map():
     tilt θ toward azimuth φ has σ1 = tanθ along φ and σ2 = 0; the strength scales the slopes;
     a ribbed map (slopes ±a along x only) is rough along x and smooth along y; flat: 0."""
     for tilt, phi in ((10.0, 0.0), (40.0, 1.0), (70.0, 2.5)):
-        s1, s2, axis = make_bsdf(WHITE, encode(sph(tilt, phi)[None])).faithful.slopes
+        s1, s2, axis = make_bsdf(WHITE, encode(sph(tilt, phi)[None])).model.core.slopes
         assert s1 == pytest.approx(math.tan(math.radians(tilt)), rel=2e-4) and s2 < 1e-3
         assert abs(math.sin(axis - phi)) < 1e-3
-    s1, _, _ = make_bsdf(WHITE, encode(sph(40.0)[None]), strength=0.5).faithful.slopes
+    s1, _, _ = make_bsdf(WHITE, encode(sph(40.0)[None]), strength=0.5).model.core.slopes
     # strength scales x, y of the decoded 2·rgb − 1 before normalising: the slope halves.
     assert s1 == pytest.approx(0.5 * math.tan(math.radians(40)), rel=2e-3)
     ribs = encode(np.stack([sph(30.0, 0.0), sph(30.0, math.pi)]))
-    s1, s2, axis = make_bsdf(WHITE, ribs).faithful.slopes
+    s1, s2, axis = make_bsdf(WHITE, ribs).model.core.slopes
     assert s1 == pytest.approx(math.tan(math.radians(30)), rel=2e-3) and s2 < 1e-3 and abs(math.sin(axis)) < 1e-3
-    assert make_bsdf(WHITE, encode(sph(0.0)[None])).faithful.slopes[:2] == (0.0, 0.0)
+    assert make_bsdf(WHITE, encode(sph(0.0)[None])).model.core.slopes[:2] == (0.0, 0.0)
 
 
 def test_strength_change_rebuilds_the_masking():
@@ -102,7 +102,7 @@ def test_strength_change_rebuilds_the_masking():
     params = mi.traverse(b)
     params["strength"] = 0.0
     params.update()
-    assert b.faithful.slopes[:2] == (0.0, 0.0)
+    assert b.model.core.slopes[:2] == (0.0, 0.0)
 
 
 # -- A few steep texels (docs/faithful.md §5) ------------------------------------------------------
@@ -138,19 +138,17 @@ def test_ordinary_maps_keep_their_plain_rms_slopes():
                 assert faithful.principal_slopes(n)[:2] == pytest.approx(_plain_slopes(n), rel=1e-12)
 
 
-def test_one_texel_at_the_clamp_does_not_make_the_map_rough(monkeypatch):
+def test_one_texel_at_the_clamp_does_not_make_the_map_rough():
     """One texel at the 88.85° clamp (slope ≈ 50) among 16²: the plain rms σ1 grows 15×; with the
     cap that texel's squared slope counts WINSOR_FLOOR² (its cap here), so σ1² + σ2² is the clean
     map's plus (WINSOR_FLOOR² − the replaced texel's squared slope)/256, and σ1 grows ≤ 20 %."""
     clean = _bumps_row()
     steep = clean.copy()
     steep[OUTLIER] = CLAMPED / np.linalg.norm(CLAMPED)
-    s_clean = make_bsdf(WHITE, encode(clean)).faithful.slopes
-    s_steep = make_bsdf(WHITE, encode(steep)).faithful.slopes
-    with monkeypatch.context() as m:              # the plain rms: no cap
-        m.setattr(faithful, "WINSOR_C", math.inf)
-        m.setattr(faithful, "WINSOR_FLOOR", math.inf)
-        assert make_bsdf(WHITE, encode(steep)).faithful.slopes[0] > 10 * s_clean[0]
+    s_clean = make_bsdf(WHITE, encode(clean)).model.core.slopes
+    s_steep = make_bsdf(WHITE, encode(steep)).model.core.slopes
+    # The plain rms (no cap) of the same normals.
+    assert faithful.principal_slopes(steep, winsor=(math.inf, math.inf))[0] > 10 * s_clean[0]
     old = -clean[OUTLIER, :2] / clean[OUTLIER, 2]
     expected = s_clean[0] ** 2 + s_clean[1] ** 2 + (faithful.WINSOR_FLOOR ** 2 - old @ old) / 256
     assert s_steep[0] ** 2 + s_steep[1] ** 2 == pytest.approx(expected, rel=1e-4)
@@ -422,10 +420,10 @@ def test_packet_skipping_gives_the_same_values(nested):
     bsdf = make_bsdf(NESTED[nested], texels)
     si = make_si(wi, groups, texel_index=np.repeat(np.arange(groups), width))
     sp = bsdf.shading_point(mi.BSDFContext(), si)
-    tx = bsdf.faithful.texel(sp, sp.wi)
+    tx = bsdf.model.core.texel(sp, sp.wi)
     active = mi.Bool(True)
-    straight = bsdf.faithful.eval_pdf(sp, tx, wo, active, gated=False)
-    gated = bsdf.faithful.eval_pdf(sp, tx, wo, active, gated=True)
+    straight = bsdf.model.core.eval_pdf(sp, tx, wo, active, gated=False)
+    gated = bsdf.model.core.eval_pdf(sp, tx, wo, active, gated=True)
     for a, b in zip(straight, gated):
         np.testing.assert_array_equal(np.array(a), np.array(b))
     share, vis = np1(tx.retro_share()).reshape(groups, width), np1(tx.vis).reshape(groups, width)
@@ -433,40 +431,39 @@ def test_packet_skipping_gives_the_same_values(nested):
         assert 0.05 < runs.mean() < 0.95, runs.mean()
 
 
-def test_queries_skip_terms_per_packet_unless_something_carries_derivatives(monkeypatch):
+def test_queries_skip_terms_per_packet_unless_something_carries_derivatives():
     """The plugin's eval, pdf, eval_pdf and sample gate their terms per SIMD packet (faithful._gated
     with gated=True: the light sample's eval too, 4-5 % of the built-in's render time at 1280×720)
-    where nothing carries derivatives, and run them straight where the map does (a symbolic branch
-    there breaks Mitsuba's C++ path under AD: docs/faithful.md §5)."""
-    calls = []
-    real = faithful._gated
-
-    def spy(cond, fn, otherwise, gated=True):
-        calls.append(bool(gated))
-        return real(cond, fn, otherwise, gated)
-    monkeypatch.setattr(faithful, "_gated", spy)
+    where nothing carries derivatives, and run them straight where the map or a direction does (a
+    symbolic branch there breaks Mitsuba's C++ path under AD: docs/faithful.md §5). Read from the
+    model's decision (``Model._gates``) at the plugin's shading points for each query's
+    directions: ω_i and ω_o (eval, pdf, eval_pdf), ω_i alone (sample)."""
     rng = np.random.default_rng(5)
     texels = encode(sph(rng.uniform(0, 40, 64), rng.uniform(0, 2 * np.pi, 64)))
     bsdf = make_bsdf(NESTED["roughplastic"], texels)
     si = make_si(random_hemisphere(rng, 64, z_min=0.1), 64)
     wo = vec3(random_hemisphere(rng, 64, z_min=0.1))
     ctx = mi.BSDFContext()
-    queries = (lambda: bsdf.eval(ctx, si, wo), lambda: bsdf.pdf(ctx, si, wo), lambda: bsdf.eval_pdf(ctx, si, wo),
-               lambda: bsdf.sample(ctx, si, mi.Float(0.3), mi.Point2f(0.6, 0.2)))
-    for query in queries:
-        calls.clear()
-        dr.eval(query())
-        assert calls and all(calls), calls
+
+    def gates(wo):
+        sp = bsdf.shading_point(ctx, si)
+        core = bsdf.model.core
+        tx = core.texel(sp, sp.wi)
+        return [core._gates(sp, tx, wo), core._gates(sp, tx)]
+
+    assert gates(wo) == [True, True]
     if not dr.is_diff_v(mi.Float):
         return
     params = mi.traverse(bsdf)
     key = next(k for k in params.keys() if k.endswith("normalmap.data"))
     dr.enable_grad(params[key])
     params.update()
-    for query in queries:
-        calls.clear()
-        query()
-        assert calls and not any(calls), calls
+    assert gates(wo) == [False, False]
+    dr.disable_grad(params[key])
+    params.update()
+    wo_attached = vec3(random_hemisphere(rng, 64, z_min=0.1))
+    dr.enable_grad(wo_attached)                     # a moving emitter: ω_o carries derivatives
+    assert gates(wo_attached) == [False, True]
 
 
 def test_smith_lambda_matches_its_closed_form():
@@ -565,18 +562,20 @@ DARK_PLASTIC = {"type": "roughplastic", "distribution": "ggx", "alpha": 0.1,
                 "diffuse_reflectance": {"type": "rgb", "value": [0.2, 0.22, 0.26]}}
 
 
-def _sky_weighted_moments(texels, wi, per_texel, seed):
+def _sky_weighted_moments(texels, wi, per_texel, seed, fill_share=None):
     """Per texel: the mean of the sample weight (channel mean) times a sky that is brightest at
     the horizon, L(ω) = (1 − 0.7 ω_z)² (as the benchmark's), and its relative variance."""
     k = texels.shape[0]
     bsdf = make_bsdf(DARK_PLASTIC, texels)
+    if fill_share is not None:
+        bsdf.model.core.fill_share = fill_share    # the model's parameter (default FILL_SHARE_MIN/MAX)
     si = make_si(np.repeat(wi, per_texel, 0), k, texel_index=np.repeat(np.arange(k), per_texel))
     bs, w = sample_all(bsdf, si, np.random.default_rng(seed))
     y = (np3(w).mean(1) * (1.0 - 0.7 * np1(bs.wo.z)) ** 2).reshape(k, per_texel)
     return y.mean(1), y.var(1) / np.maximum(y.mean(1), 1e-9) ** 2
 
 
-def test_fill_gets_the_blocked_samples_by_its_albedo(monkeypatch):
+def test_fill_gets_the_blocked_samples_by_its_albedo():
     """The sampler gives the diffuse fill ρ_fill of the blocked light's samples (clipped to
     [FILL_SHARE_MIN, FILL_SHARE_MAX]) instead of a fixed half: for a dark roughplastic (diffuse
     0.2, the benchmark plane's) the fill carries ~4 % of the blocked light, and the samples it
@@ -590,9 +589,7 @@ def test_fill_gets_the_blocked_samples_by_its_albedo(monkeypatch):
     texels = encode(sph(rng.uniform(20, 65, k), rng.uniform(0, 2 * np.pi, k)))
     wi = sph(rng.uniform(60, 86, k), np.zeros(k))
     mean_new, var_new = _sky_weighted_moments(texels, wi, n, seed=5)
-    monkeypatch.setattr(faithful, "FILL_SHARE_MIN", 0.5)
-    monkeypatch.setattr(faithful, "FILL_SHARE_MAX", 0.5)
-    mean_old, var_old = _sky_weighted_moments(texels, wi, n, seed=5)
+    mean_old, var_old = _sky_weighted_moments(texels, wi, n, seed=5, fill_share=(0.5, 0.5))
     se = np.sqrt((var_new * mean_new ** 2 + var_old * mean_old ** 2) / n)
     assert np.all(np.abs(mean_new - mean_old) <= 4.5 * se + 1e-7), np.abs(mean_new - mean_old) / se
     assert var_new.mean() <= 0.95 * var_old.mean(), (var_new.mean(), var_old.mean())

@@ -228,7 +228,7 @@ def test_height_map_and_normal_map_of_the_same_heights_agree_within_the_derivati
         d, e_h = angle(wh, wn).mean(), angle(wh, exact).mean()
         assert d <= 1.1 * e_h + angle(wn, exact).mean(), (res, d, e_h)
         diffs.append(d)
-        s_h, s_n = np.array(hb.faithful.slopes[:2]), np.array(nb.faithful.slopes[:2])
+        s_h, s_n = np.array(hb.model.core.slopes[:2]), np.array(nb.model.core.slopes[:2])
         assert np.all(np.abs(s_h - s_n) <= slope_tol * s_n), (res, s_h, s_n)
         vh, vn = np3(hb.eval(mi.BSDFContext(), si, wo)), np3(nb.eval(mi.BSDFContext(), si, wo))
         evals.append(np.abs(vh - vn).mean() / vn.mean())
@@ -572,14 +572,14 @@ def test_traverse_exposes_the_height_map_and_updates_rebuild_the_slopes():
     b = plugin(WHITE, heightmap=texture(heights(sigma=0.05)))
     params = mi.traverse(b)
     assert "heightmap.data" in params.keys() and "normalmap.data" not in params.keys()
-    s0 = b.faithful.slopes[0]
+    s0 = b.model.core.slopes[0]
     assert s0 > 0.3
     params["strength"] = 0.5
     params.update()
-    assert b.faithful.slopes[0] == pytest.approx(0.5 * s0, rel=0.02)
+    assert b.model.core.slopes[0] == pytest.approx(0.5 * s0, rel=0.02)
     params["heightmap.data"] = dr.zeros(type(params["heightmap.data"]), params["heightmap.data"].shape)
     params.update()
-    assert b.faithful.slopes[:2] == (0.0, 0.0)
+    assert b.model.core.slopes[:2] == (0.0, 0.0)
 
 
 def test_geometric_macro_normal_on_a_flat_mesh_is_the_shading_frame():
@@ -608,7 +608,7 @@ def test_facet_normal_turned_into_the_triangles_frame_is_clamped_above_its_horiz
     below it; worst cases included (ω_p on the clamp, si.n on the horizon leaning the other way),
     where the turned ω_p is still ≥ 1.1° from straight down (sin²θ ≥ 4e-4, the premise of
     to_upper_hemisphere having no straight-down case). Tolerance 2e-6 (float32)."""
-    from mfnormal.normals import sources as normals
+    from mfnormal.normals import macro as normals
     from mfnormal.models.microsurface import COS_P_MIN
     rng = np.random.default_rng(41)
     k = 20_000

@@ -1,4 +1,4 @@
-"""The normal map's uv transform as a kernel input (``plugin._hoist_uv_transform``, ``map_rgb``).
+"""The normal map's uv transform as a kernel input (``NormalMap.hoist_uv_transform``, ``map_rgb``).
 
 Mitsuba's bitmap bakes its ``to_uv`` into traced code as constants, so plugins whose maps
 differed only in their transforms traced different code and Dr.Jit compiled the whole model
@@ -53,9 +53,9 @@ def test_map_lookup_is_the_textures_own_bit_for_bit(filter_type):
     """map_rgb (the hoisted transform) against the bitmap's own eval_3 with its to_uv, at uvs over
     three periods: equal bit for bit; the texture's to_uv is left as it was."""
     b = bsdf(TRANSFORM, filter_type)
-    assert b._uv is not None, "a non-identity to_uv is hoisted"
+    assert b.source.uv is not None, "a non-identity to_uv is hoisted"
     si = queries()
-    ref, got = b.normalmap.eval_3(si), b.map_rgb(si)
+    ref, got = b.normalmap.eval_3(si), b.source.map_rgb(si)
     assert np.array_equal(bits(ref), bits(got))
     kept = np.array(mi.traverse(b.normalmap)["to_uv"].matrix)
     fresh = mi.load_dict({"type": "bitmap", "data": texels(), "raw": True, "to_uv": TRANSFORM})
@@ -63,7 +63,7 @@ def test_map_lookup_is_the_textures_own_bit_for_bit(filter_type):
 
 
 def test_identity_transform_is_not_hoisted():
-    assert bsdf(mi.ScalarTransform4f())._uv is None
+    assert bsdf(mi.ScalarTransform4f()).source.uv is None
 
 
 def test_a_new_to_uv_from_traverse_takes_effect():
@@ -71,11 +71,11 @@ def test_a_new_to_uv_from_traverse_takes_effect():
     transform (the texture's own eval_3 with it, bit for bit) and differ from the old ones."""
     b = bsdf(TRANSFORM)
     si = queries()
-    before = np.array(b.map_rgb(si))
+    before = np.array(b.source.map_rgb(si))
     params = mi.traverse(b)
     params["normalmap.to_uv"] = mi.ScalarAffineTransform3f(mi.ScalarMatrix3f(np.diag([3.0, 2.0, 1.0])))
     params.update()
-    after = b.map_rgb(si)
+    after = b.source.map_rgb(si)
     assert np.array_equal(bits(after), bits(b.normalmap.eval_3(si)))
     assert not np.array_equal(bits(after), bits(before))
 
@@ -88,7 +88,7 @@ def test_a_to_uv_set_on_the_texture_alone_is_honoured_and_kept():
     params = mi.traverse(b.normalmap)
     params["to_uv"] = mi.ScalarAffineTransform3f(mi.ScalarMatrix3f(np.diag([3.0, 2.0, 1.0])))
     params.update()
-    got = b.map_rgb(si)
+    got = b.source.map_rgb(si)
     assert np.array_equal(np.array(mi.traverse(b.normalmap)["to_uv"].matrix), np.diag([3.0, 2.0, 1.0]))
     assert np.array_equal(bits(got), bits(b.normalmap.eval_3(si)))
 

@@ -315,11 +315,11 @@ def test_walk_loops_count_their_bounces(model, tangent_facet):
         bsdf = make_bsdf(WHITE, texels, model, tangent_facet, max_bounces=3, rr_depth=0)
         si = make_si(sph(0.0)[None].repeat(n, 0) if texel else wi, 2, texel, np.arange(n))
         sp = bsdf.shading_point(mi.BSDFContext(), si)
-        w = walk.sample_walk(sp, bsdf.walk_params, mi.Float(u[:, 0]), mi.Point2f(u[:, 1], u[:, 2]), True)
+        w = walk.sample_walk(sp, bsdf.model.params, mi.Float(u[:, 0]), mi.Point2f(u[:, 1], u[:, 2]), True)
         depth, escaped = np1(w.depth), np.array(w.escaped)
         if texel == 0:
             assert np.all(depth == 1) and np.all(escaped)
-            assert np.all(np1(walk.eval_walk(sp, bsdf.walk_params, vec3(wo), True)[1].depth) == 1)
+            assert np.all(np1(walk.eval_walk(sp, bsdf.model.params, vec3(wo), True)[1].depth) == 1)
         else:
             dropped = ~escaped
             assert depth.max() == 3 and dropped.mean() > 0.01, (depth.max(), dropped.mean())

@@ -138,7 +138,7 @@ def test_a_max_bounces_update_caps_the_walk():
 
     def longest():
         sp = bsdf.shading_point(mi.BSDFContext(), si)
-        w = walk.sample_walk(sp, bsdf.walk_params, mi.Float(u[:, 0]), mi.Point2f(u[:, 1], u[:, 2]), True)
+        w = walk.sample_walk(sp, bsdf.model.params, mi.Float(u[:, 0]), mi.Point2f(u[:, 1], u[:, 2]), True)
         return int(np.array(w.depth).max())
 
     assert longest() > 8

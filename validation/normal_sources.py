@@ -234,7 +234,7 @@ def height_vs_normal(resolutions=(24, 48, 96), n=1 << 17, seed=22):
         out[str(res)] = {"angle_height_vs_normal_deg": angle(wh, wn), "angle_height_vs_exact_deg": angle(wh, exact),
                          "angle_normal_vs_exact_deg": angle(wn, exact),
                          "eval_rel_diff": float(np.abs(vh - vn).mean() / vn.mean()),
-                         "slopes_height": list(hb.faithful.slopes[:2]), "slopes_normal": list(nb.faithful.slopes[:2])}
+                         "slopes_height": list(hb.model.core.slopes[:2]), "slopes_normal": list(nb.model.core.slopes[:2])}
         r = out[str(res)]
         log(f"  {res:4d}² texels: height vs normal map {r['angle_height_vs_normal_deg']:.3f}°, vs exact "
             f"{r['angle_height_vs_exact_deg']:.3f}° / {r['angle_normal_vs_exact_deg']:.3f}°, eval rel diff "

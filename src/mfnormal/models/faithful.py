@@ -106,12 +106,13 @@ WINSOR_C = 5.0
 WINSOR_FLOOR = math.sqrt(3.0)
 
 
-def slope_cap2(s2: np.ndarray):
+def slope_cap2(s2: np.ndarray, winsor=(WINSOR_C, WINSOR_FLOOR)):
     """The squared cap t² of the squared slope magnitudes ``s2`` (float64): None where no texel
     exceeds WINSOR_C × their rms (nothing capped), else the largest t² ≥ WINSOR_FLOOR² with
     t² = WINSOR_C² · mean(min(s2, t²)) (a texel at the clamp among 16² cannot make the whole map rough).
-    Iterated from the plain rms: t² falls and the capped set grows, so at most len(s2) steps."""
-    n, c2, floor2 = len(s2), WINSOR_C * WINSOR_C, WINSOR_FLOOR * WINSOR_FLOOR
+    Iterated from the plain rms: t² falls and the capped set grows, so at most len(s2) steps.
+    ``winsor``: (WINSOR_C, WINSOR_FLOOR); (inf, inf) caps nothing."""
+    n, c2, floor2 = len(s2), winsor[0] * winsor[0], winsor[1] * winsor[1]
     t2 = max(c2 * float(np.mean(s2)), floor2)
     if not float(np.max(s2, initial=0.0)) > t2:
         return None
@@ -172,15 +173,16 @@ def attached_slopes(wp, strength=None):
     return s1, s2, phi
 
 
-def principal_slopes(normals: np.ndarray):
+def principal_slopes(normals: np.ndarray, winsor=(WINSOR_C, WINSOR_FLOOR)):
     """(σ1, σ2, φ_e): the principal rms slopes of unit normals (N×3) about the macro normal
     (σ1 ≥ σ2) and the angle of σ1's axis from the tangent frame's x axis. Slopes over the cap of
-    :func:`slope_cap2` (a few texels far steeper than the rest) are scaled onto it first."""
+    :func:`slope_cap2` (a few texels far steeper than the rest, ``winsor`` its parameters) are
+    scaled onto it first."""
     n = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
     z = np.maximum(n[:, 2], 1e-3)
     sx, sy = -n[:, 0] / z, -n[:, 1] / z
     s2 = sx * sx + sy * sy
-    t2 = slope_cap2(s2)
+    t2 = slope_cap2(s2, winsor)
     if t2 is not None:
         scale = np.where(s2 > t2, np.sqrt(t2 / np.where(s2 > t2, s2, 1.0)), 1.0)
         sx, sy = sx * scale, sy * scale
@@ -432,8 +434,9 @@ FILL_SHARE_MIN, FILL_SHARE_MAX = 0.05, 0.5
 class Model:
     """The faithful model for one plugin instance: its lobes, the map's σ and the Lambertian table."""
 
-    def __init__(self, nested, slopes, cos_min: float):
+    def __init__(self, nested, slopes, cos_min: float, fill_share=(FILL_SHARE_MIN, FILL_SHARE_MAX)):
         self.lobes = Lobes(nested)
+        self.fill_share = fill_share
         self.cos_min = cos_min
         self.set_slopes(slopes)
 
@@ -520,9 +523,9 @@ class Model:
         if self.lobes.diffuse and self.lobes.glossy:
             # The blocked light's samples, split between the fill and the texel's nested sample
             # (bounced when blocked) by the fill's share of it, ρ_fill (mean over the channels),
-            # within [FILL_SHARE_MIN, FILL_SHARE_MAX].
+            # within self.fill_share, [FILL_SHARE_MIN, FILL_SHARE_MAX] by default.
             rho = self._fill_rho(tx.sp, tx)
-            share = dr.clip(dr.mean(rho * dr.minimum(rho, 1.0)), FILL_SHARE_MIN, FILL_SHARE_MAX)
+            share = dr.clip(dr.mean(rho * dr.minimum(rho, 1.0)), *self.fill_share)
             p_fill = tx.vis * tx.blocked * share
         elif self.lobes.diffuse:
             p_fill = tx.vis * tx.blocked

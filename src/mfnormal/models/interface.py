@@ -1,0 +1,199 @@
+"""The models behind one interface.
+
+Each model turns a :class:`~mfnormal.models.shading.ShadingPoint` (the two-facet microsurface
+at a hit, directions in its base frame) into a BSDF. The plugin calls every model the same way,
+without asking which it is:
+
+- ``eval_pdf(ctx, sp, wo, active, want_value, want_pdf)``: f·⟨ω_o, ω_g⟩ and the pdf (what is not
+  wanted is 0); in ``TransportMode.Importance`` the model's adjoint;
+- ``sample(ctx, sp, sample1, sample2, active)``: (BSDFSample3f, weight);
+- ``fuses(sp)`` and ``eval_pdf_sample(ctx, sp, wo, sample1, sample2, active)``: the fused call,
+  where the model has one that is cheaper than ``eval_pdf`` then ``sample``;
+- ``deterministic``: ``eval`` is exact and a sample's weight is eval/pdf (the plugin then takes
+  a flat normal's derivatives of the weight from ``eval``), else both are estimates;
+- ``traverse``, ``parameters_changed`` (the model's own parameters) and ``map_changed(source)``
+  (the normal source changed: the faithful model re-measures the map's slopes).
+
+The models: :class:`Faithful` (the default, :mod:`mfnormal.models.faithful`), :class:`Analytic`
+(the paper's, :mod:`mfnormal.models.analytic`) and :class:`Walk` (the separable and
+non-separable random walks, :mod:`mfnormal.models.walk`). :func:`make` builds one from the
+plugin's parameters.
+"""
+
+from __future__ import annotations
+
+import drjit as dr
+import mitsuba as mi
+
+from mfnormal.models import analytic, faithful, walk
+from mfnormal.models.microsurface import COS_P_MIN
+
+MODELS = ("faithful", "analytic", "separable", "nonseparable")
+DEFAULT_MODEL = "faithful"
+TANGENT_FACETS = ("specular", "same")
+INT32_MAX = 2 ** 31 - 1          # walk counters are 32-bit
+WALK_KEYS = ("max_bounces", "rr_depth", "mis_boost_max")
+
+
+def _fail(msg: str):
+    raise ValueError(f"normalmap_microfacet: {msg}")
+
+
+def checked_walk_values(max_bounces, rr_depth, mis_boost_max) -> tuple:
+    """(max_bounces, rr_depth, mis_boost_max) as int, int, float, each in its range (else ValueError)."""
+    max_bounces, rr_depth, mis_boost_max = int(max_bounces), int(rr_depth), float(mis_boost_max)
+    if not (1 <= max_bounces <= INT32_MAX):
+        _fail(f"max_bounces must be between 1 and {INT32_MAX}, got {max_bounces}")
+    if not (0 <= rr_depth <= INT32_MAX):
+        _fail(f"rr_depth must be between 0 (0 turns Russian roulette off) and {INT32_MAX}, got {rr_depth}")
+    if not (1.0 <= mis_boost_max < float("inf")):
+        _fail(f"mis_boost_max must be a finite number >= 1 (1 turns the boost off), got {mis_boost_max}")
+    return max_bounces, rr_depth, mis_boost_max
+
+
+def _scalar(x):
+    """The value of a width-1 Dr.Jit array (or a Python number) as a Python number."""
+    return dr.slice(x, 0) if dr.is_array_v(x) else x
+
+
+class _Deterministic:
+    """What the two deterministic models share: no fused call, no parameters of their own."""
+
+    deterministic = True
+    stochastic_eval = False
+
+    def fuses(self, sp) -> bool:
+        return False
+
+    def traverse(self, callback):
+        pass
+
+    def parameters_changed(self, keys):
+        pass
+
+    def map_changed(self, source):
+        pass
+
+
+class Analytic(_Deterministic):
+    """The paper's analytic model: paths of up to two facet bounces, a mirror tangent facet;
+    reciprocal, so its adjoint is itself."""
+
+    name = "analytic"
+
+    def eval_pdf(self, ctx, sp, wo, active, want_value=True, want_pdf=True):
+        return analytic.eval_pdf(sp, wo, active, want_value, want_pdf)
+
+    def sample(self, ctx, sp, sample1, sample2, active):
+        return analytic.sample(sp, sample1, sample2, mi.Bool(active))
+
+
+class Faithful(_Deterministic):
+    """The default model (docs/faithful.md); not reciprocal, so light tracing
+    (``TransportMode.Importance``) gets its adjoint. ``core`` holds the map's slopes and tables."""
+
+    name = "faithful"
+
+    def __init__(self, nested, source):
+        self.core = faithful.Model(nested, source.slopes()[0], COS_P_MIN)
+
+    def map_changed(self, source):
+        self.core.set_slopes(*source.slopes(attached=True))
+
+    def _texel(self, sp, wi=None):
+        return self.core.texel(sp, sp.wi if wi is None else wi)
+
+    def eval_pdf(self, ctx, sp, wo, active, want_value=True, want_pdf=True):
+        if ctx.mode == mi.TransportMode.Importance:
+            return self.core.eval_pdf_adjoint(sp, self._texel(sp), self._texel(sp, wo), active,
+                                              lambda b: self._texel(sp, b), want_value, want_pdf)
+        return self.core.eval_pdf(sp, self._texel(sp), wo, active, want_value, want_pdf)
+
+    def sample(self, ctx, sp, sample1, sample2, active):
+        if ctx.mode == mi.TransportMode.Importance:
+            return self.core.sample_adjoint(sp, self._texel(sp), sample1, sample2, mi.Bool(active),
+                                            lambda b: self._texel(sp, b))
+        return self.core.sample(sp, self._texel(sp), sample1, sample2, mi.Bool(active))
+
+
+class Walk:
+    """The random walks (``separable``, ``nonseparable``) over the microsurface: a stochastic
+    ``eval`` (unbiased, deterministic per query), the walk's exit as the sample, a deterministic
+    MIS ``pdf``, and one walk for ``eval_pdf_sample``. ``max_bounces``, ``rr_depth`` and
+    ``mis_boost_max`` are kernel inputs: a new value (``mi.traverse``) compiles nothing."""
+
+    deterministic = False
+    stochastic_eval = True
+
+    def __init__(self, name, tangent_facet, values):
+        self.name, self.tangent_facet = name, tangent_facet
+        self.max_bounces, self.rr_depth = mi.Int32(values[0]), mi.Int32(values[1])
+        self.mis_boost_max = mi.Float(values[2])
+        self.ok = values
+        dr.make_opaque(self.max_bounces, self.rr_depth, self.mis_boost_max)
+
+    @property
+    def params(self):
+        """The walk's :class:`walk.WalkParams`; its values are this model's opaque arrays (cast to
+        the walk counter's type), read when a kernel is traced."""
+        return walk.WalkParams(separable=self.name == "separable",
+                               specular_tangent=self.tangent_facet == "specular",
+                               max_bounces=mi.UInt32(self.max_bounces), rr_depth=mi.UInt32(self.rr_depth),
+                               mis_boost_max=self.mis_boost_max)
+
+    def traverse(self, callback):
+        for key in WALK_KEYS:
+            callback.put(key, getattr(self, key), mi.ParamFlags.NonDifferentiable)
+
+    def parameters_changed(self, keys):
+        """Check the walk parameters after a ``mi.traverse`` update: out of range, the update is refused
+        (ValueError, the values before it kept), else they stay kernel inputs (opaque)."""
+        if not any(k in WALK_KEYS for k in keys):
+            return
+        try:
+            self.ok = checked_walk_values(*(_scalar(getattr(self, k)) for k in WALK_KEYS))
+        finally:
+            for key, value in zip(WALK_KEYS, self.ok):
+                mi.set_property(getattr(self, key), type(getattr(self, key))(value))
+                dr.make_opaque(getattr(self, key))
+
+    def map_changed(self, source):
+        pass
+
+    def eval_pdf(self, ctx, sp, wo, active, want_value=True, want_pdf=True):
+        params = self.params
+        return (walk.eval(sp, params, wo, active) if want_value else mi.Spectrum(0.0),
+                walk.mis_pdf(sp, params, wo, active) if want_pdf else mi.Float(0.0))
+
+    def sample(self, ctx, sp, sample1, sample2, active):
+        return walk.sample(sp, self.params, sample1, sample2, mi.Bool(active))
+
+    def fuses(self, sp) -> bool:
+        """One walk serves both (walk.eval_sample), except where derivatives are taken."""
+        return not ((sp.attached and dr.is_diff_v(mi.Float)) or walk.replays(sp))
+
+    def eval_pdf_sample(self, ctx, sp, wo, sample1, sample2, active):
+        """(value, pdf, (bs, weight)): ``sample``'s walk with ``eval``'s NEE toward ``wo``."""
+        params = self.params
+        value, sampled = walk.eval_sample(sp, params, wo, sample1, sample2, active)
+        return value, walk.mis_pdf(sp, params, wo, active), sampled
+
+
+def make(name, tangent_facet, nested, source, walk_values):
+    """The model called ``name`` (``MODELS``) with its parameters, checked."""
+    if name not in MODELS:
+        _fail(f"unknown model '{name}'; choose one of {', '.join(MODELS)}")
+    if tangent_facet not in TANGENT_FACETS:
+        _fail(f"unknown tangent_facet '{tangent_facet}'; use 'specular' or 'same'")
+    if name in ("analytic", "faithful") and tangent_facet != "specular":
+        _fail(f"tangent_facet 'same' needs model='separable' or 'nonseparable'; the {name} "
+              "model has no tangent facet of the nested material")
+    values = checked_walk_values(*walk_values)
+    if name == "faithful":
+        model = Faithful(nested, source)
+    elif name == "analytic":
+        model = Analytic()
+    else:
+        return Walk(name, tangent_facet, values)
+    model.tangent_facet, model.ok = tangent_facet, values    # the walk values, checked and shown
+    return model
