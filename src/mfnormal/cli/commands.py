@@ -311,10 +311,35 @@ def _width(text: str) -> int:
     return v
 
 
-def cmd_compare(args) -> int:
-    """Render SCENE(s) with every normal-mapping method; write DIR/report.html."""
+def _compare_settings(args, compare):
+    """The comparison's settings: --quick's or the defaults, with --seed, --spp, --ref-spp, --width."""
     import dataclasses
 
+    settings = compare.QUICK if args.quick else compare.Settings()
+    changes = {"seed": args.seed}
+    if args.spp:
+        changes["spp"] = args.spp
+    if args.ref_spp or args.spp:
+        changes["ref_spp"] = args.ref_spp or 4 * changes.get("spp", settings.spp)
+    if args.width:
+        changes["width"] = args.width
+    return dataclasses.replace(settings, **changes)
+
+
+def _compare_methods(names):
+    """The methods --methods names (comma-separated keys of the catalogue), or all of them."""
+    if not names:
+        return METHODS
+    keys = [k.strip() for k in names.split(",") if k.strip()]
+    unknown = [k for k in keys if k not in METHOD_BY_KEY]
+    if unknown or not keys:
+        raise CLIError(f"unknown method(s) {', '.join(unknown) or repr(names)}; choose from "
+                       f"{', '.join(METHOD_BY_KEY)}")
+    return tuple(METHOD_BY_KEY[k] for k in keys)
+
+
+def cmd_compare(args) -> int:
+    """Render SCENE(s) with every normal-mapping method; write DIR/report.html."""
     limits = parse_limits(args.limit)
     check_seed(args.seed)
     for flag, value in (("--spp", args.spp), ("--ref-spp", args.ref_spp)):
@@ -333,23 +358,7 @@ def cmd_compare(args) -> int:
     from mfnormal.scenes.assets import BUNDLED
     from mfnormal.io.scene_xml import SceneError
 
-    settings = compare.QUICK if args.quick else compare.Settings()
-    changes = {"seed": args.seed}
-    if args.spp:
-        changes["spp"] = args.spp
-    if args.ref_spp or args.spp:
-        changes["ref_spp"] = args.ref_spp or 4 * changes.get("spp", settings.spp)
-    if args.width:
-        changes["width"] = args.width
-    settings = dataclasses.replace(settings, **changes)
-    methods = METHODS
-    if args.methods:
-        keys = [k.strip() for k in args.methods.split(",") if k.strip()]
-        unknown = [k for k in keys if k not in METHOD_BY_KEY]
-        if unknown or not keys:
-            raise CLIError(f"unknown method(s) {', '.join(unknown) or repr(args.methods)}; choose from "
-                           f"{', '.join(METHOD_BY_KEY)}")
-        methods = tuple(METHOD_BY_KEY[k] for k in keys)
+    settings, methods = _compare_settings(args, compare), _compare_methods(args.methods)
     if args.validation and not Path(args.validation).is_dir():
         raise CLIError(f"validation directory not found: {args.validation}")
     for scene in args.scenes:

@@ -33,6 +33,7 @@ eval*(a, b) = eval(b, a)·⟨b, ω_g⟩ / ⟨a, ω_g⟩, so path tracing and lig
 from __future__ import annotations
 
 import functools
+from dataclasses import dataclass
 import math
 
 import drjit as dr
@@ -431,6 +432,21 @@ HORIZON_MU = 0.2
 FILL_SHARE_MIN, FILL_SHARE_MAX = 0.05, 0.5
 
 
+@dataclass
+class _Query:
+    """What :meth:`Model.eval_pdf` hands its bounced terms (:meth:`Model._bounced`)."""
+
+    sp: object
+    tx: object
+    wi: object
+    pre: object
+    s_o: object
+    on_texel: object
+    si_p: object
+    want_value: bool
+    want_pdf: bool
+
+
 class Model:
     """The faithful model for one plugin instance: its lobes, the map's σ and the Lambertian table."""
 
@@ -547,7 +563,6 @@ class Model:
         wi = tx.wi
         active = active & (wi.z > 0) & (wo.z > 0)
         full = mi.BSDFContext(RADIANCE)
-        glossy = mi.BSDFContext(RADIANCE, self.lobes.glossy_mask)
         on_texel = active & (tx.vis > 0)
         value, pdf = mi.Spectrum(0.0), mi.Float(0.0)
 
@@ -565,25 +580,12 @@ class Model:
         # is never seen past the neighbours (S = 0: ω_o is above it here). The retro-reflected
         # pair (share w > 0) and the one below the plane are skipped by packets that need neither.
         pre = tx.preimages(wo)
-
-        def bounced(ks, acc):
-            f_b, p_b = acc
-            for k in ks:
-                d, on_facet, share = pre[k]
-                s_d = s_o if k == 0 else mi.Float(0.0) if k == 1 else tx.seen(d)
-                blocked = on_texel & on_facet & (s_d < 1.0) & (share > 0)
-                if self.lobes.glossy and want_value:
-                    f, _ = _nested(sp, glossy, sp.frame_p, wi, d, blocked, True, False, si_p)
-                    f_b = f_b + f * (share * (1.0 - s_d))
-                if want_pdf:
-                    _, p = _nested(sp, full, sp.frame_p, wi, d, blocked, False, True, si_p)
-                    p_b = p_b + p * (share * (1.0 - s_d))
-            return f_b, p_b
-        acc = bounced((0,), (value_t, pdf_t))
+        q = _Query(sp, tx, wi, pre, s_o, on_texel, si_p, want_value, want_pdf)
+        acc = self._bounced(q, (0,), (value_t, pdf_t))
         # (One branch for the three: each branch's scope repeats the nested BSDF's own ω_i terms,
         # 3 % more kernel operations with two.)
         rare = on_texel & ((pre[1][1] & (pre[1][2] > 0)) | (pre[2][2] > 0))
-        value_t, pdf_t = _gated(rare, lambda: bounced((1, 2, 3), acc), acc, gated)
+        value_t, pdf_t = _gated(rare, lambda: self._bounced(q, (1, 2, 3), acc), acc, gated)
         # The neighbours, where the texel is hidden.
         f_hid, p_hid = _gated(active & (tx.vis < 1.0), lambda: _nested(
             sp, full, macro_frame(), wi, wo, active & (tx.vis < 1.0), want_value, want_pdf),
@@ -597,6 +599,24 @@ class Model:
             pdf = b_tex * pdf_t + b_fill * (wo.z * INV_PI) + b_hid * p_hid
             pdf = dr.select(active & dr.isfinite(pdf), dr.maximum(pdf, 0.0), 0.0)
         return value, pdf
+
+    def _bounced(self, q, ks, acc):
+        """``acc`` plus the light the neighbours block toward the preimages ``ks`` of ω_o
+        (:meth:`Texel.preimages`), bounced toward ω_o: the glossy part in eval, every lobe in the pdf."""
+        f_b, p_b = acc
+        sp, tx, wi = q.sp, q.tx, q.wi
+        full, glossy = mi.BSDFContext(RADIANCE), mi.BSDFContext(RADIANCE, self.lobes.glossy_mask)
+        for k in ks:
+            d, on_facet, share = q.pre[k]
+            s_d = q.s_o if k == 0 else mi.Float(0.0) if k == 1 else tx.seen(d)
+            blocked = q.on_texel & on_facet & (s_d < 1.0) & (share > 0)
+            if self.lobes.glossy and q.want_value:
+                f, _ = _nested(sp, glossy, sp.frame_p, wi, d, blocked, True, False, q.si_p)
+                f_b = f_b + f * (share * (1.0 - s_d))
+            if q.want_pdf:
+                _, p = _nested(sp, full, sp.frame_p, wi, d, blocked, False, True, q.si_p)
+                p_b = p_b + p * (share * (1.0 - s_d))
+        return f_b, p_b
 
     def _draw(self, sp, tx, sample1, sample2, active):
         """One draw of the radiance-mode sampler from ``tx.wi``: the exit direction and its path."""

@@ -567,6 +567,57 @@ def _sample_walk(sp, params, sample1, sample2, active):
     return w, rp
 
 
+def _eval_run(sp, params, wo, u_start, walk_active, active, seed, numbers, rp):
+    """One pass of :func:`eval_walk`'s walk (``rp``: the replay that takes L's derivative, or None):
+    (walker, L, rp, the first vertex's λ_p-weighted light)."""
+    walker, p_start, lp, s1_first = _first_vertex(sp, params, u_start, walk_active, rp is not None)
+    first = None if numbers is None else (s1_first, mi.Point2f(numbers[1]))
+    if not params.specular_tangent:
+        walker.p_in = dr.zeros(mi.Float, dr.width(walker.a))
+    to = NeeTarget.toward(sp, params, wo)
+    b_p = first_interval(sp, params, True)[1]
+
+    def body(w, L, rp, geometry, seed, to, lp, b_p, active, p_start, first):
+        at = sp.with_state(geometry)
+        at_start = w.depth == 0   # the first vertex (before a folded mirror bounce counts)
+        d_in, p_fold = w.d, None
+        if params.specular_tangent:
+            folded = w.walking & negate(w.on_p)
+            d_in, p_fold = mirror_fold(at, w, params, seed, rp)
+        # NEE toward ω_o from this vertex; in the first iteration, the p start's share.
+        a, b = attached_interval(at, w, rp)
+        on = dr.select(at_start, active, w.walking & active)   # (eval: w.walking ⊆ active)
+        nee = (at, params, to, w.on_p | at_start, dr.select(at_start, at.wi, -d_in), dr.select(at_start, 0.0, a),
+               dr.select(at_start, b_p, b), dr.select(at_start, mi.Spectrum(lp), w.e), on, w.p_in)
+        if not params.specular_tangent:
+            c_next, on_next = connect(at, params, w, to, seed, a, b, rp)
+            if rp is None:
+                L += c_next
+            else:
+                rp.add(c_next, on_next)
+        if rp is None:
+            L = add_nee(L, *nee)
+        else:
+            c = add_nee(mi.Spectrum(0.0), *nee)
+            rp.add(c, on)
+            # The start's choice and the mirror's escape came before this NEE, which only
+            # the latter affects (the first NEE is the start's expectation); the
+            # connection from the start facet depends on the choice.
+            rp.factor(p_start, at_start & active, 0.0 if params.specular_tangent else dr.detach(c_next))
+            if p_fold is not None:
+                rp.factor(p_fold, folded, dr.select(at_start, 0.0, dr.detach(c)))
+        s1, s2 = nested_numbers(seed, w.depth)
+        if first is not None:       # the fused walk: the sample walk's first nested sample
+            s1, s2 = dr.select(w.depth == 0, first[0], s1), dr.select(w.depth == 0, first[1], s2)
+        bounce(at, w, params, seed, vertex_frame(at, params, w.on_p), s1, s2, d_in, rp)
+        return w, L, rp, geometry, seed, to, lp, b_p, active, p_start, first
+
+    state = (walker, dr.zeros(mi.Spectrum, dr.width(active)), rp, sp.state(), seed, to, lp, b_p, active,
+             p_start, first)
+    w, L, rp = _loop(state, body, "mfnormal_eval_walk")[:3]
+    return w, L, rp, lp
+
+
 def eval_walk(sp, params, wo, active, numbers=None):
     """Supplemental Algorithms 2 (3 with a mirror t): NEE toward ω_o along a walk from ω_i.
 
@@ -594,62 +645,15 @@ def eval_walk(sp, params, wo, active, numbers=None):
         seed = hash_floats(SALT_WALK_SAMPLE, sample1, sample2.x, sample2.y)
         u_start, walk_active = sample1, mi.Bool(walk_active) & (wi.z > 0)
 
-    def run(sp, rp):
-        walker, p_start, lp, s1_first = _first_vertex(sp, params, u_start, walk_active, rp is not None)
-        first = None if numbers is None else (s1_first, mi.Point2f(numbers[1]))
-        if not params.specular_tangent:
-            walker.p_in = dr.zeros(mi.Float, dr.width(walker.a))
-        to = NeeTarget.toward(sp, params, wo)
-        b_p = first_interval(sp, params, True)[1]
-
-        def body(w, L, rp, geometry, seed, to, lp, b_p, active, p_start, first):
-            at = sp.with_state(geometry)
-            at_start = w.depth == 0   # the first vertex (before a folded mirror bounce counts)
-            d_in, p_fold = w.d, None
-            if params.specular_tangent:
-                folded = w.walking & negate(w.on_p)
-                d_in, p_fold = mirror_fold(at, w, params, seed, rp)
-            # NEE toward ω_o from this vertex; in the first iteration, the p start's share.
-            a, b = attached_interval(at, w, rp)
-            on = dr.select(at_start, active, w.walking & active)   # (eval: w.walking ⊆ active)
-            nee = (at, params, to, w.on_p | at_start, dr.select(at_start, at.wi, -d_in), dr.select(at_start, 0.0, a),
-                   dr.select(at_start, b_p, b), dr.select(at_start, mi.Spectrum(lp), w.e), on, w.p_in)
-            if not params.specular_tangent:
-                c_next, on_next = connect(at, params, w, to, seed, a, b, rp)
-                if rp is None:
-                    L += c_next
-                else:
-                    rp.add(c_next, on_next)
-            if rp is None:
-                L = add_nee(L, *nee)
-            else:
-                c = add_nee(mi.Spectrum(0.0), *nee)
-                rp.add(c, on)
-                # The start's choice and the mirror's escape came before this NEE, which only
-                # the latter affects (the first NEE is the start's expectation); the
-                # connection from the start facet depends on the choice.
-                rp.factor(p_start, at_start & active, 0.0 if params.specular_tangent else dr.detach(c_next))
-                if p_fold is not None:
-                    rp.factor(p_fold, folded, dr.select(at_start, 0.0, dr.detach(c)))
-            s1, s2 = nested_numbers(seed, w.depth)
-            if first is not None:       # the fused walk: the sample walk's first nested sample
-                s1, s2 = dr.select(w.depth == 0, first[0], s1), dr.select(w.depth == 0, first[1], s2)
-            bounce(at, w, params, seed, vertex_frame(at, params, w.on_p), s1, s2, d_in, rp)
-            return w, L, rp, geometry, seed, to, lp, b_p, active, p_start, first
-
-        state = (walker, dr.zeros(mi.Spectrum, dr.width(active)), rp, sp.state(), seed, to, lp, b_p, active,
-                 p_start, first)
-        w, L, rp = _loop(state, body, "mfnormal_eval_walk")[:3]
-        return w, L, rp, lp
-
+    args = (params, wo, u_start, walk_active, active, seed, numbers)
     if not replays(sp):
-        walker, L, _, lp = run(sp, None)
+        walker, L, _, lp = _eval_run(sp, *args, None)
         return L + t_start_share(sp, params, wo, lp, active), walker
     # (Not dr.suspend_grad(): inside a virtual call, e.g. Mitsuba's BSDF dispatch, it loses the
     # replay's derivatives in Dr.Jit 1.5. The nested BSDF's parameters may still reach L.)
-    walker, L, _, _ = run(sp.detached(), None)
+    walker, L, _, _ = _eval_run(sp.detached(), *args, None)
     L = dr.detach(L)
-    _, _, rp, lp = run(sp, Replay(dr.zeros(mi.Spectrum, dr.width(active)), dr.zeros(mi.Spectrum, dr.width(active)),
+    _, _, rp, lp = _eval_run(sp, *args, Replay(dr.zeros(mi.Spectrum, dr.width(active)), dr.zeros(mi.Spectrum, dr.width(active)),
                                   L))
     return replace_grad(L, rp.G) + t_start_share(sp, params, wo, lp, active), walker
 

@@ -222,6 +222,17 @@ def _figure_layout(section, uris, crop_uris) -> str:
     return "".join(out)
 
 
+def _crop_table(section, results, keys, crop_uris) -> str:
+    """The grazing-angle crops, a row per crop and a column per method."""
+    if not section["crops"]:
+        return "<p>No normal-mapped surface seen at grazing angles.</p>"
+    crop_rows = "".join(
+        f"<tr><th>{i + 1}</th>" + "".join(f"<td><img src='{crop_uris[k][i]}' alt='{k} crop {i + 1}'></td>" for k in keys) + "</tr>"
+        for i in range(len(section["crops"])))
+    crop_head = "".join(f"<th>{E(r['method'].label)}</th>" for r in results)
+    return f"<table class=crops><tr><th></th>{crop_head}</tr>{crop_rows}</table>"
+
+
 def _section(section, checks_by_key) -> str:
     name = section["name"]
     results = section["results"]
@@ -243,12 +254,7 @@ def _section(section, checks_by_key) -> str:
         f"alt='{E(r['method'].label)}' title='{E(r['method'].about)} (click: right side, "
         f"shift+click: left side)'><figcaption>{E(r['method'].label)}</figcaption></figure>"
         for k, r in zip(keys, results))
-    crop_rows = "".join(
-        f"<tr><th>{i + 1}</th>" + "".join(f"<td><img src='{crop_uris[k][i]}' alt='{k} crop {i + 1}'></td>" for k in keys) + "</tr>"
-        for i in range(len(section["crops"])))
-    crop_head = "".join(f"<th>{E(r['method'].label)}</th>" for r in results)
-    crop_table = (f"<table class=crops><tr><th></th>{crop_head}</tr>{crop_rows}</table>" if section["crops"]
-                  else "<p>No normal-mapped surface seen at grazing angles.</p>")
+    crop_table = _crop_table(section, results, keys, crop_uris)
     notes = "".join(f"<p class=notes>Note: {E(n)}</p>" for n in section["notes"])
     return f"""
 <section class=scene id='scene-{name}' data-scene='{name}'>
