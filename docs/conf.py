@@ -19,7 +19,7 @@ source_suffix = {".rst": "restructuredtext", ".md": "markdown"}
 root_doc = "index"
 exclude_patterns = ["_build", "Thumbs.db", ".DS_Store"]
 
-myst_enable_extensions = ["dollarmath", "colon_fence"]
+myst_enable_extensions = []
 myst_heading_anchors = 3
 
 html_theme = "alabaster"

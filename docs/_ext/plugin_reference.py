@@ -20,6 +20,7 @@ docstring renders here as it would there.
 from __future__ import annotations
 
 import ast
+import re
 from pathlib import Path
 
 from docutils import nodes
@@ -86,10 +87,17 @@ def has_title(lines: list[str]) -> bool:
 
 
 def plugin_rst(module: str) -> list[str]:
-    """One plugin's section: its docstring, given a title from its first line if it has none."""
+    """One plugin's section: its docstring, given a title if it has none: from a first line
+    ````name``: summary.`` as ``Summary (:monosp:`name`)``, else from the module's name."""
     lines = plugin_docstring(module).splitlines()
     if not has_title(lines):
-        title = f"{module.rsplit('.', 1)[-1]} (:monosp:`{module}`)"
+        first = re.match(r"^``([\w.]+)``:\s*(.+?)\.?\s*$", lines[0]) if lines else None
+        if first and (len(lines) == 1 or not lines[1].strip()):
+            summary = first.group(2)
+            title = f"{summary[0].upper()}{summary[1:]} (:monosp:`{first.group(1)}`)"
+            lines = lines[1:]
+        else:
+            title = f":monosp:`{module.rsplit('.', 1)[-1]}`"
         lines = [title, "-" * len(title), ""] + lines
     return lines + [""]
 
