@@ -32,7 +32,7 @@ from sphinx.util.docutils import SphinxDirective
 from sphinx.util.nodes import nested_parse_with_titles
 
 # The modules whose docstrings are the plugin reference, in the order the page lists them.
-PLUGIN_MODULES = ("mfnormal.plugin", "mfnormal.integrator", "mfnormal.ad_integrator")
+PLUGIN_MODULES = ("mfnormal.plugins.normalmap_microfacet", "mfnormal.plugins.mfnormal_path", "mfnormal.plugins.mfnormal_prb")
 
 SOURCE_ROOT = Path(__file__).resolve().parents[2] / "src"
 
