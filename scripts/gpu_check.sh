@@ -1,8 +1,8 @@
 #!/usr/bin/env bash
-# The one prepared GPU check of issue 18: set up, run the test suite in cuda_ad_rgb, run the
+# The prepared GPU check: set up, run the test suite in cuda_ad_rgb, run the
 # quick benchmark in cuda_ad_rgb, and leave every log and result in one folder.
 #
-#   bash scripts/gpu_check.sh [FOLDER]      # default: $OUT if set (the device machine's), else out/gpu_check
+#   bash scripts/gpu_check.sh [FOLDER]      # default: $OUT if set, else out/gpu_check
 #
 # Environment: GPU_CHECK_PARTS (default "suite bench": either or both), SUITE_TIMEOUT / BENCH_TIMEOUT
 # (seconds, default 540 / 240), PYTEST_ARGS (extra pytest arguments, e.g. "-x" or a file list),

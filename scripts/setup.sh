@@ -2,8 +2,9 @@
 # Set up mfnormal on a fresh machine: a libLLVM >= 17 for Dr.Jit, a virtual
 # environment in .venv with the pinned Mitsuba/Dr.Jit, and the package itself.
 # With --test, also what the test suite needs (pytest, pytest-xdist, scipy, matplotlib,
-# selenium, Dask.distributed for the --cluster tests, Debian's headless Chromium
-# for the report's browser test,
+# selenium, Sphinx and MyST for the documentation build, Dask.distributed for the
+# --cluster tests, Debian's headless Chromium for the browser tests of the report and
+# the documentation,
 # pymikktspace, the reference MikkTSpace of the glTF tests, and their
 # third-party glTF asset, from Debian's archive).
 # Idempotent: re-running it only checks what is already there.
@@ -28,9 +29,9 @@ if ! have_llvm && [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then
     fi
 fi
 
-# 1b. Headless Chromium for the report test (tests/test_report.py skips without it).
+# 1b. Headless Chromium for the browser tests (tests/test_report.py, tests/test_docs.py skip without it).
 if [ "$TEST" = 1 ] && { ! command -v chromium >/dev/null 2>&1 || ! command -v chromedriver >/dev/null 2>&1; } && [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then
-    echo "setup: installing chromium and chromium-driver (browser test of the HTML report)"
+    echo "setup: installing chromium and chromium-driver (browser tests of the HTML report and the docs)"
     export DEBIAN_FRONTEND=noninteractive
     if ! apt-get install -y -qq chromium chromium-driver >/dev/null 2>&1; then
         apt-get update -qq >/dev/null 2>&1 || true

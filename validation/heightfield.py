@@ -471,7 +471,7 @@ LIGHTINGS = {
     # Sun 80° from the normal, from +x (the image's right): long shadows across the image.
     "grazing_sun": Lighting("grazing_sun", 10.0, 0.0, 3.0, 0.1),
     "grazing_sun_nosky": Lighting("grazing_sun_nosky", 10.0, 0.0, 3.0, 0.0),
-    # The diffuse-relief scene of issue 14: a 45° sun, no sky.
+    # The diffuse-relief scene of validation/true_geometry.py: a 45° sun, no sky.
     "sun45": Lighting("sun45", 45.0, 0.0, 3.0, 0.0),
     # The convention test's light: 45° up, azimuth 30° (x and y gradients both matter), no sky.
     "test_sun": Lighting("test_sun", 45.0, 30.0, 3.0, 0.0),

@@ -1,4 +1,4 @@
-"""Inverse rendering of a normal map from a flat start, every method, both targets (issue 16).
+"""Inverse rendering of a normal map from a flat start, every method, both targets.
 
     nice .venv/bin/python validation/inverse_rendering.py [--methods builtin,faithful,...]
         [--targets same,true] [--iterations 80] [--walk-iterations 40] [--res 32] [--spp 8]
@@ -72,7 +72,7 @@ def main(argv=None):
 def write(out, rows, args):
     out.mkdir(parents=True, exist_ok=True)
     (out / "inverse_rendering.json").write_text(json.dumps(rows, indent=1))
-    lines = ["# Inverse rendering of a 16² normal map from a flat start (issue 16)", "",
+    lines = ["# Inverse rendering of a 16² normal map from a flat start", "",
              f"`validation/inverse_rendering.py`: res {args.res}², {args.spp} spp per render, 3 suns, Adam "
              f"lr {args.lr}, roughplastic α 0.2. Error: mean angle between the recovered texels and the true "
              "surface normals at the texel centres; surface error: mean angle between the map as the plane "

@@ -1,4 +1,4 @@
-"""Inverse rendering against the true geometry, per optimisation seed (issue 16).
+"""Inverse rendering against the true geometry, per optimisation seed.
 
     nice .venv/bin/python validation/inverse_seeds.py builtin:0 faithful:0 builtin:1000 ... [--out FILE.json]
 
@@ -11,7 +11,7 @@ run-to-run spread of an optimisation is what a difference between methods has to
 ``--detached-slopes``: the default model's map-wide slopes σ without their derivative
 (``Setup.slope_derivatives``), the diagnostic of validation/results/inverse_rendering.md.
 ``--iterations N --lr-final R``: N iterations with the rate falling geometrically from 0.02 to R
-(``Setup.lr_final``), the annealed runs of that file's follow-up 4 (N = 400, 800, 1600; R = 0.001).
+(``Setup.lr_final``), the annealed runs of that file's section 4 (N = 400, 800, 1600; R = 0.001).
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""The shadow terminator of smooth-shaded low-poly meshes, against the true sphere (issue 17).
+"""The shadow terminator of smooth-shaded low-poly meshes, against the true sphere.
 
 A low-poly icosphere (vertices on the unit sphere, vertex normals = the true sphere's normals at
 the vertices, so the interpolated normal at a point is exactly the radial direction through it)

@@ -1,4 +1,4 @@
-"""Normal-mapping methods against the true geometry the map was baked from (issue 14).
+"""Normal-mapping methods against the true geometry the map was baked from.
 
     nice .venv/bin/python validation/true_geometry.py [--quick] [--out validation/results]
         [--heightfields bumps,eggcrate,noise] [--steepness mild,steep]
@@ -11,7 +11,7 @@ For every cell of the grid (heightfield × steepness × material × lighting × 
 magnification) it renders the heightfield as a dense displaced mesh (the truth) and
 a two-triangle plane at its mean height carrying the normal map baked from the same
 heights, wrapped by each method (:mod:`validation.heightfield`), and measures each
-method against the truth. Then the two stand-alone scenes of issue 14:
+method against the truth. Then two stand-alone scenes:
 
 - **diffuse relief**: diffuse plane, bumps of max tilt 48°, a 45° sun (no sky),
   frontal: the image contrast (std/mean of luminance) of each method vs the truth;
@@ -141,7 +141,7 @@ def groups(cells):
          "minified cells": lambda c: c.endswith("/minified"),
          "mild magnified cells": lambda c: c.split("/")[1] == "mild" and c.endswith("/magnified"),
          "mild minified cells": lambda c: c.split("/")[1] == "mild" and c.endswith("/minified"),
-         "issue 14's 12-cell design (plastic, aluminium, gold × 2 lightings × 2 views), mild, magnified":
+         "the 12-cell design (plastic, aluminium, gold × 2 lightings × 2 views), mild, magnified":
              lambda c: c.split("/")[1] == "mild" and c.endswith("/magnified")
              and c.split("/")[2] in ("plastic", "aluminium", "gold")}
     for mat in dict.fromkeys(p[2] for p in parts):
