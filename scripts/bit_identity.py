@@ -181,9 +181,9 @@ def _np(x, dtype=np.float32):
     return np.array(x, dtype=dtype)
 
 
-def run_jit(bsdf, q, mode=mi.TransportMode.Radiance):
+def answers(bsdf, si, q, mode=mi.TransportMode.Radiance):
+    """The plugin's eval, pdf, eval_pdf and sample at ``si`` for the query set ``q`` (numpy arrays)."""
     ctx = mi.BSDFContext(mode)
-    si = interaction(q)
     wo = mi.Vector3f(*(_f(q["wo"][:, i]) for i in range(3)))
     out = {"eval": _np(bsdf.eval(ctx, si, wo)), "pdf": _np(bsdf.pdf(ctx, si, wo))}
     value, pdf = bsdf.eval_pdf(ctx, si, wo)
@@ -193,6 +193,10 @@ def run_jit(bsdf, q, mode=mi.TransportMode.Radiance):
                sample_type=_np(bs.sampled_type, np.uint32), sample_component=_np(bs.sampled_component, np.uint32),
                sample_eta=_np(bs.eta))
     return out
+
+
+def run_jit(bsdf, q, mode=mi.TransportMode.Radiance):
+    return answers(bsdf, interaction(q), q, mode)
 
 
 def run_scalar(bsdf, q):
@@ -276,6 +280,15 @@ def mesh_plugin(model, tf, nested, source, tex):
     return mi.load_dict(d)
 
 
+def _face_points(rng, n):
+    """n random points inside the mesh's triangles, and their unit face normals."""
+    f = rng.integers(0, len(MESH_F), n)
+    b = rng.dirichlet([1, 1, 1], n) * 0.98 + 0.02 / 3
+    tri = MESH_P[MESH_F[f]]
+    fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    return np.einsum("nk,nkd->nd", b, tri), fn / np.linalg.norm(fn, axis=1, keepdims=True)
+
+
 def mesh_hits(bsdf, q):
     """Interactions on the two quads (the plugin as their material), rays along −(face normal)."""
     rng = np.random.default_rng(11)
@@ -287,21 +300,15 @@ def mesh_hits(bsdf, q):
     t = np.radians(rng.uniform(0, 25, len(MESH_P)))
     ph = rng.uniform(0, 2 * np.pi, len(MESH_P))
     normals = np.stack([np.sin(t) * np.cos(ph), np.sin(t) * np.sin(ph), np.cos(t)], -1)
-    params["vertex_positions"] = mi.Float(MESH_P.astype(np.float32).ravel())
-    params["vertex_normals"] = mi.Float(np.float32(normals).ravel())
-    params["vertex_texcoords"] = mi.Float(MESH_UV.astype(np.float32).ravel())
+    for key, value in (("vertex_positions", MESH_P), ("vertex_normals", normals), ("vertex_texcoords", MESH_UV)):
+        params[key] = mi.Float(np.float32(value).ravel())
     params["faces"] = mi.UInt32(MESH_F.astype(np.uint32).ravel())
     params.update()
     tangent = unit(np.cross(normals, unit(rng.normal(size=(len(MESH_P), 3)))))
     mesh.add_attribute("vertex_tangent", 3, np.float32(tangent).ravel())
     mesh.add_attribute("vertex_tangent_sign", 1, np.float32(np.where(np.arange(len(MESH_P)) < 4, 1.0, -1.0)))
     scene = mi.load_dict({"type": "scene", "mesh": mesh})
-    f = rng.integers(0, len(MESH_F), n)
-    b = rng.dirichlet([1, 1, 1], n) * 0.98 + 0.02 / 3
-    tri = MESH_P[MESH_F[f]]
-    p = np.einsum("nk,nkd->nd", b, tri)
-    fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    fn /= np.linalg.norm(fn, axis=1, keepdims=True)
+    p, fn = _face_points(rng, n)
     o = p + 0.5 * fn
     ray = mi.Ray3f(mi.Point3f(*(_f(o[:, i]) for i in range(3))), mi.Vector3f(*(_f(-fn[:, i]) for i in range(3))))
     si = scene.ray_intersect(ray)
@@ -312,15 +319,8 @@ def mesh_hits(bsdf, q):
 def run_mesh(model, tf, nested, source, tex, q, mode=mi.TransportMode.Radiance):
     """run_jit's outputs at interactions on a smooth-shaded mesh (the normal sources' inputs)."""
     si, bsdf = mesh_hits(mesh_plugin(model, tf, nested, source, tex), q)
-    ctx = mi.BSDFContext(mode)
-    wo = mi.Vector3f(*(_f(q["wo"][:, i]) for i in range(3)))
-    out = {"eval": _np(bsdf.eval(ctx, si, wo)), "pdf": _np(bsdf.pdf(ctx, si, wo))}
-    value, pdf = bsdf.eval_pdf(ctx, si, wo)
-    out.update(eval_pdf_value=_np(value), eval_pdf_pdf=_np(pdf))
-    bs, w = bsdf.sample(ctx, si, _f(q["u"][:, 0]), mi.Point2f(_f(q["u"][:, 1]), _f(q["u"][:, 2])))
-    out.update(sample_wo=_np(bs.wo), sample_pdf=_np(bs.pdf), sample_weight=_np(w),
-               sample_type=_np(bs.sampled_type, np.uint32))
-    return out
+    out = answers(bsdf, si, q, mode)
+    return {k: v for k, v in out.items() if k not in ("sample_component", "sample_eta")}
 
 
 def run_grad(model, tf, nested, tex, q):

@@ -14,7 +14,6 @@ the console shows no error other than an external resource that cannot be fetche
 import ast
 import importlib.util
 import re
-import shutil
 import subprocess
 import sys
 from html.parser import HTMLParser
@@ -161,36 +160,6 @@ def test_no_parameter_table_outside_the_docstrings():
 # ---------------------------------------------------------------------------
 # In headless Chromium
 # ---------------------------------------------------------------------------
-
-def _chromium():
-    for name in ("chromium", "chromium-browser", "google-chrome"):
-        if shutil.which(name):
-            return shutil.which(name)
-    return None
-
-
-@pytest.fixture(scope="module")
-def browser(tmp_path_factory):
-    webdriver = pytest.importorskip("selenium.webdriver", reason="selenium is not installed "
-                                    "(pip install -e '.[test]')")
-    chromium, driver = _chromium(), shutil.which("chromedriver")
-    if not chromium or not driver:
-        pytest.skip("no headless browser: install Debian's chromium and chromium-driver "
-                    "(scripts/setup.sh does, as root)")
-    from selenium.webdriver.chrome.service import Service
-
-    options = webdriver.ChromeOptions()
-    options.binary_location = chromium
-    for flag in ("--headless", "--no-sandbox", "--disable-gpu", "--no-first-run",
-                 "--disable-background-networking", "--disable-dev-shm-usage", "--window-size=1300,1000",
-                 f"--user-data-dir={tmp_path_factory.mktemp('chromium-profile')}"):
-        options.add_argument(flag)
-    options.set_capability("goog:loggingPrefs", {"browser": "ALL"})
-    drv = webdriver.Chrome(service=Service(driver), options=options)
-    drv.set_page_load_timeout(60)
-    yield drv
-    drv.quit()
-
 
 def _loaded(browser):
     from selenium.webdriver.support.ui import WebDriverWait

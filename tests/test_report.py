@@ -14,7 +14,6 @@ frame whose t axis is the normal map's +y in Mitsuba).
 
 import os
 import re
-import shutil
 import subprocess
 import sys
 import xml.etree.ElementTree as ET
@@ -79,41 +78,6 @@ def test_compare_writes_a_render_and_a_reference_per_method(report):
             assert (out / f"{name}.exr").is_file() and (out / f"{name}.png").is_file()
     img = np.array(mi.Bitmap(str(out / "nonseparable_same.exr")))
     assert img.shape[1] == compare.QUICK.width and np.isfinite(img).all() and img.mean() > 0
-
-
-def _chromium():
-    for name in ("chromium", "chromium-browser", "google-chrome"):
-        path = shutil.which(name)
-        if path:
-            return path
-    return None
-
-
-BROWSER_FLAGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-                 "--disable-background-networking", "--disable-component-update", "--disable-sync",
-                 "--disable-dev-shm-usage", "--window-size=1400,1000"]
-
-
-@pytest.fixture(scope="module")
-def browser(tmp_path_factory):
-    webdriver = pytest.importorskip("selenium.webdriver", reason="selenium is not installed "
-                                    "(pip install -e '.[test]')")
-    chromium, driver = _chromium(), shutil.which("chromedriver")
-    if not chromium or not driver:
-        pytest.skip("no headless browser: install Debian's chromium and chromium-driver "
-                    "(scripts/setup.sh does, as root)")
-    from selenium.webdriver.chrome.service import Service
-
-    options = webdriver.ChromeOptions()
-    options.binary_location = chromium
-    for flag in BROWSER_FLAGS:
-        options.add_argument(flag)
-    options.add_argument(f"--user-data-dir={tmp_path_factory.mktemp('chromium-profile')}")
-    options.set_capability("goog:loggingPrefs", {"browser": "ALL"})
-    drv = webdriver.Chrome(service=Service(driver), options=options)
-    drv.set_page_load_timeout(60)
-    yield drv
-    drv.quit()
 
 
 def _wait(browser, script, timeout=20.0):

@@ -292,19 +292,10 @@ def set_worker_variant(variant: str | None) -> None:
 
 
 def _use_variant(variant: str):
-    import mitsuba as mi
+    from mfnormal.cli.rendering import use_variant
 
-    import mfnormal
-
-    if variant not in mi.variants():
-        raise RuntimeError(f"variant '{variant}' is not available in this worker's Mitsuba build")
-    if mi.variant() != variant:
-        try:
-            mi.set_variant(variant)
-        except Exception as exc:    # e.g. cuda_* without a GPU
-            raise RuntimeError(f"this worker cannot use variant '{variant}': {one_line(exc)}") from None
-    mfnormal.register()
-    return mi
+    return use_variant(variant, RuntimeError, f"variant '{variant}' is not available in this worker's Mitsuba build",
+                       f"this worker cannot use variant '{variant}'")
 
 
 def _prepare(env: Env):

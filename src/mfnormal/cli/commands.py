@@ -27,7 +27,7 @@ import numpy as np
 
 from mfnormal.io.messages import one_line
 from mfnormal.report.methods import METHOD_BY_KEY, METHODS
-from mfnormal.cli.rendering import render_scene
+from mfnormal.cli.rendering import render_scene, use_variant
 from mfnormal.io.inputs import (CLIError, DEFAULT_LIMITS, LIMIT_HELP, Limits, Terminated, check_int32,
                        check_output, check_render_size, check_scene_before_render, check_seed,
                        check_spp, check_xml_scene, parse_limits, raise_on_sigterm)
@@ -41,18 +41,12 @@ DEMO_OUTPUT = os.path.join("out", "demo.png")
 
 def setup_variant(variant: str):
     """Import Mitsuba in ``variant`` with the plugin registered, or raise CLIError."""
-    import mfnormal
     import mitsuba as mi
 
-    if variant not in mi.variants():
-        raise CLIError(f"variant '{variant}' is not available in this Mitsuba build; "
-                       f"choose one of: {', '.join(v for v in mi.variants() if 'rgb' in v)}")
-    try:
-        mi.set_variant(variant)
-    except Exception as exc:  # e.g. cuda_* without a GPU
-        raise CLIError(f"cannot use variant '{variant}': {one_line(exc)}") from None
-    mfnormal.register()
-    return mi
+    return use_variant(variant, CLIError,
+                       f"variant '{variant}' is not available in this Mitsuba build; "
+                       f"choose one of: {', '.join(v for v in mi.variants() if 'rgb' in v)}",
+                       f"cannot use variant '{variant}'")
 
 
 def parse_defines(defines: list[str]) -> dict[str, str]:

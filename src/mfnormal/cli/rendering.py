@@ -30,6 +30,23 @@ __all__ = ["MAX_PASS_LANES", "pass_count", "pass_spp", "pass_seed", "schedule", 
 MAX_PASS_LANES = 1 << 24
 
 
+def use_variant(variant: str, error, unavailable: str, cannot: str):
+    """Mitsuba in ``variant`` with the plugins registered; ``error(unavailable)`` where this build
+    lacks it, ``error(cannot + ": " + the cause)`` where it cannot be set (e.g. cuda_* without a GPU)."""
+    import mfnormal
+    from mfnormal.io.messages import one_line
+
+    if variant not in mi.variants():
+        raise error(unavailable)
+    if mi.variant() != variant:
+        try:
+            mi.set_variant(variant)
+        except Exception as exc:
+            raise error(f"{cannot}: {one_line(exc)}") from None
+    mfnormal.register()
+    return mi
+
+
 def pass_count(total: int, pixels: int, passes: int | None = None) -> int:
     """How many passes a render of ``total`` spp takes: ``passes`` (default 8, fewer for
     < 8 spp), more where a pass would trace more than :data:`MAX_PASS_LANES` paths.
