@@ -129,23 +129,6 @@ def test_normal_sources_benchmark_runs_and_reports_every_config(tmp_path):
     assert all(r["ratio"] > 0 for r in rows)
 
 
-def test_fused_noise_benchmark_pools_blocks_under_both_integrators(tmp_path):
-    """``benchmarks/fused_noise.py`` at a tiny size (one cell, two seed blocks, 16×12): one finite
-    relMSE per block for the built-in and for the walk under each integrator, the first block on
-    the benchmark's own seeds (20000), and the table beside the JSON."""
-    out = tmp_path / "fused_noise.json"
-    proc = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "fused_noise.py"), "--cells",
-                           "plane:diffuse:separable_specular", "--blocks", "2", "--size", "16x12",
-                           "--ref-spp", "64", "--out", str(out)], cwd=ROOT, capture_output=True, text=True,
-                          timeout=600)
-    assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
-    (row,) = json.loads(out.read_text())["rows"]
-    assert row["bases"] == [20000, 21000]
-    for key in ("builtin/path", "path", "mfnormal_path"):
-        assert len(row[key]) == 2 and all(0 < x < float("inf") for x in row[key]), (key, row[key])
-    assert "| plane:diffuse:separable_specular | 2 |" in out.with_suffix(".md").read_text()
-
-
 def test_integrator_option_swaps_every_methods_path_tracer():
     """``--integrator mfnormal_path``: every method's scene gets it, the built-in's included (one
     integrator for the ratios); a scene without a path integrator is an error."""
