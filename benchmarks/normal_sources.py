@@ -1,5 +1,5 @@
 #!/usr/bin/env python
-r"""Cost per query of the other normal sources (issue 17) against the normal-map path.
+r"""Cost per query of the other normal sources against the normal-map path.
 
     nice .venv/bin/python benchmarks/normal_sources.py [--queries 20] [--reps 9] [--out benchmarks]
 
@@ -23,7 +23,7 @@ calling thread the clock is exact. The configurations are interleaved
 order, of two variants differing by 5 operations the later one measured 0-9 % faster) and
 each ratio is the median over ``reps`` pairs, so the drift of a shared machine cancels;
 beside it the operation count of the JIT kernels (deterministic). Writes ``normal_sources.json`` and
-``normal_sources.md`` into ``--out``. Acceptance (issue 17): ``heightmap`` and ``geometric``
+``normal_sources.md`` into ``--out``. Target: ``heightmap`` and ``geometric``
 within 10 % of the normal-map path (ratio ≤ 1.10).
 """
 
@@ -192,7 +192,7 @@ def main(argv=None):
     out["summary"] = summary
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "normal_sources.json").write_text(json.dumps(out, indent=1))
-    md = ["# Cost per query of the other normal sources (issue 17)", "",
+    md = ["# Cost per query of the other normal sources", "",
           f"`{out['command']}`: {out['queries']} queries, median of {args.reps} interleaved pairs; ratio = "
           "time with the option / time of the same model on the normal map (eval, eval_pdf, sample; "
           "diffuse and roughplastic). Acceptance: ≤ 1.10. CPU time of the process with "

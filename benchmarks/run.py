@@ -32,15 +32,15 @@ Metrics:
 3. noise at equal time: relMSE against a high-spp reference of the same
    method, each method at the spp it reaches in the built-in's time budget
    (from metric 1), as the ratio to the built-in's relMSE. Scored only where the
-   methods render the same content (issue 18's decision): every scene under the
+   methods render the same content: every scene under the
    benchmark's sky without its sun disc (``sunless``), the constant-map control (d)
    included. The full sky's ratios are reported, not scored: the microfacet models
    render sun glints through tangent-facet paths that classic normal mapping does not
    have, and so they do on the constant map (its tangent facet is as tilted as the
-   map's: at stop 22 the control's full-sky walk cells measured 7.2-14.5x at GGX 0.05).
+   map's: in RESULTS.md the control's full-sky walk cells are 7.2-15x at GGX 0.05).
    For estimators with a heavy tail (the mirror-facet walks over GGX 0.05) one such
    number (6 renders, a 256-spp reference) is itself noisy: repeated over independent
-   seed blocks it spreads 7-31x (benchmarks/fused_noise.py, which pools the blocks);
+   seed blocks it spreads 7-31x (docs/diagnoses.md);
 4. BSDF throughput: sample/eval queries per second on 2^20 random queries
    (random wi, wo, and normals from a texture), random-walk lengths, nested
    calls per query, and the share of time spent in nested BSDF calls (the
@@ -118,13 +118,13 @@ VARIANT = "llvm_ad_rgb"          # --variant
 # The integrator every method renders under (--integrator): Mitsuba's "path", or "mfnormal_path"
 # (mfnormal.integrator: path calling the plugin's fused eval_pdf_sample). The built-in renders
 # under it too, so that the ratios compare BSDFs under one integrator (mfnormal_path renders the
-# built-in faster than path does, 0.82-0.97x, benchmarks/fused.md: that is not the plugin's merit),
+# built-in faster than path does, 0.82-0.97x, docs/diagnoses.md: that is not the plugin's merit),
 # and is timed once more under path (a row with no target, "integrator_ratio").
 INTEGRATORS = ("path", "mfnormal_path")
 INTEGRATOR = "path"
 MAX_DEPTH = 8
 
-# Targets: the method's value / the built-in's (issue 18).
+# Targets: the method's value / the built-in's.
 TIME_TARGET = {"faithful": 1.25, "analytic": 1.25, "separable": 1.5, "nonseparable": 1.6}
 NOISE_TARGET = {"faithful": 1.3, "analytic": 1.3, "walk_diffuse": 3.0, "walk_conductor": 6.0}
 # The models with a deterministic eval (the rest are random walks).
@@ -150,7 +150,7 @@ class Profile:
     stub_reps: int
     compile_warm_reps: int
     # Metric 2's cold runs per method (fresh processes, interleaved over the methods): the row is
-    # the median run. One cold compile moves by ±20 % on a shared machine (run to run, stop 26).
+    # the median run. One cold compile moves by ±20 % from run to run on a shared machine.
     compile_runs: int = 1
     metrics: tuple = ("render", "noise", "compile", "throughput")
     compile_scenes: tuple = ()      # the scenes of metric 2 (empty: every scene)
@@ -1002,7 +1002,7 @@ def why_lines(results: dict) -> list:
         lines.append("A large per-sample variance ratio with a similar reference mean and most of the "
                      "error in a few pixels points at fireflies or sub-pixel glints; "
                      "`benchmarks/experiments.py` (control, evalnoise, mispdf) and "
-                     "`benchmarks/noise_anatomy.py` (the path tracer's two strategies) separate them.")
+                     "the path tracer's two strategies (docs/diagnoses.md) separate them.")
         lines.append("")
     return lines
 
@@ -1066,18 +1066,19 @@ def cell_table(results: dict, prof: dict) -> list:
     return L
 
 
-def backward_section(results: dict) -> list:
-    """The reverse-mode benchmark's table (benchmarks/backward.py, run by the full run) and its link."""
+def backward_section(results: dict, folder: Path) -> list:
+    """The reverse-mode benchmark's table (benchmarks/backward.py, run by the full run, its files
+    beside RESULTS.md in ``folder``) and its link."""
     b = results.get("backward")
     if not b:
         return []
     L = ["## Backward pass (benchmarks/backward.py)", ""]
     if "error" in b:
         return L + [f"Not recorded: {b['error']}", ""]
-    text = Path(b["md"]).read_text() if Path(b["md"]).exists() else ""
+    name = Path(b["md"]).name
+    text = (folder / name).read_text() if (folder / name).exists() else ""
     table = [ln for ln in text.splitlines() if ln.startswith("|")]
-    return L + [f"`{b['command']}` ({b['duration_s']:.0f} s), from [{Path(b['md']).name}]({Path(b['md']).name}):",
-                ""] + table + [""]
+    return L + [f"`{b['command']}` ({b['duration_s']:.0f} s), from [{name}]({name}):", ""] + table + [""]
 
 
 def write_markdown(results: dict, path: Path):
@@ -1116,7 +1117,7 @@ def write_markdown(results: dict, path: Path):
     # One table per profile: every (scene, nested, method).
     for prof in results.get("configs", [cfg]):
         L += cell_table(results, prof)
-    L += backward_section(results)
+    L += backward_section(results, path.parent)
 
     L += ["## BSDF throughput (metric 4)", "",
           f"{results['config']['queries']} queries: wi, wo uniform on the hemisphere, normals from a "
@@ -1345,15 +1346,16 @@ def compile_metrics(s: str, nested: str, assets: dict, prof: Profile, variant: s
 
 
 def run_backward(out: Path, variant: str) -> dict:
-    """benchmarks/backward.py (its defaults) into ``out``: where its table is, or why not."""
+    """benchmarks/backward.py (its defaults) into ``out``: its files there (names relative to
+    ``out``), or why not."""
     cmd = [sys.executable, str(HERE / "backward.py"), "--out", str(out), "--variant", variant]
     log("[backward] " + shlex.join(cmd))
     t0 = time.time()
     proc = subprocess.run(cmd, capture_output=True, text=True)
     if proc.returncode != 0:
         return {"error": f"backward.py exited {proc.returncode}: {(proc.stderr or proc.stdout).strip()[-300:]}"}
-    return {"command": f"benchmarks/backward.py --variant {variant}", "md": str(out / "backward.md"),
-            "json": str(out / "backward.json"), "duration_s": time.time() - t0}
+    return {"command": f"benchmarks/backward.py --variant {variant}", "md": "backward.md",
+            "json": "backward.json", "duration_s": time.time() - t0}
 
 
 def busy_note(load_start: float, load_end: float, cores: int):
