@@ -137,13 +137,13 @@ def test_integrator_option_swaps_every_methods_path_tracer():
     swapped = R.with_integrator(scene, "mfnormal_path")
     assert swapped["integrator"] == {"type": "mfnormal_path", "max_depth": 8}
     assert scene["integrator"]["type"] == "path" and R.with_integrator(scene, "path") is scene
-    old = R.INTEGRATOR
-    try:
-        R.INTEGRATOR = "mfnormal_path"
-        assert R.method_integrator("builtin") == "mfnormal_path"
-        assert R.method_integrator("separable_same") == "mfnormal_path"
-    finally:
-        R.INTEGRATOR = old
+    ap, args = R.parse_args(["--profile", "all", "--integrator", "mfnormal_path"])
+    profiles = R.selected_profiles(ap, args)
+    assert profiles and all(p.integrator == "mfnormal_path" for p in profiles)
+    for prof in profiles:
+        assert R.method_integrator(prof, "builtin") == "mfnormal_path"
+        assert R.method_integrator(prof, "separable_same") == "mfnormal_path"
+    assert R.FULL.integrator == "path"          # the module's profiles are left as they are
     with pytest.raises(ValueError):
         R.with_integrator({"type": "scene"}, "mfnormal_path")
 
