@@ -940,22 +940,16 @@ def why_lines(results: dict) -> list:
             + (why_noise_lines(results, fails_n) if fails_n else []))
 
 
+def table_lines(intro: str, header: list, rows: list) -> list:
+    """Markdown lines: a paragraph, then a table of ``header`` over ``rows`` (each a list of cells)."""
+    return ([intro, "", "| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+            + ["| " + " | ".join(row) + " |" for row in rows] + [""])
+
+
 def why_time_lines(results: dict, fails: list) -> list:
     """The render-time misses with their path vertices, stubbed ratio and BSDF-level costs."""
     tput = {(r["nested"], r["method"]): r for r in results["throughput"]}
-    lines = ["**Render time.** For each miss: the path vertices per camera sample against the "
-             "built-in's and the time ratio per path vertex (profiles that count them), the "
-             "render time ratio with the nested calls "
-             "replaced by a closed-form stub (what the model's own logic costs), the share "
-             "of the render spent in nested calls, and the BSDF-level costs of metric 4 "
-             "(nested calls per query executed / SIMD: every call site runs on all lanes of "
-             "a packet until its longest walk ends):",
-             "",
-             "| scene | nested | method | time ratio | path vertices per sample / built-in's | "
-             "time ratio per path vertex | stubbed ratio | nested share of render | "
-             "eval / sample slowdown | nested calls / eval | nested calls / sample | "
-             "walk mean / p99 / SIMD bounces (coherent) |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    rows = []
     for c in fails:
         r = tput.get((c["nested"], c["method"]), {})
         w, wc = r.get("sample_walk") or {}, r.get("sample_walk_coherent") or {}
@@ -965,57 +959,60 @@ def why_time_lines(results: dict, fails: list) -> list:
                      f"{fmt(r.get(f'{m}_simd_nested_calls_coherent'))}") if f"{m}_nested_calls" in r else "–"
                  for m in ("eval", "sample")}
         share = c.get("render_nested_share")
-        lines.append(
-            f"| {c['scene']} | {c['nested']} | {c['method']} | {fmt(c['ratio'])} | "
-            f"{fmt(c.get('vertex_ratio'), '.3f')} | {fmt(c.get('ratio_per_vertex'))} | {fmt(c.get('stub_ratio'))} | "
-            f"{fmt(None if share is None else 100 * share, '.0f')} % | "
-            f"{fmt(r.get('eval_slowdown'))}× / {fmt(r.get('sample_slowdown'))}× | {calls['eval']} | "
-            f"{calls['sample']} | {walk} |")
-    lines.append("")
-    return lines
+        rows.append([c["scene"], c["nested"], c["method"], fmt(c["ratio"]), fmt(c.get("vertex_ratio"), ".3f"),
+                     fmt(c.get("ratio_per_vertex")), fmt(c.get("stub_ratio")),
+                     f"{fmt(None if share is None else 100 * share, '.0f')} %",
+                     f"{fmt(r.get('eval_slowdown'))}× / {fmt(r.get('sample_slowdown'))}×",
+                     calls["eval"], calls["sample"], walk])
+    return table_lines(
+        "**Render time.** For each miss: the path vertices per camera sample against the "
+        "built-in's and the time ratio per path vertex (profiles that count them), the "
+        "render time ratio with the nested calls "
+        "replaced by a closed-form stub (what the model's own logic costs), the share "
+        "of the render spent in nested calls, and the BSDF-level costs of metric 4 "
+        "(nested calls per query executed / SIMD: every call site runs on all lanes of "
+        "a packet until its longest walk ends):",
+        ["scene", "nested", "method", "time ratio", "path vertices per sample / built-in's",
+         "time ratio per path vertex", "stubbed ratio", "nested share of render", "eval / sample slowdown",
+         "nested calls / eval", "nested calls / sample", "walk mean / p99 / SIMD bounces (coherent)"], rows)
+
+
+def miss_table(intro: str, header: list, fails: list, measured: list, cells) -> list:
+    """:func:`table_lines` of the failing cells ``fails``, a row ``cells(c, b)`` per cell c, b the
+    built-in's row of c's scene and nested BSDF in ``measured`` (or {})."""
+    base = {(r["scene"], r["nested"]): r for r in measured if r["method"] == "builtin"}
+    return table_lines(intro, header, [cells(c, base.get((c["scene"], c["nested"]), {})) for c in fails])
 
 
 def why_compile_lines(results: dict, fails: list) -> list:
     """The compile misses with their kernel sizes against the built-in's."""
-    comp = {(c["scene"], c["nested"], c["method"]): c for c in results["compile"]}
-    lines = ["**JIT compile.** Kernel size (Dr.Jit operations in the largest kernel of the "
-             "first render) against the built-in's, for the failing cells:",
-             "",
-             "| scene | nested | method | compile s (built-in) | LLVM backend s | ops (built-in) | "
-             "compile s / ops with nested calls stubbed |",
-             "|---|---|---|---|---|---|---|"]
-    for c in fails:
-        b = comp.get((c["scene"], c["nested"], "builtin"), {})
-        lines.append(f"| {c['scene']} | {c['nested']} | {c['method']} | {fmt(c['compile_s'])} "
-                     f"({fmt(b.get('compile_s'))}) | {fmt(c.get('backend_s'))} | "
-                     f"{c.get('max_kernel_ops')} ({b.get('max_kernel_ops')}) | "
-                     f"{fmt(c.get('stub_compile_s'))} / {c.get('stub_max_kernel_ops', '–')} |")
-    lines.append("")
-    return lines
+    return miss_table(
+        "**JIT compile.** Kernel size (Dr.Jit operations in the largest kernel of the "
+        "first render) against the built-in's, for the failing cells:",
+        ["scene", "nested", "method", "compile s (built-in)", "LLVM backend s", "ops (built-in)",
+         "compile s / ops with nested calls stubbed"], fails, results["compile"],
+        lambda c, b: [c["scene"], c["nested"], c["method"], f"{fmt(c['compile_s'])} ({fmt(b.get('compile_s'))})",
+                      fmt(c.get("backend_s")), f"{c.get('max_kernel_ops')} ({b.get('max_kernel_ops')})",
+                      f"{fmt(c.get('stub_compile_s'))} / {c.get('stub_max_kernel_ops', '–')}"])
 
 
 def why_noise_lines(results: dict, fails: list) -> list:
     """The equal-time noise misses: variance or time, and how concentrated the error is."""
-    noise = {(c["scene"], c["nested"], c["method"]): c for c in results["noise"]}
-    lines = ["**Equal-time noise.** The failing content-equal cells, scored without the sun "
-             "disc; beside them the full-sky ratio. relMSE ratio = (per-sample variance ratio) × "
-             "(time ratio): which of the two dominates (under the full sky):",
-             "",
-             "| scene | nested | method | relMSE ratio, sky without its sun disc (scored) | target | "
-             "full-sky relMSE ratio | per-sample variance ratio | time ratio | reference mean / "
-             "built-in's | error share of worst 0.1 % pixels (built-in) |",
-             "|---|---|---|---|---|---|---|---|---|---|"]
-    for c in fails:
-        b = noise.get((c["scene"], c["nested"], "builtin"), {})
-        lines.append(f"| {c['scene']} | {c['nested']} | {c['method']} | {fmt(c.get('scored_ratio'))} "
-                     f"{mark(c['pass'])} | {fmt(c['target'], '.1f')} | {fmt(c['relmse_ratio'])} | "
-                     f"{fmt(c['variance_per_sample_ratio'])} | {fmt(c['time_ratio'])} | "
-                     f"{fmt(c.get('ref_mean_ratio'))} | {fmt(c.get('top_pixel_error_share'))} "
-                     f"({fmt(b.get('top_pixel_error_share'))}) |")
-    return lines + ["", "A large per-sample variance ratio with a similar reference mean and most of the "
-                    "error in a few pixels points at fireflies or sub-pixel glints; "
-                    "`benchmarks/experiments.py` (control, evalnoise, mispdf) and "
-                    "the path tracer's two strategies (docs/diagnoses.md) separate them.", ""]
+    return miss_table(
+        "**Equal-time noise.** The failing content-equal cells, scored without the sun "
+        "disc; beside them the full-sky ratio. relMSE ratio = (per-sample variance ratio) × "
+        "(time ratio): which of the two dominates (under the full sky):",
+        ["scene", "nested", "method", "relMSE ratio, sky without its sun disc (scored)", "target",
+         "full-sky relMSE ratio", "per-sample variance ratio", "time ratio", "reference mean / built-in's",
+         "error share of worst 0.1 % pixels (built-in)"], fails, results["noise"],
+        lambda c, b: [c["scene"], c["nested"], c["method"], f"{fmt(c.get('scored_ratio'))} {mark(c['pass'])}",
+                      fmt(c["target"], ".1f"), fmt(c["relmse_ratio"]), fmt(c["variance_per_sample_ratio"]),
+                      fmt(c["time_ratio"]), fmt(c.get("ref_mean_ratio")),
+                      f"{fmt(c.get('top_pixel_error_share'))} ({fmt(b.get('top_pixel_error_share'))})"]) + [
+        "A large per-sample variance ratio with a similar reference mean and most of the "
+        "error in a few pixels points at fireflies or sub-pixel glints; "
+        "`benchmarks/experiments.py` (control, evalnoise, mispdf) and "
+        "the path tracer's two strategies (docs/diagnoses.md) separate them.", ""]
 
 
 def cell_table(results: dict, prof: dict) -> list:
