@@ -1,5 +1,5 @@
 #!/usr/bin/env python
-r"""Reverse-mode cost of every method against Mitsuba's built-in ``normalmap`` (issue 16).
+r"""Reverse-mode cost of every method against Mitsuba's built-in ``normalmap``.
 
     nice .venv/bin/python benchmarks/backward.py [--methods builtin,faithful,...] [--res 64]
         [--spp 16] [--reps 3] [--variant llvm_ad_rgb] [--out benchmarks]
@@ -132,7 +132,7 @@ def write(args, rows):
     (args.out / f"{name}.json").write_text(json.dumps({"command": " ".join(sys.argv), "res": args.res,
                                                        "spp": args.spp, "map": args.map, "rows": rows}, indent=1))
     base = next((r for r in rows if r["method"] == "builtin" and "error" not in r), None)
-    lines = ["# Reverse-mode cost per method (issue 16)", "",
+    lines = ["# Reverse-mode cost per method", "",
              f"`benchmarks/backward.py --res {args.res} --spp {args.spp} --map {args.map}`: the inverse-rendering "
              f"plane (16² map, {'the true map' if args.map == 'true' else 'a flat map'}, roughplastic α 0.2, one "
              f"sun, `prb` max_depth 2), {args.variant}. Times: medians of "

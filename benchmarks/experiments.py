@@ -286,9 +286,8 @@ def markdown(res, retired="") -> str:
         L += [""]
     if res.get("ops"):
         L += _section("ops: Dr.Jit operations in the BSDF kernels (compile cost scales with these)",
-                      "`stub`: the nested BSDF replaced by a closed-form Lambertian (probes.py). Runs from "
-                      "before issue 15 patched the stub into the facet calls instead, which also skipped "
-                      "building the facet interactions.",
+                      " ".join(["`stub`: the nested BSDF replaced by a closed-form Lambertian (probes.py).",
+                                *filter(None, [res.get("section_notes", {}).get("ops")])]),
                       ["nested", "method", "sample ops (stub)", "eval ops (stub)"],
                       [(r["nested"], r["method"], f"{r['sample_ops']} ({r['sample_ops_stub']})",
                         f"{r['eval_ops']} ({r['eval_ops_stub']})") for r in res["ops"]])
@@ -355,6 +354,7 @@ def main(argv=None):
                      ("control", lambda b: exp_control(b, assets, root))):
         if name in only:
             res[name] = fn(b)
+            res.get("section_notes", {}).pop(name, None)     # a stored table's caveat goes with it
         elif not args.merge:
             res[name] = []
     out = Path(args.out)

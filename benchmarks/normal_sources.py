@@ -1,5 +1,5 @@
 #!/usr/bin/env python
-r"""Cost per query of the other normal sources (issue 17) against the normal-map path.
+r"""Cost per query of the other normal sources against the normal-map path.
 
     nice .venv/bin/python benchmarks/normal_sources.py [--queries 20] [--reps 9] [--out benchmarks]
 
@@ -23,7 +23,7 @@ calling thread the clock is exact. The configurations are interleaved
 order, of two variants differing by 5 operations the later one measured 0-9 % faster) and
 each ratio is the median over ``reps`` pairs, so the drift of a shared machine cancels;
 beside it the operation count of the JIT kernels (deterministic). Writes ``normal_sources.json`` and
-``normal_sources.md`` into ``--out``. Acceptance (issue 17): ``heightmap`` and ``geometric``
+``normal_sources.md`` into ``--out``. Target: ``heightmap`` and ``geometric``
 within 10 % of the normal-map path (ratio ≤ 1.10).
 """
 
@@ -135,6 +135,80 @@ def calls(bsdf, q):
             "sample": lambda: bsdf.sample(ctx, si, s1, s2)}
 
 
+def interleaved(ref, other, reps: int) -> tuple:
+    """CPU times of ``reps`` pairs of calls of ``ref`` and ``other`` (warm: one untimed call of
+    each first), the first of each pair alternating: (ref's times, other's times)."""
+    timed(ref)
+    timed(other)
+    t_ref, t_other = [], []
+    for rep in range(reps):
+        if rep % 2:
+            t_other.append(timed(other))
+            t_ref.append(timed(ref))
+        else:
+            t_ref.append(timed(ref))
+            t_other.append(timed(other))
+    return t_ref, t_other
+
+
+def measure(model, nested, config, what, ref, other, n: int, reps: int) -> dict:
+    """One row: ``what`` (eval, eval_pdf or sample) with ``config`` against the normal map, timed
+    on the ``n`` queries of ``ref``/``other`` and counted on their small twins (the ``_ops`` keys)."""
+    t_ref, t_other = interleaved(ref[what], other[what], reps)
+    ratios = [b / a for a, b in zip(t_ref, t_other)]
+    ops = (op_count(ref[what + "_ops"]), op_count(other[what + "_ops"]))
+    return {"model": model, "nested": nested, "config": config, "call": what,
+            "ref_ops": ops[0], "ops": ops[1], "ops_ratio": ops[1] / max(ops[0], 1),
+            "ratio_q1": float(np.quantile(ratios, 0.25)), "ratio_q3": float(np.quantile(ratios, 0.75)),
+            "ref_ns_per_query": 1e9 * statistics.median(t_ref) / n,
+            "ns_per_query": 1e9 * statistics.median(t_other) / n,
+            "ratio": statistics.median(ratios)}
+
+
+def summarize(rows: list, models) -> dict:
+    """Per model and option: the max and geometric mean of the time and operation ratios."""
+    summary = {}
+    for model in models:
+        for config in CONFIGS:
+            r = [x["ratio"] for x in rows if x["model"] == model and x["config"] == config]
+            o = [x["ops_ratio"] for x in rows if x["model"] == model and x["config"] == config]
+            summary[f"{model}/{config}"] = {"max": max(r), "geomean": float(np.exp(np.mean(np.log(r)))),
+                                            "ops_max": max(o), "ops_geomean": float(np.exp(np.mean(np.log(o))))}
+    return summary
+
+
+def markdown(out: dict) -> str:
+    """normal_sources.md from the results ``out``."""
+    md = ["# Cost per query of the other normal sources", "",
+          f"`{out['command']}`: {out['queries']} queries, median of {out['reps']} interleaved pairs; ratio = "
+          "time with the option / time of the same model on the normal map (eval, eval_pdf, sample; "
+          "diffuse and roughplastic). Acceptance: ≤ 1.10. CPU time of the process with "
+          + ("the kernels on the calling thread (exact clock)" if out["threads"] == 0 else
+             f"{out['threads']} worker threads (clock of the other threads quantised to the scheduler tick)")
+          + ".", "",
+          "*ops*: operations in the JIT kernels of one call (Dr.Jit's kernel history), the same ratio "
+          "without timing noise.", "",
+          "| model | config | time ratio geomean | time ratio max | ops ratio geomean | ops ratio max |",
+          "|---|---|---|---|---|---|"]
+    for k, v in out["summary"].items():
+        m, c = k.split("/")
+        md.append(f"| {m} | {c} | {v['geomean']:.3f} | {v['max']:.3f} | {v['ops_geomean']:.3f} | {v['ops_max']:.3f} |")
+    md += ["", "| model | nested | config | call | ns/query | normal map ns/query | ratio (IQR) | ops | normal map ops |",
+           "|---|---|---|---|---|---|---|---|---|"]
+    for x in out["rows"]:
+        md.append(f"| {x['model']} | {x['nested']} | {x['config']} | {x['call']} | {x['ns_per_query']:.0f} | "
+                  f"{x['ref_ns_per_query']:.0f} | {x['ratio']:.3f} ({x['ratio_q1']:.2f}–{x['ratio_q3']:.2f}) | "
+                  f"{x['ops']} | {x['ref_ops']} |")
+    return "\n".join(md) + "\n"
+
+
+def bsdf_calls(model, nested, config, normalmap, heightmap, q, q_ops) -> dict:
+    """The plugin's eval, eval_pdf and sample on the timed queries ``q``, and as ``NAME_ops`` on
+    the small set ``q_ops`` whose kernels are counted."""
+    bsdf = plugin(model, nested, config, normalmap, heightmap)
+    return {**calls(bsdf, q), **{f"{k}_ops": v for k, v in calls(bsdf, q_ops).items()}}
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--queries", type=int, default=20, help="log2 of the query count (default 20)")
@@ -153,66 +227,21 @@ def main(argv=None):
     rows = []
     for model in args.models.split(","):
         for nested in NESTED:
-            ref_bsdf = plugin(model, nested, "normalmap", normalmap, heightmap)
-            ref, ref_small = calls(ref_bsdf, q), calls(ref_bsdf, q_ops)
+            ref = bsdf_calls(model, nested, "normalmap", normalmap, heightmap, q, q_ops)
             for config in CONFIGS:
-                other_bsdf = plugin(model, nested, config, normalmap, heightmap)
-                other, other_small = calls(other_bsdf, q), calls(other_bsdf, q_ops)
+                other = bsdf_calls(model, nested, config, normalmap, heightmap, q, q_ops)
                 for what in ("eval", "eval_pdf", "sample"):
-                    timed(ref[what])
-                    timed(other[what])                      # warm kernels
-                    t_ref, t_other = [], []
-                    for rep in range(args.reps):
-                        if rep % 2:                             # the first of a pair alternates
-                            t_other.append(timed(other[what]))
-                            t_ref.append(timed(ref[what]))
-                        else:
-                            t_ref.append(timed(ref[what]))
-                            t_other.append(timed(other[what]))
-                    ratio = statistics.median(b / a for a, b in zip(t_ref, t_other))
-                    ops = (op_count(ref_small[what]), op_count(other_small[what]))
-                    rows.append({"model": model, "nested": nested, "config": config, "call": what,
-                                 "ref_ops": ops[0], "ops": ops[1], "ops_ratio": ops[1] / max(ops[0], 1),
-                                 "ratio_q1": float(np.quantile([b / a for a, b in zip(t_ref, t_other)], 0.25)),
-                                 "ratio_q3": float(np.quantile([b / a for a, b in zip(t_ref, t_other)], 0.75)),
-                                 "ref_ns_per_query": 1e9 * statistics.median(t_ref) / (1 << args.queries),
-                                 "ns_per_query": 1e9 * statistics.median(t_other) / (1 << args.queries),
-                                 "ratio": ratio})
-                    print(f"{model:12s} {nested:12s} {config:20s} {what:8s} ratio {ratio:.3f} ops {ops[1]}/{ops[0]} "
-                          f"({rows[-1]['ns_per_query']:.0f} vs {rows[-1]['ref_ns_per_query']:.0f} ns/query)", flush=True)
+                    rows.append(measure(model, nested, config, what, ref, other, 1 << args.queries, args.reps))
+                    r = rows[-1]
+                    print(f"{model:12s} {nested:12s} {config:20s} {what:8s} ratio {r['ratio']:.3f} ops "
+                          f"{r['ops']}/{r['ref_ops']} ({r['ns_per_query']:.0f} vs {r['ref_ns_per_query']:.0f} "
+                          "ns/query)", flush=True)
     out = {"queries": 1 << args.queries, "reps": args.reps, "threads": args.threads, "rows": rows,
            "command": "benchmarks/normal_sources.py " + " ".join(sys.argv[1:] if argv is None else argv)}
-    summary = {}
-    for model in args.models.split(","):
-        for config in CONFIGS:
-            r = [x["ratio"] for x in rows if x["model"] == model and x["config"] == config]
-            o = [x["ops_ratio"] for x in rows if x["model"] == model and x["config"] == config]
-            summary[f"{model}/{config}"] = {"max": max(r), "geomean": float(np.exp(np.mean(np.log(r)))),
-                                            "ops_max": max(o), "ops_geomean": float(np.exp(np.mean(np.log(o))))}
-    out["summary"] = summary
+    out["summary"] = summarize(rows, args.models.split(","))
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "normal_sources.json").write_text(json.dumps(out, indent=1))
-    md = ["# Cost per query of the other normal sources (issue 17)", "",
-          f"`{out['command']}`: {out['queries']} queries, median of {args.reps} interleaved pairs; ratio = "
-          "time with the option / time of the same model on the normal map (eval, eval_pdf, sample; "
-          "diffuse and roughplastic). Acceptance: ≤ 1.10. CPU time of the process with "
-          + ("the kernels on the calling thread (exact clock)" if args.threads == 0 else
-             f"{args.threads} worker threads (clock of the other threads quantised to the scheduler tick)")
-          + ".", "",
-          "*ops*: operations in the JIT kernels of one call (Dr.Jit's kernel history), the same ratio "
-          "without timing noise.", "",
-          "| model | config | time ratio geomean | time ratio max | ops ratio geomean | ops ratio max |",
-          "|---|---|---|---|---|---|"]
-    for k, v in summary.items():
-        m, c = k.split("/")
-        md.append(f"| {m} | {c} | {v['geomean']:.3f} | {v['max']:.3f} | {v['ops_geomean']:.3f} | {v['ops_max']:.3f} |")
-    md += ["", "| model | nested | config | call | ns/query | normal map ns/query | ratio (IQR) | ops | normal map ops |",
-           "|---|---|---|---|---|---|---|---|---|"]
-    for x in rows:
-        md.append(f"| {x['model']} | {x['nested']} | {x['config']} | {x['call']} | {x['ns_per_query']:.0f} | "
-                  f"{x['ref_ns_per_query']:.0f} | {x['ratio']:.3f} ({x['ratio_q1']:.2f}–{x['ratio_q3']:.2f}) | "
-                  f"{x['ops']} | {x['ref_ops']} |")
-    (args.out / "normal_sources.md").write_text("\n".join(md) + "\n")
+    (args.out / "normal_sources.md").write_text(markdown(out))
     print(f"wrote {args.out / 'normal_sources'}.{{json,md}}")
     return 0
 

@@ -52,7 +52,8 @@ def forwarding_base():
     return Forwarding
 
 
-def register():
+def counting_class():
+    """``bench_counting``: a forwarding BSDF that counts, per query lane, its calls and call sites."""
     import drjit as dr
     import mitsuba as mi
 
@@ -76,6 +77,14 @@ def register():
 
         def to_string(self):
             return f"Counting[{self.inner}]"
+
+    return Counting
+
+
+def stub_class():
+    """``bench_stub``: a grey Lambertian in closed form."""
+    import drjit as dr
+    import mitsuba as mi
 
     class Stub(mi.BSDF):
         """f = 0.5/π (albedo 0.5), cosine-weighted sampling; nothing else."""
@@ -110,6 +119,14 @@ def register():
         def to_string(self):
             return "Stub[Lambertian 0.5]"
 
+    return Stub
+
+
+def total_class():
+    """``bench_total``: a forwarding BSDF that adds its calls' active lanes to COUNTERS."""
+    import drjit as dr
+    import mitsuba as mi
+
     class Total(forwarding_base()):
         """The BSDF ``bsdf``, each call adding its active lanes to COUNTERS[label][op]."""
 
@@ -125,9 +142,15 @@ def register():
         def to_string(self):
             return f"Total[{self.label}: {self.inner}]"
 
-    mi.register_bsdf("bench_counting", lambda props: Counting(props))
-    mi.register_bsdf("bench_stub", lambda props: Stub(props))
-    mi.register_bsdf("bench_total", lambda props: Total(props))
+    return Total
+
+
+def register():
+    """Register ``bench_counting``, ``bench_stub`` and ``bench_total`` in the current variant."""
+    import mitsuba as mi
+    for name, cls in (("bench_counting", counting_class()), ("bench_stub", stub_class()),
+                      ("bench_total", total_class())):
+        mi.register_bsdf(name, lambda props, cls=cls: cls(props))
 
 
 def wrap_totals(scene: dict) -> dict:

@@ -32,15 +32,15 @@ Metrics:
 3. noise at equal time: relMSE against a high-spp reference of the same
    method, each method at the spp it reaches in the built-in's time budget
    (from metric 1), as the ratio to the built-in's relMSE. Scored only where the
-   methods render the same content (issue 18's decision): every scene under the
+   methods render the same content: every scene under the
    benchmark's sky without its sun disc (``sunless``), the constant-map control (d)
    included. The full sky's ratios are reported, not scored: the microfacet models
    render sun glints through tangent-facet paths that classic normal mapping does not
    have, and so they do on the constant map (its tangent facet is as tilted as the
-   map's: at stop 22 the control's full-sky walk cells measured 7.2-14.5x at GGX 0.05).
+   map's: in RESULTS.md the control's full-sky walk cells are 7.2-15x at GGX 0.05).
    For estimators with a heavy tail (the mirror-facet walks over GGX 0.05) one such
    number (6 renders, a 256-spp reference) is itself noisy: repeated over independent
-   seed blocks it spreads 7-31x (benchmarks/fused_noise.py, which pools the blocks);
+   seed blocks it spreads 7-31x (docs/diagnoses.md);
 4. BSDF throughput: sample/eval queries per second on 2^20 random queries
    (random wi, wo, and normals from a texture), random-walk lengths, nested
    calls per query, and the share of time spent in nested BSDF calls (the
@@ -115,16 +115,12 @@ SCENE_TITLES = {"demo": "(a) demo: sphere + ground", "model": "(b) torus knot, 2
 CONTROL_NORMAL = (40.0, 0.0)
 
 VARIANT = "llvm_ad_rgb"          # --variant
-# The integrator every method renders under (--integrator): Mitsuba's "path", or "mfnormal_path"
-# (mfnormal.plugins.mfnormal_path: path calling the plugin's fused eval_pdf_sample). The built-in renders
-# under it too, so that the ratios compare BSDFs under one integrator (mfnormal_path renders the
-# built-in faster than path does, 0.82-0.97x, benchmarks/fused.md: that is not the plugin's merit),
-# and is timed once more under path (a row with no target, "integrator_ratio").
+# The integrators a profile can render under (Profile.integrator, --integrator): Mitsuba's "path",
+# or "mfnormal_path" (mfnormal.plugins.mfnormal_path: path calling the plugin's fused eval_pdf_sample).
 INTEGRATORS = ("path", "mfnormal_path")
-INTEGRATOR = "path"
 MAX_DEPTH = 8
 
-# Targets: the method's value / the built-in's (issue 18).
+# Targets: the method's value / the built-in's.
 TIME_TARGET = {"faithful": 1.25, "analytic": 1.25, "separable": 1.5, "nonseparable": 1.6}
 NOISE_TARGET = {"faithful": 1.3, "analytic": 1.3, "walk_diffuse": 3.0, "walk_conductor": 6.0}
 # The models with a deterministic eval (the rest are random walks).
@@ -150,13 +146,18 @@ class Profile:
     stub_reps: int
     compile_warm_reps: int
     # Metric 2's cold runs per method (fresh processes, interleaved over the methods): the row is
-    # the median run. One cold compile moves by ±20 % on a shared machine (run to run, stop 26).
+    # the median run. One cold compile moves by ±20 % from run to run on a shared machine.
     compile_runs: int = 1
     metrics: tuple = ("render", "noise", "compile", "throughput")
     compile_scenes: tuple = ()      # the scenes of metric 2 (empty: every scene)
     # Metric 1's path vertices per camera sample, counted at this (width, height) for every method
     # (probes.count_calls; a counted render is not timed); None: not counted.
     vertex_size: tuple | None = None
+    # The integrator every method renders under, the built-in's included, so that the ratios
+    # compare BSDFs under one integrator (mfnormal_path renders the built-in faster than path
+    # does, 0.82-0.97x, docs/diagnoses.md: that is not the plugin's merit); under another than
+    # path the built-in is timed once more under path (a row with no target).
+    integrator: str = "path"
 
 
 FULL = Profile("full", SCENES, tuple(NESTED), METHOD_KEYS, width=192, height=144, spp=16, reps=5,
@@ -351,9 +352,9 @@ def scene_dict(name: str, assets: dict, method: str, nested: str, width: int, he
     return swap_bsdfs(base, method, nested_spec(nested, probe))
 
 
-def method_integrator(method: str) -> str:
-    """The integrator ``method`` renders under: INTEGRATOR, the built-in's included."""
-    return INTEGRATOR
+def method_integrator(prof: Profile, method: str) -> str:
+    """The integrator ``method`` renders under in ``prof``: the profile's, the built-in's included."""
+    return prof.integrator
 
 
 def load_scene(name, assets, method, nested, width, height, spp, sunless=False, probe=None, integrator="path"):
@@ -676,7 +677,7 @@ def throughput(nested: str, methods, prof: Profile) -> list:
 def render_metrics(scene: str, nested: str, assets: dict, prof: Profile) -> tuple:
     """Metrics 1 and 3 of one scene and nested BSDF: (render-time rows, noise rows)."""
     W, H, spp = prof.width, prof.height, prof.spp
-    scenes = {m: load_scene(scene, assets, m, nested, W, H, spp, integrator=method_integrator(m))
+    scenes = {m: load_scene(scene, assets, m, nested, W, H, spp, integrator=method_integrator(prof, m))
               for m in prof.methods}
     for m in prof.methods:                              # JIT-compile (warm-up)
         timed_render(scenes[m], spp, 0)
@@ -705,22 +706,22 @@ def render_time(scene, nested, assets, prof, scenes) -> list:
                        "target": target, "pass": ratio <= target})
         log(f"  time   {scene:7s} {nested:12s} {m:22s} {median(tm):6.3f} s vs {median(tb):6.3f} s"
             f"  ratio {ratio:5.2f} [{min(ratios):.2f}, {max(ratios):.2f}]")
-    if INTEGRATOR != "path":
-        # The integrators themselves: the built-in under INTEGRATOR against it under path.
+    if prof.integrator != "path":
+        # The integrators themselves: the built-in under prof.integrator against it under path.
         own = load_scene(scene, assets, "builtin", nested, W, H, spp)
         timed_render(own, spp, 0)
         timed_render(scenes["builtin"], spp, 0)       # (a new scene's BSDFs may change its kernel)
         tb, tm, ratios = interleaved_pairs(own, scenes["builtin"], spp, prof.reps)
         timing.append({"profile": prof.name, "scene": scene, "nested": nested, "method": "builtin",
-                       "integrator": INTEGRATOR, "builtin_s": median(tb), "method_s": median(tm),
+                       "integrator": prof.integrator, "builtin_s": median(tb), "method_s": median(tm),
                        "ratio": median(ratios), "ratios": ratios, "ratio_min": min(ratios),
                        "ratio_max": max(ratios), "target": None, "pass": None})
-        log(f"  time   {scene:7s} {nested:12s} builtin under {INTEGRATOR} / under path: {median(ratios):5.2f}")
+        log(f"  time   {scene:7s} {nested:12s} builtin under {prof.integrator} / under path: {median(ratios):5.2f}")
     for row in timing:
         if row["pass"] is not False or prof.name == "production":
             continue
         stubbed = load_scene(scene, assets, row["method"], nested, W, H, spp, probe="stub",
-                             integrator=method_integrator(row["method"]))
+                             integrator=method_integrator(prof, row["method"]))
         timed_render(stubbed, spp, 0)
         ts = median([timed_render(stubbed, spp, 300 + r)[0] for r in range(3)])
         row.update(stub_s=ts, stub_ratio=ts / row["builtin_s"],
@@ -739,7 +740,7 @@ def path_vertices(scene, nested, method, assets, prof) -> float:
     import probes            # benchmarks/probes.py (registered by import_mitsuba)
     W, H = prof.vertex_size
     d = scene_dict(scene, assets, method, nested, W, H, prof.spp)
-    return probes.path_vertices(probes.count_calls(with_integrator(d, method_integrator(method)), prof.spp,
+    return probes.path_vertices(probes.count_calls(with_integrator(d, method_integrator(prof, method)), prof.spp,
                                                    W * H * prof.spp))
 
 
@@ -771,7 +772,7 @@ def noise_metrics(scene, nested, assets, prof, scenes, ratio_of) -> list:
                       "relmse_raw": n["relmse_raw"], "ref_mean": n["ref_mean"], "top_pixel_error_share": n["top"]})
     for row in noise:
         n = equal_time_noise(load_scene(scene, assets, row["method"], nested, W, H, prof.spp, sunless=True,
-                                        integrator=method_integrator(row["method"])), row["spp"], prof)
+                                        integrator=method_integrator(prof, row["method"])), row["spp"], prof)
         row["sunless_relmse"] = n["relmse"]
     base = next(r for r in noise if r["method"] == "builtin")
     for row in noise:
@@ -931,80 +932,87 @@ def mark(ok):
 
 def why_lines(results: dict) -> list:
     """Evidence for each failing target, from the throughput and kernel measurements."""
-    tput = {(r["nested"], r["method"]): r for r in results["throughput"]}
-    comp = {(c["scene"], c["nested"], c["method"]): c for c in results["compile"]}
-    lines = []
     fails_t = [c for c in results["render_time"] if c["pass"] is False]
     fails_n = [c for c in results["noise"] if c.get("pass") is False]
     fails_c = [c for c in results["compile"] if c.get("pass") is False]
-    if fails_t:
-        lines.append("**Render time.** For each miss: the path vertices per camera sample against the "
-                     "built-in's and the time ratio per path vertex (profiles that count them), the "
-                     "render time ratio with the nested calls "
-                     "replaced by a closed-form stub (what the model's own logic costs), the share "
-                     "of the render spent in nested calls, and the BSDF-level costs of metric 4 "
-                     "(nested calls per query executed / SIMD: every call site runs on all lanes of "
-                     "a packet until its longest walk ends):")
-        lines.append("")
-        lines.append("| scene | nested | method | time ratio | path vertices per sample / built-in's | "
-                     "time ratio per path vertex | stubbed ratio | nested share of render | "
-                     "eval / sample slowdown | nested calls / eval | nested calls / sample | "
-                     "walk mean / p99 / SIMD bounces (coherent) |")
-        lines.append("|---|---|---|---|---|---|---|---|---|---|---|---|")
-        for c in fails_t:
-            r = tput.get((c["nested"], c["method"]), {})
-            w, wc = r.get("sample_walk") or {}, r.get("sample_walk_coherent") or {}
-            walk = (f"{fmt(w.get('mean'))} / {fmt(w.get('p99'), '.0f')} / {fmt(wc.get('packet_max_mean'))}"
-                    if w else "no walk")
-            calls = {m: (f"{fmt(sum(r[f'{m}_nested_calls'].values()))} / "
-                         f"{fmt(r.get(f'{m}_simd_nested_calls_coherent'))}") if f"{m}_nested_calls" in r else "–"
-                     for m in ("eval", "sample")}
-            share = c.get("render_nested_share")
-            lines.append(
-                f"| {c['scene']} | {c['nested']} | {c['method']} | {fmt(c['ratio'])} | "
-                f"{fmt(c.get('vertex_ratio'), '.3f')} | {fmt(c.get('ratio_per_vertex'))} | {fmt(c.get('stub_ratio'))} | "
-                f"{fmt(None if share is None else 100 * share, '.0f')} % | "
-                f"{fmt(r.get('eval_slowdown'))}× / {fmt(r.get('sample_slowdown'))}× | {calls['eval']} | "
-                f"{calls['sample']} | {walk} |")
-        lines.append("")
-    if fails_c:
-        lines.append("**JIT compile.** Kernel size (Dr.Jit operations in the largest kernel of the "
-                     "first render) against the built-in's, for the failing cells:")
-        lines.append("")
-        lines.append("| scene | nested | method | compile s (built-in) | LLVM backend s | ops (built-in) | "
-                     "compile s / ops with nested calls stubbed |")
-        lines.append("|---|---|---|---|---|---|---|")
-        for c in fails_c:
-            b = comp.get((c["scene"], c["nested"], "builtin"), {})
-            lines.append(f"| {c['scene']} | {c['nested']} | {c['method']} | {fmt(c['compile_s'])} "
-                         f"({fmt(b.get('compile_s'))}) | {fmt(c.get('backend_s'))} | "
-                         f"{c.get('max_kernel_ops')} ({b.get('max_kernel_ops')}) | "
-                         f"{fmt(c.get('stub_compile_s'))} / {c.get('stub_max_kernel_ops', '–')} |")
-        lines.append("")
-    if fails_n:
-        lines.append("**Equal-time noise.** The failing content-equal cells, scored without the sun "
-                     "disc; beside them the full-sky ratio. relMSE ratio = (per-sample variance ratio) × "
-                     "(time ratio): which of the two dominates (under the full sky):")
-        lines.append("")
-        lines.append("| scene | nested | method | relMSE ratio, sky without its sun disc (scored) | target | "
-                     "full-sky relMSE ratio | per-sample variance ratio | time ratio | reference mean / "
-                     "built-in's | error share of worst 0.1 % pixels (built-in) |")
-        lines.append("|---|---|---|---|---|---|---|---|---|---|")
-        noise = {(c["scene"], c["nested"], c["method"]): c for c in results["noise"]}
-        for c in fails_n:
-            b = noise.get((c["scene"], c["nested"], "builtin"), {})
-            lines.append(f"| {c['scene']} | {c['nested']} | {c['method']} | {fmt(c.get('scored_ratio'))} "
-                         f"{mark(c['pass'])} | {fmt(c['target'], '.1f')} | {fmt(c['relmse_ratio'])} | "
-                         f"{fmt(c['variance_per_sample_ratio'])} | {fmt(c['time_ratio'])} | "
-                         f"{fmt(c.get('ref_mean_ratio'))} | {fmt(c.get('top_pixel_error_share'))} "
-                         f"({fmt(b.get('top_pixel_error_share'))}) |")
-        lines.append("")
-        lines.append("A large per-sample variance ratio with a similar reference mean and most of the "
-                     "error in a few pixels points at fireflies or sub-pixel glints; "
-                     "`benchmarks/experiments.py` (control, evalnoise, mispdf) and "
-                     "`benchmarks/noise_anatomy.py` (the path tracer's two strategies) separate them.")
-        lines.append("")
-    return lines
+    return ((why_time_lines(results, fails_t) if fails_t else [])
+            + (why_compile_lines(results, fails_c) if fails_c else [])
+            + (why_noise_lines(results, fails_n) if fails_n else []))
+
+
+def table_lines(intro: str, header: list, rows: list) -> list:
+    """Markdown lines: a paragraph, then a table of ``header`` over ``rows`` (each a list of cells)."""
+    return ([intro, "", "| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+            + ["| " + " | ".join(row) + " |" for row in rows] + [""])
+
+
+def why_time_lines(results: dict, fails: list) -> list:
+    """The render-time misses with their path vertices, stubbed ratio and BSDF-level costs."""
+    tput = {(r["nested"], r["method"]): r for r in results["throughput"]}
+    rows = []
+    for c in fails:
+        r = tput.get((c["nested"], c["method"]), {})
+        w, wc = r.get("sample_walk") or {}, r.get("sample_walk_coherent") or {}
+        walk = (f"{fmt(w.get('mean'))} / {fmt(w.get('p99'), '.0f')} / {fmt(wc.get('packet_max_mean'))}"
+                if w else "no walk")
+        calls = {m: (f"{fmt(sum(r[f'{m}_nested_calls'].values()))} / "
+                     f"{fmt(r.get(f'{m}_simd_nested_calls_coherent'))}") if f"{m}_nested_calls" in r else "–"
+                 for m in ("eval", "sample")}
+        share = c.get("render_nested_share")
+        rows.append([c["scene"], c["nested"], c["method"], fmt(c["ratio"]), fmt(c.get("vertex_ratio"), ".3f"),
+                     fmt(c.get("ratio_per_vertex")), fmt(c.get("stub_ratio")),
+                     f"{fmt(None if share is None else 100 * share, '.0f')} %",
+                     f"{fmt(r.get('eval_slowdown'))}× / {fmt(r.get('sample_slowdown'))}×",
+                     calls["eval"], calls["sample"], walk])
+    return table_lines(
+        "**Render time.** For each miss: the path vertices per camera sample against the "
+        "built-in's and the time ratio per path vertex (profiles that count them), the "
+        "render time ratio with the nested calls "
+        "replaced by a closed-form stub (what the model's own logic costs), the share "
+        "of the render spent in nested calls, and the BSDF-level costs of metric 4 "
+        "(nested calls per query executed / SIMD: every call site runs on all lanes of "
+        "a packet until its longest walk ends):",
+        ["scene", "nested", "method", "time ratio", "path vertices per sample / built-in's",
+         "time ratio per path vertex", "stubbed ratio", "nested share of render", "eval / sample slowdown",
+         "nested calls / eval", "nested calls / sample", "walk mean / p99 / SIMD bounces (coherent)"], rows)
+
+
+def miss_table(intro: str, header: list, fails: list, measured: list, cells) -> list:
+    """:func:`table_lines` of the failing cells ``fails``, a row ``cells(c, b)`` per cell c, b the
+    built-in's row of c's scene and nested BSDF in ``measured`` (or {})."""
+    base = {(r["scene"], r["nested"]): r for r in measured if r["method"] == "builtin"}
+    return table_lines(intro, header, [cells(c, base.get((c["scene"], c["nested"]), {})) for c in fails])
+
+
+def why_compile_lines(results: dict, fails: list) -> list:
+    """The compile misses with their kernel sizes against the built-in's."""
+    return miss_table(
+        "**JIT compile.** Kernel size (Dr.Jit operations in the largest kernel of the "
+        "first render) against the built-in's, for the failing cells:",
+        ["scene", "nested", "method", "compile s (built-in)", "LLVM backend s", "ops (built-in)",
+         "compile s / ops with nested calls stubbed"], fails, results["compile"],
+        lambda c, b: [c["scene"], c["nested"], c["method"], f"{fmt(c['compile_s'])} ({fmt(b.get('compile_s'))})",
+                      fmt(c.get("backend_s")), f"{c.get('max_kernel_ops')} ({b.get('max_kernel_ops')})",
+                      f"{fmt(c.get('stub_compile_s'))} / {c.get('stub_max_kernel_ops', '–')}"])
+
+
+def why_noise_lines(results: dict, fails: list) -> list:
+    """The equal-time noise misses: variance or time, and how concentrated the error is."""
+    return miss_table(
+        "**Equal-time noise.** The failing content-equal cells, scored without the sun "
+        "disc; beside them the full-sky ratio. relMSE ratio = (per-sample variance ratio) × "
+        "(time ratio): which of the two dominates (under the full sky):",
+        ["scene", "nested", "method", "relMSE ratio, sky without its sun disc (scored)", "target",
+         "full-sky relMSE ratio", "per-sample variance ratio", "time ratio", "reference mean / built-in's",
+         "error share of worst 0.1 % pixels (built-in)"], fails, results["noise"],
+        lambda c, b: [c["scene"], c["nested"], c["method"], f"{fmt(c.get('scored_ratio'))} {mark(c['pass'])}",
+                      fmt(c["target"], ".1f"), fmt(c["relmse_ratio"]), fmt(c["variance_per_sample_ratio"]),
+                      fmt(c["time_ratio"]), fmt(c.get("ref_mean_ratio")),
+                      f"{fmt(c.get('top_pixel_error_share'))} ({fmt(b.get('top_pixel_error_share'))})"]) + [
+        "A large per-sample variance ratio with a similar reference mean and most of the "
+        "error in a few pixels points at fireflies or sub-pixel glints; "
+        "`benchmarks/experiments.py` (control, evalnoise, mispdf) and "
+        "the path tracer's two strategies (docs/diagnoses.md) separate them.", ""]
 
 
 def cell_table(results: dict, prof: dict) -> list:
@@ -1066,21 +1074,52 @@ def cell_table(results: dict, prof: dict) -> list:
     return L
 
 
-def backward_section(results: dict) -> list:
-    """The reverse-mode benchmark's table (benchmarks/backward.py, run by the full run) and its link."""
+def backward_section(results: dict, folder: Path) -> list:
+    """The reverse-mode benchmark's table (benchmarks/backward.py, run by the full run, its files
+    beside RESULTS.md in ``folder``) and its link."""
     b = results.get("backward")
     if not b:
         return []
     L = ["## Backward pass (benchmarks/backward.py)", ""]
     if "error" in b:
         return L + [f"Not recorded: {b['error']}", ""]
-    text = Path(b["md"]).read_text() if Path(b["md"]).exists() else ""
+    name = Path(b["md"]).name
+    text = (folder / name).read_text() if (folder / name).exists() else ""
     table = [ln for ln in text.splitlines() if ln.startswith("|")]
-    return L + [f"`{b['command']}` ({b['duration_s']:.0f} s), from [{Path(b['md']).name}]({Path(b['md']).name}):",
-                ""] + table + [""]
+    return L + [f"`{b['command']}` ({b['duration_s']:.0f} s), from [{name}]({name}):", ""] + table + [""]
 
 
 def write_markdown(results: dict, path: Path):
+    """RESULTS.md at ``path``: the run, the targets, each profile's cells, the backward pass,
+    throughput and why targets fail."""
+    L = header_lines(results)
+    if results.get("notes"):
+        L += ["Notes:", ""] + [f"- {n}" for n in results["notes"]] + [""]
+
+    L += ["## Targets", "", "| target | cells passing | worst | status |", "|---|---|---|---|"]
+    for s in results["summary"]:
+        L.append(f"| {s['target']} | {s['passed']}/{s['cells']} | {fmt(s['worst'])} | {s['status']} |")
+    L.append("")
+
+    # One table per profile: every (scene, nested, method).
+    for prof in results.get("configs", [results["config"]]):
+        L += cell_table(results, prof)
+    L += backward_section(results, path.parent)
+    L += throughput_lines(results)
+
+    why = why_lines(results)
+    if why:
+        L += ["## Why targets fail", ""] + why
+        if (path.parent / "experiments.md").exists():
+            L += ["What-if variants of the model code (RNG, bounce cap, merged nested calls, reuse of "
+                  "the sampled term) and the noise diagnostics: [experiments.md](experiments.md) "
+                  "(`python benchmarks/experiments.py`).", ""]
+    L += ["## Reproduce", "", "```sh", results["command"], "```", ""]
+    path.write_text("\n".join(L))
+
+
+def header_lines(results: dict) -> list:
+    """RESULTS.md's title and the run's command, machine, code and profiles."""
     m, cfg = results["machine"], results["config"]
     L = ["# mfnormal benchmark: `normalmap_microfacet` vs Mitsuba's `normalmap`", ""]
     if cfg["name"] == "quick":
@@ -1105,35 +1144,28 @@ def write_markdown(results: dict, path: Path):
                else f", metrics: {', '.join(p['metrics'])}")
             for p in results.get("configs", [cfg])],
           ""]
-    if results.get("notes"):
-        L += ["Notes:", ""] + [f"- {n}" for n in results["notes"]] + [""]
+    return L
 
-    L += ["## Targets", "", "| target | cells passing | worst | status |", "|---|---|---|---|"]
-    for s in results["summary"]:
-        L.append(f"| {s['target']} | {s['passed']}/{s['cells']} | {fmt(s['worst'])} | {s['status']} |")
-    L.append("")
 
-    # One table per profile: every (scene, nested, method).
-    for prof in results.get("configs", [cfg]):
-        L += cell_table(results, prof)
-    L += backward_section(results)
-
-    L += ["## BSDF throughput (metric 4)", "",
-          f"{results['config']['queries']} queries: wi, wo uniform on the hemisphere, normals from a "
-          "256² texture of random normals (θ_p uniform in [0°, 75°], nearest filtering). "
-          "Mq/s = 10⁶ queries per second (wall, median). Nested calls: nested BSDF calls "
-          "per query that reach the nested BSDF (eval + pdf + eval_pdf + sample), and in "
-          "brackets the calls the CPU runs per query (a packet runs every call site on all its "
-          "lanes until its longest walk ends; random lanes). Walk: facet bounces of the random "
-          "walk per query in `sample` (the walk loop's counter; a mirror bounce shares its "
-          "loop iteration with the next nested vertex); SIMD = the mean over "
-          f"{m['simd_lanes']}-lane packets of the longest walk in the packet (what the CPU "
-          "executes), for random lanes / for packets that share wi and the normal. Nested "
-          "share: 1 − time with the nested BSDF replaced by a closed-form Lambertian stub.", "",
-          "| nested | method | sample Mq/s | eval Mq/s | sample ×builtin | eval ×builtin | "
-          "nested calls sample / eval | walk mean / p99 / max | SIMD bounces random / coherent | "
-          "nested share sample / eval |",
-          "|---|---|---|---|---|---|---|---|---|---|"]
+def throughput_lines(results: dict) -> list:
+    """Metric 4's section: queries per second, nested calls, walk lengths and the nested share."""
+    m = results["machine"]
+    L = ["## BSDF throughput (metric 4)", "",
+         f"{results['config']['queries']} queries: wi, wo uniform on the hemisphere, normals from a "
+         "256² texture of random normals (θ_p uniform in [0°, 75°], nearest filtering). "
+         "Mq/s = 10⁶ queries per second (wall, median). Nested calls: nested BSDF calls "
+         "per query that reach the nested BSDF (eval + pdf + eval_pdf + sample), and in "
+         "brackets the calls the CPU runs per query (a packet runs every call site on all its "
+         "lanes until its longest walk ends; random lanes). Walk: facet bounces of the random "
+         "walk per query in `sample` (the walk loop's counter; a mirror bounce shares its "
+         "loop iteration with the next nested vertex); SIMD = the mean over "
+         f"{m['simd_lanes']}-lane packets of the longest walk in the packet (what the CPU "
+         "executes), for random lanes / for packets that share wi and the normal. Nested "
+         "share: 1 − time with the nested BSDF replaced by a closed-form Lambertian stub.", "",
+         "| nested | method | sample Mq/s | eval Mq/s | sample ×builtin | eval ×builtin | "
+         "nested calls sample / eval | walk mean / p99 / max | SIMD bounces random / coherent | "
+         "nested share sample / eval |",
+         "|---|---|---|---|---|---|---|---|---|---|"]
     for r in results["throughput"]:
         w, wc = r.get("sample_walk"), r.get("sample_walk_coherent")
         walk = f"{fmt(w['mean'])} / {fmt(w['p99'], '.0f')} / {fmt(w['max'], '.0f')}" if w else "–"
@@ -1153,16 +1185,7 @@ def write_markdown(results: dict, path: Path):
             f"{k} sample {v['sample_qps'] / 1e6:.2f} / eval {v['eval_qps'] / 1e6:.2f} / pdf "
             f"{v['pdf_qps'] / 1e6:.2f} Mq/s" for k, v in nested_alone.items()) + ".")
         L.append("")
-
-    why = why_lines(results)
-    if why:
-        L += ["## Why targets fail", ""] + why
-        if (path.parent / "experiments.md").exists():
-            L += ["What-if variants of the model code (RNG, bounce cap, merged nested calls, reuse of "
-                  "the sampled term) and the noise diagnostics: [experiments.md](experiments.md) "
-                  "(`python benchmarks/experiments.py`).", ""]
-    L += ["## Reproduce", "", "```sh", results["command"], "```", ""]
-    path.write_text("\n".join(L))
+    return L
 
 
 # ---------------------------------------------------------------------------
@@ -1182,7 +1205,7 @@ def parse_args(argv):
     ap.add_argument("--nested", help=f"comma-separated subset of {','.join(NESTED)}")
     ap.add_argument("--skip", default="", help="comma-separated metrics to skip: render,compile,throughput,backward")
     ap.add_argument("--integrator", choices=INTEGRATORS, default="path",
-                    help="the integrator the methods render under (default path; the built-in: always path)")
+                    help="the integrator every method renders under, the built-in's included (default path)")
     ap.add_argument("--report-only", action="store_true",
                     help="rewrite RESULTS.md from the results.json already in --out")
     ap.add_argument("--worker", help=argparse.SUPPRESS)
@@ -1192,6 +1215,7 @@ def parse_args(argv):
 def selected_profiles(ap, args) -> list:
     profiles = [copy.copy(p) for p in ((QUICK,) if args.quick else PROFILES[args.profile])]
     for prof in profiles:
+        prof.integrator = args.integrator
         if args.scenes:
             bad = {s for s in args.scenes.split(",") if s} - set(SCENES)
             if bad:
@@ -1218,8 +1242,6 @@ def main(argv=None) -> int:
         log(f"wrote {Path(args.out) / 'RESULTS.md'}")
         return 0
     profiles = selected_profiles(ap, args)
-    global INTEGRATOR
-    INTEGRATOR = args.integrator
     skip = set(filter(None, args.skip.split(",")))
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -1242,7 +1264,7 @@ def main(argv=None) -> int:
         "configs": [asdict(p) for p in profiles],
         "targets": {"render_time": TIME_TARGET, "noise": NOISE_TARGET, "compile": COMPILE_TARGET},
         "render_time": [], "noise": [], "compile": [], "throughput": [], "notes": [],
-        "integrator": INTEGRATOR,
+        "integrator": args.integrator,
     }
     log(f"mfnormal benchmark ({', '.join(p.name for p in profiles)}, {mi.variant()}): "
         f"{results['machine']['cpu']}, {results['machine']['cores']} cores, "
@@ -1315,7 +1337,7 @@ def compile_metrics(s: str, nested: str, assets: dict, prof: Profile, variant: s
     runs = {m: [] for m in prof.methods}
     for _ in range(prof.compile_runs):
         for m in prof.methods:
-            runs[m].append(run_worker(dict(job, method=m, integrator=method_integrator(m))))
+            runs[m].append(run_worker(dict(job, method=m, integrator=method_integrator(prof, m))))
     for m in prof.methods:
         r = median_run(runs[m])
         r.update(profile=prof.name, scene=s, nested=nested, method=m)
@@ -1337,7 +1359,7 @@ def compile_metrics(s: str, nested: str, assets: dict, prof: Profile, variant: s
         r["pass"] = None if r["method"] == "builtin" else r["compile_ratio"] <= COMPILE_TARGET
         if r["pass"] is False and prof.name != "production":
             # Profile: the same configuration with the nested calls stubbed out.
-            st = run_worker(dict(job, method=r["method"], stub=True, integrator=method_integrator(r["method"])))
+            st = run_worker(dict(job, method=r["method"], stub=True, integrator=method_integrator(prof, r["method"])))
             if "error" not in st:
                 r.update(stub_compile_s=st["compile_s"], stub_max_kernel_ops=st["max_kernel_ops"],
                          stub_backend_s=st["backend_s"])
@@ -1345,15 +1367,16 @@ def compile_metrics(s: str, nested: str, assets: dict, prof: Profile, variant: s
 
 
 def run_backward(out: Path, variant: str) -> dict:
-    """benchmarks/backward.py (its defaults) into ``out``: where its table is, or why not."""
+    """benchmarks/backward.py (its defaults) into ``out``: its files there (names relative to
+    ``out``), or why not."""
     cmd = [sys.executable, str(HERE / "backward.py"), "--out", str(out), "--variant", variant]
     log("[backward] " + shlex.join(cmd))
     t0 = time.time()
     proc = subprocess.run(cmd, capture_output=True, text=True)
     if proc.returncode != 0:
         return {"error": f"backward.py exited {proc.returncode}: {(proc.stderr or proc.stdout).strip()[-300:]}"}
-    return {"command": f"benchmarks/backward.py --variant {variant}", "md": str(out / "backward.md"),
-            "json": str(out / "backward.json"), "duration_s": time.time() - t0}
+    return {"command": f"benchmarks/backward.py --variant {variant}", "md": "backward.md",
+            "json": "backward.json", "duration_s": time.time() - t0}
 
 
 def busy_note(load_start: float, load_end: float, cores: int):

@@ -53,7 +53,7 @@ def test_quick_benchmark_writes_json_with_every_method_and_metric(quick_run):
 
 
 def test_quick_benchmark_scores_noise_without_the_sun_disc_on_every_scene(quick_run):
-    """Issue 18's scoring: relMSE is scored where the methods render the same content, the sky
+    """The noise scoring: relMSE is scored where the methods render the same content, the sky
     without its sun disc, on every scene, the constant-map control included (under the full sky
     its tangent facets add sun glints the built-in lacks); the full-sky ratio is reported beside it."""
     results = json.loads((quick_run / "results.json").read_text())
@@ -129,23 +129,6 @@ def test_normal_sources_benchmark_runs_and_reports_every_config(tmp_path):
     assert all(r["ratio"] > 0 for r in rows)
 
 
-def test_fused_noise_benchmark_pools_blocks_under_both_integrators(tmp_path):
-    """``benchmarks/fused_noise.py`` at a tiny size (one cell, two seed blocks, 16×12): one finite
-    relMSE per block for the built-in and for the walk under each integrator, the first block on
-    the benchmark's own seeds (20000), and the table beside the JSON."""
-    out = tmp_path / "fused_noise.json"
-    proc = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "fused_noise.py"), "--cells",
-                           "plane:diffuse:separable_specular", "--blocks", "2", "--size", "16x12",
-                           "--ref-spp", "64", "--out", str(out)], cwd=ROOT, capture_output=True, text=True,
-                          timeout=600)
-    assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
-    (row,) = json.loads(out.read_text())["rows"]
-    assert row["bases"] == [20000, 21000]
-    for key in ("builtin/path", "path", "mfnormal_path"):
-        assert len(row[key]) == 2 and all(0 < x < float("inf") for x in row[key]), (key, row[key])
-    assert "| plane:diffuse:separable_specular | 2 |" in out.with_suffix(".md").read_text()
-
-
 def test_integrator_option_swaps_every_methods_path_tracer():
     """``--integrator mfnormal_path``: every method's scene gets it, the built-in's included (one
     integrator for the ratios); a scene without a path integrator is an error."""
@@ -154,13 +137,13 @@ def test_integrator_option_swaps_every_methods_path_tracer():
     swapped = R.with_integrator(scene, "mfnormal_path")
     assert swapped["integrator"] == {"type": "mfnormal_path", "max_depth": 8}
     assert scene["integrator"]["type"] == "path" and R.with_integrator(scene, "path") is scene
-    old = R.INTEGRATOR
-    try:
-        R.INTEGRATOR = "mfnormal_path"
-        assert R.method_integrator("builtin") == "mfnormal_path"
-        assert R.method_integrator("separable_same") == "mfnormal_path"
-    finally:
-        R.INTEGRATOR = old
+    ap, args = R.parse_args(["--profile", "all", "--integrator", "mfnormal_path"])
+    profiles = R.selected_profiles(ap, args)
+    assert profiles and all(p.integrator == "mfnormal_path" for p in profiles)
+    for prof in profiles:
+        assert R.method_integrator(prof, "builtin") == "mfnormal_path"
+        assert R.method_integrator(prof, "separable_same") == "mfnormal_path"
+    assert R.FULL.integrator == "path"          # the module's profiles are left as they are
     with pytest.raises(ValueError):
         R.with_integrator({"type": "scene"}, "mfnormal_path")
 
