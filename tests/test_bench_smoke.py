@@ -53,7 +53,7 @@ def test_quick_benchmark_writes_json_with_every_method_and_metric(quick_run):
 
 
 def test_quick_benchmark_scores_noise_without_the_sun_disc_on_every_scene(quick_run):
-    """Issue 18's scoring: relMSE is scored where the methods render the same content, the sky
+    """The noise score: relMSE is scored where the methods render the same content, the sky
     without its sun disc, on every scene, the constant-map control included (under the full sky
     its tangent facets add sun glints the built-in lacks); the full-sky ratio is reported beside it."""
     results = json.loads((quick_run / "results.json").read_text())
