@@ -695,8 +695,7 @@ def test_traverse_exposes_parameters_and_strength_updates_eval():
 def test_invalid_parameters_raise_clear_errors(override, word):
     """The plugin's own message (not just Mitsuba's "failed to instantiate
     normalmap_microfacet", which names the plugin anyway) must name the parameter.
-    Mitsuba re-raises the ValueError as a RuntimeError carrying its text.
-    (model='separable' is no longer invalid: the random-walk models exist now.)"""
+    Mitsuba re-raises the ValueError as a RuntimeError carrying its text."""
     spec = {"type": "normalmap_microfacet", "model": "analytic",
             "normalmap": normalmap(encode(sph([30.0]))), "bsdf": NESTED["diffuse"]}
     spec.update(override)

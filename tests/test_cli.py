@@ -6,7 +6,7 @@ under a constant sky. The good scene renders (so a failure below is the bad
 input's, not the fixture's); each bad variant must fail with a single line that
 names the problem, and without a traceback.
 
-The hardening tests (issue 13, second half of the file) check that everything
+The hardening tests (second half of the file) check that everything
 the command line can know before rendering is checked then — sample counts
 from any source, seeds, 32-bit parameters, the output name and folder, film
 size, variant, ``demo`` and ``compare`` arguments — with nothing written; that
@@ -139,7 +139,7 @@ def test_compare_rejects_unknown_methods_and_missing_validation_dir(scenes, tmp_
     assert_one_line_error(proc, "no_such_dir")
 
 
-# -- Hardening (issue 13): everything is checked before the render; outputs are pairs ---------------
+# -- Hardening: everything is checked before the render; outputs are pairs -------------------------
 #
 # These run in a worker process (tests/cli_worker.py: one Mitsuba import for all of them,
 # a time and memory bound, a crash is a failure) unless they need a process of their own.
@@ -322,7 +322,7 @@ def test_one_channel_and_aov_films_are_written(worker, hard, tmp_path):
 
 def test_negative_pixels_are_counted_and_reported(worker, hard, tmp_path):
     """A sky with negative red radiance: the negative pixels are counted in a one-line warning
-    and written as 0 (they used to be clamped silently)."""
+    and written as 0 (not clamped silently)."""
     out = tmp_path / "neg"
     result = worker.run(["render", "negative.xml", "-o", out], cwd=hard)
     assert_rendered(result, out)
@@ -383,7 +383,7 @@ def test_the_innermost_cause_of_a_drjit_error_is_reported():
 
 def test_compare_accepts_width_and_height_defines(worker, hard, tmp_path):
     """compare scales the film itself: -D width/height still set the scene's $width/$height
-    (they used to be substituted and then rejected as unused parameters)."""
+    (not rejected as unused parameters)."""
     out = tmp_path / "cmp"
     result = worker.run(["compare", "params.xml", "--quick", "--methods", "flat,analytic", "-D", "width=40",
                          "-D", "height=30", "-o", out], cwd=hard)
@@ -394,7 +394,7 @@ def test_compare_accepts_width_and_height_defines(worker, hard, tmp_path):
 
 def test_compare_resolves_each_scenes_files_in_its_own_folder(worker, hard, tmp_path):
     """Scene B names a normal map that exists only in scene A's folder: after A, B must fail
-    (Mitsuba's file resolver used to keep A's folder)."""
+    (Mitsuba's file resolver must not keep A's folder)."""
     for name in ("a", "b"):
         (tmp_path / name).mkdir()
         write_scene(tmp_path / name / "scene.xml")

@@ -105,12 +105,16 @@ def test_bad_cluster_values_are_one_line_errors_before_any_work(tmp_path, value)
     assert not (tmp_path / "out.exr").exists()
 
 
-def test_without_the_extra_cluster_is_one_line_that_says_what_to_install(tmp_path, monkeypatch,
-                                                                         capsys):
-    monkeypatch.setitem(sys.modules, "distributed", None)      # import distributed fails
-    rc, _, err = _cli(["render", str(_scene(tmp_path)), "-o", str(tmp_path / "out"),
-                       "--cluster", "local:2"], capsys)
-    assert rc == 2 and "pip install 'mfnormal[cluster]'" in err and len(err.strip().splitlines()) == 1
+def test_without_the_extra_cluster_is_one_line_that_says_what_to_install(tmp_path):
+    blocker = tmp_path / "blocker" / "distributed"     # the extra not installed: import distributed fails
+    blocker.mkdir(parents=True)
+    (blocker / "__init__.py").write_text("raise ModuleNotFoundError(\"No module named 'distributed'\")\n")
+    path = [str(blocker.parent)] + [p for p in os.environ.get("PYTHONPATH", "").split(os.pathsep) if p]
+    proc = subprocess.run([sys.executable, "-m", "mfnormal", "render", str(_scene(tmp_path)), "-o",
+                           str(tmp_path / "out"), "--cluster", "local:2"], capture_output=True, text=True,
+                          env=dict(os.environ, PYTHONPATH=os.pathsep.join(path)), timeout=120)
+    assert_one_line_error(proc, "--cluster needs Dask.distributed", "pip install 'mfnormal[cluster]'")
+    assert proc.returncode == 2
     assert _outputs(tmp_path) == []
 
 
@@ -188,23 +192,39 @@ def test_with_shared_files_the_workers_read_the_scene_from_its_path(tmp_path, cl
     assert spec.params == (("nm", "gray.png"),)
 
 
-def test_workers_with_other_versions_are_refused_with_one_line(tmp_path, cluster, capsys):
+def test_workers_with_another_mfnormal_are_refused_with_one_line(tmp_path, capsys):
+    """A worker that imports another copy of mfnormal (its source differs by one comment, so its
+    version's source hash differs) is refused before any work."""
+    import logging
+    import shutil
+
+    import mfnormal
+    from mfnormal.cli.cluster import _package_version
+
     scene = _scene(tmp_path)
-    client = cluster[1]
-
-    def patch(version):            # on each worker: report another mfnormal, or its own again
-        import mfnormal.cli.cluster as c
-        c.__dict__.setdefault("_own_version", c._package_version)
-        c._package_version = (lambda: version) if version else c._own_version
-
-    client.run(patch, "0.0.0+other")
+    other = tmp_path / "other"
+    shutil.copytree(Path(mfnormal.__file__).parent, other / "mfnormal",
+                    ignore=shutil.ignore_patterns("__pycache__"))
+    with open(other / "mfnormal" / "__init__.py", "a") as f:
+        f.write("# another checkout\n")
+    c = distributed.LocalCluster(n_workers=0, processes=True, dashboard_address=":0",
+                                 silence_logs=logging.CRITICAL)
+    client = distributed.Client(c)
+    worker = subprocess.Popen([sys.executable, "-m", "distributed.cli.dask_worker", c.scheduler_address,
+                               "--nthreads", "1", "--no-nanny", "--no-dashboard"],
+                              env=dict(os.environ, PYTHONPATH=str(other)), cwd=str(tmp_path),
+                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
+        client.wait_for_workers(1, timeout=60)
         rc, _, err = _cli(["render", str(scene), "-o", str(tmp_path / "out"), "--cluster",
-                           cluster[0].scheduler_address], capsys)
+                           c.scheduler_address], capsys)
     finally:
-        client.run(patch, None)
+        worker.terminate()
+        worker.wait(timeout=60)
+        client.close()
+        c.close()
     assert rc == 2 and len(err.strip().splitlines()) == 1, err
-    assert "mfnormal 0.0.0+other" in err and "refusing to mix" in err
+    assert f"(the client has {_package_version()})" in err and "refusing to mix" in err, err
     assert _outputs(tmp_path) == []
 
 

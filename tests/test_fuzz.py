@@ -651,14 +651,14 @@ HORIZON_CASES = {
 
 @pytest.mark.parametrize("case", list(HORIZON_CASES))
 def test_nonseparable_eval_is_unbiased_within_1e_6_of_the_horizon(case):
-    """Heights near the crest used to lose float32 precision: from ω_i within ~1e-6 of the
+    """Heights near the crest lose float32 precision: from ω_i within ~1e-6 of the
     horizon the start interval [1 − G1(ω_i), 1] has G1 ≈ 1e-6 … 4e-8, at or below
-    float32's spacing of 6e-8 under 1, so the intervals were quantised and the NEE
+    float32's spacing of 6e-8 under 1, so heights tracked as such are quantised and the NEE
     weights |H ∩ V|/|H| biased (white Lambertian facets: ∫eval 1.18 against a sampled
-    albedo of 0.99 in the fuzz case; +5 % at θ_p = 80°). The walk now tracks depths
+    albedo of 0.99 in the fuzz case; +5 % at θ_p = 80°). The walk tracks depths
     below the crest (microsurface.crest_map), which keep full precision there.
     ∫eval (cosine-sampled) must match the sampler's albedo within 5 standard errors of
-    the eval estimate (2^18 queries; the old code was off by 6σ to 25σ here)."""
+    the eval estimate (2^18 queries; heights instead of depths are off by 6σ to 25σ here)."""
     tangent_facet, texel, strength, wi = HORIZON_CASES[case]
     bsdf = one_texel_bsdf("nonseparable", tangent_facet, texel, strength=strength)
     m = 1 << 18

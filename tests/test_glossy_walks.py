@@ -1,11 +1,11 @@
-"""The same-material walks on narrow nested lobes (issue 18, docs/model.md §4.8 and §5).
+"""The same-material walks on narrow nested lobes (docs/model.md §4.8 and §5).
 
 With a same-material tangent facet and a GGX α = 0.05 conductor, the walks' two- and
 three-vertex paths chain narrow lobes. ``eval`` connects each vertex to the next facet
 with a sample from ω_o (``walk.connect``, MIS against the walk's own sample) and the MIS
 pdf carries the three-vertex lobes (``walk.third_vertex``) with the separable model's
 reach probabilities (``walk.glossy_wall_terms``). These tests check that eval keeps its
-mean and lowers its variance, and that the pdf is no longer far below the walk's exit
+mean and lowers its variance, and that the pdf is not far below the walk's exit
 density where the benchmark's plane scene had its fireflies.
 
 Every seed is fixed; tolerances are stated where they are used. The numbers quoted were
@@ -64,7 +64,7 @@ M = 1 << 20          # eval queries (distinct si.p) per configuration and estima
 def eval_samples(model, wp, wi, wo, connected=True):
     """M evaluations of one (ω_p, ω_i, ω_o) query with distinct si.p (their own walks); with
     ``connected`` = False the walk without its connection (walk.connect returning zero, the
-    NEE weight 1): the estimator before issue 18 (its NEE evaluated from ω_o toward w_in,
+    NEE weight 1): the plain estimator (its NEE evaluated from ω_o toward w_in,
     equal by the nested conductor's reciprocity)."""
     bsdf = make_bsdf(GGX, encode(wp[None]), model, "same")
     saved = walk.connect, walk.connection_weight
@@ -100,7 +100,8 @@ def test_connection_keeps_eval_unbiased_and_lowers_its_variance(model, config):
 
 
 # Queries of the benchmark's plane scene (sky without its sun disc, GGX α = 0.05) whose light
-# samples carried most of its noise before issue 18, in the shading frame: (ω_p, ω_i, ω_o).
+# samples carry most of its noise without the MIS pdf's glossy-wall lobes, in the shading frame:
+# (ω_p, ω_i, ω_o).
 PLANE_QUERIES = [
     ((-0.6377, -0.3576, 0.6822), (0.24, -0.94, 0.242), (-0.277, 0.934, 0.224)),     # two vertices
     ((0.6057, 0.4352, 0.6661), (0.147, -0.966, 0.213), (-0.789, 0.518, 0.331)),     # three vertices
@@ -116,10 +117,10 @@ def test_mis_pdf_covers_the_glossy_wall_lobes(model):
     """At the plane scene's worst light-sample queries the walk's exit density near ω_o
     (the fraction of 2^21 sample() exits in a cone of half-angle 0.05 around ω_o over its
     solid angle; ≥ 1000 exits each, so its standard error is < 4 %) is below the MIS pdf at
-    ω_o: light samples there no longer carry the walks' noisy eval with full weight.
-    Measured density/pdf ≤ 0.39; before issue 18 it was 8.9-120 at all but one of these
-    (the pdf missed the three-vertex lobes, and the non-separable reach probabilities were
-    zero at the two-vertex lobe's centre)."""
+    ω_o: light samples there do not carry the walks' noisy eval with full weight.
+    Measured density/pdf ≤ 0.39; a pdf without the three-vertex lobes (and with zero
+    non-separable reach probabilities at the two-vertex lobe's centre) gives 8.9-120 at all
+    but one of these."""
     rng = np.random.default_rng(18)
     c = 1.0 - CONE * CONE / 2.0
     for wp, wi, wo in PLANE_QUERIES:

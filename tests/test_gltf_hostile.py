@@ -10,7 +10,7 @@ writes nothing. In every case no file outside the model's folder is opened: a
 ``secret.png`` sits next to the folder, and the worker records every file the
 command opens.
 
-Classes (the issue's list): reference cycles and nodes with two parents (a
+Classes: reference cycles and nodes with two parents (a
 walk that never ends), negative or too-small ``byteStride``, negative
 ``byteOffset``, counts past the view, views past the buffer, sparse indices out
 of range, URIs outside the folder (``..``, absolute, percent-encoded, ``file:``,

@@ -253,7 +253,7 @@ def test_classic_normal_map_on_the_plane_matches_the_true_mesh(kind):
 
 
 def test_bumpmap_on_the_baked_height_map_matches_the_true_mesh():
-    """The height map's convention (for issue 17): Mitsuba's ``bumpmap`` (scale 1, heights in
+    """The height map's convention (the ``heightmap`` normal source's): Mitsuba's ``bumpmap`` (scale 1, heights in
     world units over u = x, v = 1 − y) reproduces the true mesh like the normal map does
     (measured 9e-5: bilinear heights have piecewise-constant gradients, so a little worse);
     inverted heights do not."""

@@ -540,7 +540,7 @@ def test_traverse_rejects_what_the_constructor_rejects(bad):
 
 
 def test_huge_strength_tilts_the_map_instead_of_overflowing_to_flat():
-    """strength = 1e30 used to overflow (|n|² = inf) and decode every texel as flat. It now acts
+    """strength = 1e30 must not overflow (|n|² = inf) and decode every texel as flat. It acts
     as STRENGTH_MAX = 1e6 (constructor and traverse alike): the image equals the 1e6 one
     and differs from the flat (strength 0) one. Box filter, 1 thread: bit-identical renders."""
     def render_with(strength):

@@ -1,4 +1,4 @@
-"""Inverse rendering from a flat map (validation.inverse), a small version of the issue-16 setup.
+"""Inverse rendering from a flat map (validation.inverse), a small version of validation/inverse.py's setup.
 
 A plane under a 16² map (roughplastic α 0.2), 3 suns, Adam from a flat map, the target
 rendered by the same method with the true map; res 16², 4 spp, 20 iterations (~25 s CPU on 2

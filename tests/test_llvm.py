@@ -37,26 +37,47 @@ def test_llvm_major_is_read_from_the_file_name(path, major):
     assert load_selector().llvm_major(path) == major
 
 
-def test_old_system_llvm_is_never_chosen(monkeypatch):
+def test_old_system_llvm_is_never_chosen():
     sel = load_selector()
-    monkeypatch.setattr(sel, "_system_candidates", lambda: ["/usr/lib/x/libLLVM-15.so.1", "/usr/lib/x/libLLVM-14.so"])
-    monkeypatch.setattr(sel, "_wheel_candidates", lambda: [])
-    assert sel.find_llvm() is None
-    monkeypatch.setattr(sel, "_system_candidates", lambda: ["/usr/lib/x/libLLVM-15.so.1", "/usr/lib/x/libLLVM.so.19.1"])
-    assert sel.find_llvm() == ("/usr/lib/x/libLLVM.so.19.1", [])
+    assert sel.find_llvm(system=["/usr/lib/x/libLLVM-15.so.1", "/usr/lib/x/libLLVM-14.so"], wheels=[]) is None
+    assert sel.find_llvm(system=["/usr/lib/x/libLLVM-15.so.1", "/usr/lib/x/libLLVM.so.19.1"],
+                         wheels=[]) == ("/usr/lib/x/libLLVM.so.19.1", [])
 
 
-def test_no_compatible_llvm_fails_with_one_line_naming_the_fix(monkeypatch):
+def test_a_system_llvm_is_preferred_to_the_wheel_and_the_newest_wins():
     sel = load_selector()
-    monkeypatch.delenv("DRJIT_LIBLLVM_PATH", raising=False)
-    monkeypatch.setattr(sel, "_system_candidates", lambda: ["/usr/lib/x/libLLVM-15.so.1"])
-    monkeypatch.setattr(sel, "_wheel_candidates", lambda: [])
-    monkeypatch.setattr(sel, "_loaded_llvm", lambda: [])
+    wheel = ("/venv/lib/libLLVM.so.23.1", ["/venv/lib/x86_64-linux-gnu/libc++.so.1"])
+    assert sel.find_llvm(system=["/usr/lib/x/libLLVM.so.18.1", "/usr/lib/x/libLLVM.so.19.1"],
+                         wheels=[wheel]) == ("/usr/lib/x/libLLVM.so.19.1", [])
+    assert sel.find_llvm(system=["/usr/lib/x/libLLVM-15.so.1"], wheels=[wheel]) == wheel
+
+
+def test_no_compatible_llvm_fails_with_one_line_naming_the_fix():
+    sel = load_selector()
+    environ = {}
     with pytest.raises(ImportError) as err:
-        sel.ensure_llvm()
+        sel.ensure_llvm(environ=environ, loaded=[], system=["/usr/lib/x/libLLVM-15.so.1"], wheels=[])
     message = str(err.value)
     assert "\n" not in message
     assert "libllvm19" in message and "karellen-llvm-core" in message
+    assert environ == {}
+
+
+def test_the_chosen_llvm_is_handed_to_drjit_through_the_environment():
+    sel = load_selector()
+    environ = {}
+    path = sel.ensure_llvm(environ=environ, loaded=[], system=["/usr/lib/x/libLLVM.so.19.1"], wheels=[])
+    assert path == "/usr/lib/x/libLLVM.so.19.1" and environ == {"DRJIT_LIBLLVM_PATH": path}
+
+
+def test_an_old_llvm_named_by_the_user_or_already_loaded_is_refused():
+    sel = load_selector()
+    good = ["/usr/lib/x/libLLVM.so.19.1"]
+    with pytest.raises(ImportError, match="DRJIT_LIBLLVM_PATH=.*crashes Dr.Jit"):
+        sel.ensure_llvm(environ={"DRJIT_LIBLLVM_PATH": "/usr/lib/x/libLLVM-15.so.1"}, loaded=[],
+                        system=good, wheels=[])
+    with pytest.raises(ImportError, match="already loaded"):
+        sel.ensure_llvm(environ={}, loaded=["/usr/lib/x/libLLVM-15.so.1"], system=good, wheels=[])
 
 
 def test_import_picks_a_working_llvm_and_runs_a_kernel():

@@ -53,7 +53,7 @@ def case_id(case):
 
 @functools.lru_cache(maxsize=None)
 def result(case):
-    """Ray-traced and plugin histograms of one case (computed once per session)."""
+    """Ray-traced and plugin histograms of one case (computed once per test process)."""
     nested, tf, tp, ti, phi = case
     return mg.compare_histograms(tp, ti, phi, NESTED[nested], tf, n=N, seed=ALL_CASES.index(case),
                                  phi_p=PHI_P)

@@ -1,4 +1,4 @@
-"""Issue 17: height maps and the true triangle as the macro normal (``src/mfnormal/normals.py``).
+"""Height maps and the true triangle as the macro normal (``mfnormal.normals``).
 
 - the height map's convention is Mitsuba ``bumpmap``'s (the same perturbed normal for the same
   texture and scale, on meshes with skewed, non-uniform and mirrored UVs and tilted vertex

@@ -1,4 +1,4 @@
-"""Fuzzing the other normal sources of ``normalmap_microfacet`` (issue 17): ``heightmap`` and
+"""Fuzzing the other normal sources of ``normalmap_microfacet``: ``heightmap`` and
 ``macro_normal="geometric"``, for every model × tangent facet.
 
 The hostile inputs are the ones these options add to the normal-map path's

@@ -1016,15 +1016,15 @@ def test_mis_boost_lowers_variance_and_stays_unbiased(model, tangent_facet):
       samples weighted by it are fireflies that the boost hands to BSDF samples);
     - no harm elsewhere: no case more than 25 % worse. In cases 2 and 4 the lobe centre
       leaves the microsurface: with a mirror tangent facet q2 = 0 and the estimates are
-      bit-identical; a constant boost of the longer walks' lobe (the first version)
-      made case 4 1.9× worse, which this bound catches.
+      bit-identical; a constant boost of the longer walks' lobe makes case 4 1.9× worse,
+      which this bound catches.
     Measured ratios per case (printed with -s): sep/specular 8.6, 1.0, 7.7, 1.0;
     sep/same 4.0, 1.0, 3.1, 1.0; nonsep/specular 7.3, 1.0, 20.2, 1.0; nonsep/same
-    3.1, 1.8, 7.1, 1.0. Before issue 18 the `same` rows were 9.7, 2.7, 8.3, 1.0 and
-    10.6, 4.7, 19.2, 1.0 with about the same boosted variance in cases 1-3 (sep 9.43,
-    33.2, 20.9 then, 9.47, 32.9, 21.0 now; nonsep 2.14, 28.4, 15.4 then, 2.14, 28.0, 16.1
-    now): eval's connection (walk.connect) lowered the variance of the plain-MIS estimate
-    that the boost is compared with (sep 91 → 37.7 and 174 → 66.0 in cases 1 and 3;
+    3.1, 1.8, 7.1, 1.0. Without eval's connection (walk.connect) the `same` rows are
+    9.7, 2.7, 8.3, 1.0 and 10.6, 4.7, 19.2, 1.0 with about the same boosted variance in
+    cases 1-3 (sep 9.43, 33.2, 20.9 without, 9.47, 32.9, 21.0 with; nonsep 2.14, 28.4, 15.4
+    without, 2.14, 28.0, 16.1 with): the connection lowers the variance of the plain-MIS
+    estimate that the boost is compared with (sep 91 → 37.7 and 174 → 66.0 in cases 1 and 3;
     nonsep 22.8 → 6.5 and 296 → 114), so the boost's margin over it is smaller there.
     """
     n_tex, boosted, plain = default_and_variant(BOOST_NESTED, BOOST_CASES, model, tangent_facet, mis_boost_max=1.0)
@@ -1103,7 +1103,7 @@ def test_bad_rr_depth_is_rejected_in_one_line():
         make_bsdf(WHITE, encode(sph([30.0])), "separable", "specular", rr_depth=-1)
 
 
-# -- 9. Indirect nested calls (issue 18 item 2) -----------------------------------------------------
+# -- 9. Indirect nested calls ------------------------------------------------------------------------
 
 INDIRECT_QUERIES = 4096
 

@@ -82,46 +82,60 @@ def _loaded_llvm() -> list[str]:
         return []
 
 
-def find_llvm() -> tuple[str, list[str]] | None:
-    """Best compatible libLLVM as (path, libraries to preload), or None."""
+def find_llvm(system: list[str] | None = None,
+              wheels: list[tuple[str, list[str]]] | None = None) -> tuple[str, list[str]] | None:
+    """Best compatible libLLVM as (path, libraries to preload), or None.
+
+    ``system`` (library paths) and ``wheels`` ((path, preload) pairs) are the candidates;
+    by default this machine's (:func:`_system_candidates`, :func:`_wheel_candidates`).
+    """
+    system = _system_candidates() if system is None else system
+    wheels = _wheel_candidates() if wheels is None else wheels
     best = None
-    for path in _system_candidates():
+    for path in system:
         major = llvm_major(path)
         if major is not None and major >= MIN_MAJOR and (best is None or major > best[0]):
             best = (major, path, [])
-    for path, preload in _wheel_candidates():
+    for path, preload in wheels:
         major = llvm_major(path)
         if major is not None and major >= MIN_MAJOR and best is None:
             best = (major, path, preload)
     return None if best is None else (best[1], best[2])
 
 
-def ensure_llvm() -> str:
+def ensure_llvm(environ=None, loaded: list[str] | None = None, system: list[str] | None = None,
+                wheels: list[tuple[str, list[str]]] | None = None) -> str:
     """Make sure Dr.Jit will load a compatible libLLVM; return its path.
 
     Raises LLVMError (a one-line message naming the fix) when there is none, or
     when Dr.Jit already loaded an incompatible one in this process.
+
+    ``environ`` (read for, and given, ``DRJIT_LIBLLVM_PATH``), ``loaded`` (the libLLVM files
+    this process has mapped) and the candidates ``system`` and ``wheels`` (:func:`find_llvm`)
+    are this process's and this machine's by default.
     """
-    for lib in _loaded_llvm():
+    environ = os.environ if environ is None else environ
+    loaded = _loaded_llvm() if loaded is None else loaded
+    for lib in loaded:
         major = llvm_major(lib)
         if major is not None and major < MIN_MAJOR:
             raise LLVMError(f"Dr.Jit already loaded {lib} (LLVM {major}), which crashes Dr.Jit 1.5; "
                             f"import mfnormal before drjit/mitsuba, or {FIX}")
-    user = os.environ.get("DRJIT_LIBLLVM_PATH")
+    user = environ.get("DRJIT_LIBLLVM_PATH")
     if user:
         major = llvm_major(user)
         if major is not None and major < MIN_MAJOR:
             raise LLVMError(f"DRJIT_LIBLLVM_PATH={user} is LLVM {major}, which crashes Dr.Jit 1.5; {FIX}")
         return user
-    if "drjit" in sys.modules and _loaded_llvm():
-        return _loaded_llvm()[0]
-    found = find_llvm()
+    if "drjit" in sys.modules and loaded:
+        return loaded[0]
+    found = find_llvm(system, wheels)
     if found is None:
         raise LLVMError(f"mfnormal: no compatible libLLVM found (Dr.Jit 1.5 crashes with LLVM <= 16); {FIX}")
     path, preload = found
     for lib in preload:
         ctypes.CDLL(lib, mode=ctypes.RTLD_GLOBAL)
-    os.environ["DRJIT_LIBLLVM_PATH"] = path
+    environ["DRJIT_LIBLLVM_PATH"] = path
     return path
 
 
