@@ -153,18 +153,44 @@ def test_no_function_is_longer_than_a_screen():
     assert long == []
 
 
+def _module_names(tree) -> set:
+    """Names a file binds to modules: ``import x [as y]``, and ``from package import module``
+    where the module is one of the package's or of the validation harnesses."""
+    names = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            names.update((a.asname or a.name).split(".")[0] for a in node.names)
+        elif isinstance(node, ast.ImportFrom) and (node.module or "").startswith(("mfnormal", "validation")):
+            folder = (ROOT / "src" if node.module.startswith("mfnormal") else ROOT).joinpath(*node.module.split("."))
+            names.update(a.asname or a.name for a in node.names
+                         if (folder / f"{a.name}.py").exists() or (folder / a.name).is_dir())
+    return names
+
+
+def monkeypatches(source: str) -> list:
+    """The lines of ``source`` that replace attributes at run time: pytest's ``monkeypatch``,
+    ``mock.patch``, or ``setattr`` on a module (a name the file binds to a module)."""
+    tree = ast.parse(source)
+    modules = _module_names(tree)
+    hits = {n.lineno for n in ast.walk(tree)
+            if isinstance(n, ast.Call) and isinstance(n.func, ast.Name) and n.func.id == "setattr"
+            and n.args and isinstance(n.args[0], ast.Name) and n.args[0].id in modules}
+    hits |= {i for i, line in enumerate(source.splitlines(), 1) if "monkeypatch" in line or "mock.patch" in line}
+    return sorted(hits)
+
+
+def test_the_monkeypatch_finder_finds_one():
+    assert monkeypatches("import os\nsetattr(os, 'sep', '/')\n") == [2]
+    assert monkeypatches("from mfnormal.models import faithful\nsetattr(faithful, 'X', 1)\n") == [2]
+    assert monkeypatches("def t(monkeypatch):\n    pass\n") == [1]
+    assert monkeypatches("class S:\n    pass\nbs = S()\nsetattr(bs, 'wo', 1)\n") == []
+
+
 def test_nothing_monkeypatches():
     """No test or tool replaces a module's attributes at run time (pytest's ``monkeypatch``,
     ``setattr`` on a module, ``unittest.mock.patch``): what a test needs to vary is a parameter."""
     files = subprocess.run(["git", "ls-files", "*.py"], cwd=ROOT, capture_output=True, text=True).stdout.split()
     me = Path(__file__).relative_to(ROOT).as_posix()
-    hits = []
-    for name in files:
-        path = ROOT / name
-        if name == me or not path.exists():
-            continue
-        for i, line in enumerate(path.read_text().splitlines(), 1):
-            if ("monkeypatch" in line or "mock.patch" in line
-                    or (("setattr(" in line) and "__setattr__" not in line and "object.__setattr__" not in line)):
-                hits.append(f"{name}:{i}: {line.strip()}")
+    hits = [f"{name}:{i}" for name in files if name != me and (ROOT / name).exists()
+            for i in monkeypatches((ROOT / name).read_text())]
     assert hits == []
