@@ -18,7 +18,7 @@ import pytest
 from helpers import (NESTED, WHITE, encode, make_bsdf, make_si, normalmap, np1, np3, random_hemisphere,
                      sph, vec3)
 
-from mfnormal.models import faithful
+from mfnormal.models import faithful, neighbourhood
 
 WHITE_GGX = {"type": "roughconductor", "distribution": "ggx", "alpha": 0.05,
              "specular_reflectance": {"type": "rgb", "value": [1.0, 1.0, 1.0]}}
@@ -134,8 +134,8 @@ def test_ordinary_maps_keep_their_plain_rms_slopes():
             for res in (16, 128):
                 n = H.texel_normals(H.make_heightfield(kind, steep), res).reshape(-1, 3)
                 s = -n[:, :2] / n[:, 2:]
-                assert faithful.slope_cap2(np.sum(s * s, -1)) is None
-                assert faithful.principal_slopes(n)[:2] == pytest.approx(_plain_slopes(n), rel=1e-12)
+                assert neighbourhood.slope_cap2(np.sum(s * s, -1)) is None
+                assert neighbourhood.principal_slopes(n)[:2] == pytest.approx(_plain_slopes(n), rel=1e-12)
 
 
 def test_one_texel_at_the_clamp_does_not_make_the_map_rough():
@@ -148,9 +148,9 @@ def test_one_texel_at_the_clamp_does_not_make_the_map_rough():
     s_clean = make_bsdf(WHITE, encode(clean)).model.core.slopes
     s_steep = make_bsdf(WHITE, encode(steep)).model.core.slopes
     # The plain rms (no cap) of the same normals.
-    assert faithful.principal_slopes(steep, winsor=(math.inf, math.inf))[0] > 10 * s_clean[0]
+    assert neighbourhood.principal_slopes(steep, winsor=(math.inf, math.inf))[0] > 10 * s_clean[0]
     old = -clean[OUTLIER, :2] / clean[OUTLIER, 2]
-    expected = s_clean[0] ** 2 + s_clean[1] ** 2 + (faithful.WINSOR_FLOOR ** 2 - old @ old) / 256
+    expected = s_clean[0] ** 2 + s_clean[1] ** 2 + (neighbourhood.WINSOR_FLOOR ** 2 - old @ old) / 256
     assert s_steep[0] ** 2 + s_steep[1] ** 2 == pytest.approx(expected, rel=1e-4)
     assert s_steep[0] < 1.2 * s_clean[0]
 
@@ -184,15 +184,15 @@ def test_winsorised_slopes_carry_their_derivatives(max_tilt):
     steep /= np.linalg.norm(steep, axis=-1, keepdims=True)
     wp = mi.Vector3f(*(mi.Float(steep[:, i].astype(np.float32)) for i in range(3)))
     dr.enable_grad(wp)
-    s1, s2, _ = faithful.attached_slopes(wp)
-    ref = faithful.principal_slopes(steep)
+    s1, s2, _ = neighbourhood.attached_slopes(wp)
+    ref = neighbourhood.principal_slopes(steep)
     assert (s1[0], s2[0]) == pytest.approx(ref[:2], rel=1e-5)
     dr.backward(s1)
     grad = np3(dr.grad(wp))
     for texel, axis in ((40, 0), (OUTLIER, 1)):
         step = np.zeros_like(steep)
         step[texel, axis] = 1e-4
-        fd = (faithful.principal_slopes(steep + step)[0] - faithful.principal_slopes(steep - step)[0]) / 2e-4
+        fd = (neighbourhood.principal_slopes(steep + step)[0] - neighbourhood.principal_slopes(steep - step)[0]) / 2e-4
         assert grad[texel, axis] == pytest.approx(fd, rel=1e-2, abs=1e-5)
 
 
@@ -475,8 +475,8 @@ def test_smith_lambda_matches_its_closed_form():
     ref = np.array([0.5 * (math.exp(-x * x) / (x * math.sqrt(math.pi)) - math.erfc(x)) for x in a64])
     # σ1 = σ2 = 1/√2 and |ω_xy| = 1 make a = ω_z.
     w = mi.Vector3f(mi.Float(np.ones_like(a)), mi.Float(np.zeros_like(a)), mi.Float(a))
-    lam = np1(faithful.smith_lambda(w, mi.Float(1 / math.sqrt(2)), mi.Float(1 / math.sqrt(2)))).astype(np.float64)
-    inside = a64 < faithful.A_UNMASKED
+    lam = np1(neighbourhood.smith_lambda(w, mi.Float(1 / math.sqrt(2)), mi.Float(1 / math.sqrt(2)))).astype(np.float64)
+    inside = a64 < neighbourhood.A_UNMASKED
     assert np.max(np.abs(lam - ref)[inside] / (1 + ref[inside])) <= 3e-7
     assert np.all(lam[~inside] == 0)
 
@@ -537,21 +537,21 @@ def test_blocked_table_matches_direct_integration():
     0.5 % absolute."""
     from scipy.interpolate import RegularGridInterpolator
     s1, s2 = 0.5, 0.2
-    table = faithful.blocked_table(s1, s2, 0.02)
+    table = neighbourhood.blocked_table(s1, s2, 0.02)
     rng = np.random.default_rng(15)
     n = 400_000
     z = rng.uniform(-1, 1, n)
     ph = rng.uniform(0, 2 * np.pi, n)
     r = np.sqrt(1 - z * z)
     d = np.stack([r * np.cos(ph), r * np.sin(ph), z], -1)
-    axes = (np.linspace(0.0, math.acos(0.02), faithful.TABLE_COS), np.linspace(0.0, 0.5 * math.pi, faithful.TABLE_PHI),
-            np.linspace(0.0, 1.0, faithful.TABLE_G))
+    axes = (np.linspace(0.0, math.acos(0.02), neighbourhood.TABLE_COS), np.linspace(0.0, 0.5 * math.pi, neighbourhood.TABLE_PHI),
+            np.linspace(0.0, 1.0, neighbourhood.TABLE_G))
     for tilt, phi, g in ((25.0, 0.3, 0.9), (55.0, 1.2, 0.45), (80.0, 0.7, 0.1)):
         c, s = math.cos(math.radians(tilt)), math.sin(math.radians(tilt))
         wp = np.array([s * math.cos(phi), s * math.sin(phi), c])
         cos_dp = d @ wp
         lam_i = 1.0 / g - 1.0
-        lam_d = faithful.smith_lambda_np(d, s1, s2)
+        lam_d = neighbourhood.smith_lambda_np(d, s1, s2)
         seen = np.where((d[:, 2] > 0) & (cos_dp > 0), (1 + lam_i) / (1 + lam_i + lam_d), 0.0)
         exact = 1.0 - np.mean(np.maximum(cos_dp, 0) / np.pi * seen) * 4 * np.pi
         looked = RegularGridInterpolator(axes, table)([[math.radians(tilt), phi, g ** (1.0 / 3.0)]])[0]

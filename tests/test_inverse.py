@@ -108,7 +108,7 @@ def test_slope_derivatives_switch(slope_derivatives):
     map's principal rms slopes); True, the default, keeps it."""
     import drjit as dr
     import numpy as np
-    from mfnormal.models import faithful
+    from mfnormal.models import neighbourhood
     from validation import heightfield as H
     setup = I.Setup(res=8, spp=2, slope_derivatives=slope_derivatives)
     texels = H.encode_normals(I.true_normals(setup))
@@ -123,7 +123,7 @@ def test_slope_derivatives_switch(slope_derivatives):
     assert dr.grad_enabled(model.sigma1) == slope_derivatives
     assert (model.d_tables is not None) == slope_derivatives
     s1 = float(np.array(dr.detach(model.sigma1)).ravel()[0])
-    expected = faithful.principal_slopes(I._decode(texels).reshape(-1, 3))[0]
+    expected = neighbourhood.principal_slopes(I._decode(texels).reshape(-1, 3))[0]
     assert 0.1 < s1 < 0.5 and s1 == pytest.approx(expected, rel=1e-5)
 
 

@@ -32,7 +32,7 @@ mfnormal.register()
 
 from helpers import (WHITE, encode, make_bsdf, make_si, np1, np3, p_two_sided, random_hemisphere,  # noqa: E402
                      sph, vec3)
-from mfnormal.models import shading, walk  # noqa: E402
+from mfnormal.models import shading, walk, walk_pdf  # noqa: E402
 from reference.naive_walk import naive_eval  # noqa: E402
 
 WALKS = [("separable", "specular"), ("separable", "same"),
@@ -607,7 +607,7 @@ def f64(a):
 
 
 def test_mis_pdf_is_deterministic():
-    """``pdf`` (walk.mis_pdf, docs/model.md §5) is a deterministic function of (ω_i, ω_o): at
+    """``pdf`` (walk_pdf.mis_pdf, docs/model.md §5) is a deterministic function of (ω_i, ω_o): at
     every sampled direction of every case it is bit-identical when queried twice, in a
     reversed batch and with another si.p (eval's hash input must not leak into pdf)."""
     for key, case in mis_cases():
@@ -633,7 +633,7 @@ def test_mis_boost_adds_the_longer_walks_cosine_lobe():
     for the α = 0.3 BSDFs): with a mirror tangent facet pdf = density + (c − 1)·q2·cosθ_o/π
     with one q2 ∈ [0, 1] for every ω_o of a case (and pdf = density for c = 1); with a
     same-material one, whose two-bounce terms take the factor c too and whose three-vertex
-    lobes (walk.third_vertex, at most one unit of pdf mass) take c − 1, density ≤ pdf
+    lobes (walk_pdf.third_vertex, at most one unit of pdf mass) take c − 1, density ≤ pdf
     everywhere and ∫pdf ≤ c·∫density + 2(c − 1) (the cosine lobe's q2 ≤ 1 and the
     three-vertex lobes' ≤ 1), and pdf = density for c = 1."""
     for (model, tangent_facet, nested, j), case in mis_cases():
@@ -1122,7 +1122,7 @@ def walk_outputs_and_ops(nested, params, indirect, seed=900):
     try:
         on = mi.Bool(True)
         f = walk.eval(sp, params, vec3(wo), on)
-        pdf = walk.mis_pdf(sp, params, vec3(wo), on)
+        pdf = walk_pdf.mis_pdf(sp, params, vec3(wo), on)
         bs, weight = walk.sample(sp, params, mi.Float(rng.uniform(size=n)), mi.Point2f(*rng.uniform(size=(2, n))), on)
         dr.kernel_history_clear()
         dr.eval(f, pdf, bs.wo, bs.pdf, weight)

@@ -28,256 +28,25 @@ the macro frame: a reciprocal BSDF that is white in the white furnace has the sa
 view-averaged response to every light direction for every texel, i.e. no relief
 (docs/faithful.md). Light tracing sees the adjoint (``TransportMode.Importance``):
 eval*(a, b) = eval(b, a)·⟨b, ω_g⟩ / ⟨a, ω_g⟩, so path tracing and light tracing agree.
+
+The neighbourhood (the map's slopes, Smith masking by them, the blocked-light table) is
+:mod:`mfnormal.models.neighbourhood`.
 """
 
 from __future__ import annotations
 
-import functools
-from dataclasses import dataclass
 import math
+from dataclasses import dataclass
 
 import drjit as dr
 import mitsuba as mi
 import numpy as np
 
 from mfnormal.models.microsurface import negate, replace_grad, score
-from mfnormal.models.shading import to_tangent_frame
+from mfnormal.models.neighbourhood import INV_PI, _held, blocked_table, lookup, smith_lambda
 from mfnormal.models.rng import (ONE_MINUS_EPS, SALT_FAITHFUL_SAMPLE, SLOT_FAITHFUL_BLOCKED, SLOT_FAITHFUL_RETRO,
-                  hash_floats, uniform)
-
-INV_PI = 1.0 / math.pi
-SQRT_PI = math.sqrt(math.pi)
-# Λ(a) < 1e-8 beyond this a = 1/(√2 σ tanθ): treat as unmasked.
-A_UNMASKED = 4.0
-
-
-# -- Smith masking by the neighbourhood -----------------------------------------------------------
-#
-# The neighbours' slopes are Beckmann-distributed with the map's own second moments about the
-# macro normal, Σ = E[s sᵀ] of the slopes s = (−n_x/n_z, −n_y/n_z) in the map's tangent frame:
-# principal rms slopes σ1 ≥ σ2 along the eigenvectors of Σ (at angle φ_e). A ribbed map is
-# rough across its ribs and smooth along them; a constant tilt masks only along the tilt.
-
-def smith_lambda(w, sigma1, sigma2):
-    """Beckmann Λ(ω) for ``w`` given in the principal frame of the slopes (σ1 along x, σ2 along
-    y); 0 where unmasked: a = ω_z / (√2 (σ1² ω_x² + σ2² ω_y²)^½)."""
-    spread = dr.sqrt(dr.fma(sigma1 * sigma1, w.x * w.x, sigma2 * sigma2 * w.y * w.y))
-    a = dr.maximum(w.z, 0.0) / dr.maximum(math.sqrt(2.0) * spread, 1e-30)
-    a = dr.maximum(a, 1e-7)
-    # Λ = e^(−a²)·(1/(2a√π) − erfcx(a)/2), erfcx(a) = e^(a²)erfc(a) ≈ P(1/(1 + p·a)) (Abramowitz &
-    # Stegun 7.1.26, as _erf_np): one exp and no erf.
-    t = dr.rcp(dr.fma(0.3275911, a, 1.0))
-    erfcx = t * dr.fma(t, dr.fma(t, dr.fma(t, dr.fma(t, 1.061405429, -1.453152027), 1.421413741),
-                             -0.284496736), 0.254829592)
-    lam = dr.exp(-a * a) * dr.fma(dr.rcp(a), 0.5 / SQRT_PI, -0.5 * erfcx)
-    return dr.select(a < A_UNMASKED, dr.maximum(lam, 0.0), 0.0)
-
-
-def _erf_np(x):
-    """erf for x ≥ 0 (Abramowitz & Stegun 7.1.26, |error| ≤ 1.5e-7), vectorised."""
-    t = 1.0 / (1.0 + 0.3275911 * x)
-    poly = t * (0.254829592 + t * (-0.284496736 + t * (1.421413741 + t * (-1.453152027 + t * 1.061405429))))
-    return 1.0 - poly * np.exp(-x * x)
-
-
-def smith_lambda_np(w, sigma1, sigma2, derivatives=False):
-    """numpy twin of :func:`smith_lambda` (for the tables); ``w``: (..., 3). With
-    ``derivatives``: (Λ, ∂Λ/∂σ1, ∂Λ/∂σ2), from ∂Λ/∂a = −e^(−a²)/(2a²√π) and
-    ∂a/∂σ_k = −a σ_k w_k²/(σ1²w_x² + σ2²w_y²)."""
-    spread2 = sigma1 ** 2 * w[..., 0] ** 2 + sigma2 ** 2 * w[..., 1] ** 2
-    spread = np.sqrt(spread2)
-    a_raw = np.maximum(w[..., 2], 0.0) / np.maximum(math.sqrt(2.0) * spread, 1e-30)
-    a = np.clip(a_raw, 1e-7, 1e6)
-    lam = 0.5 * (np.exp(-a * a) / (a * SQRT_PI) - (1.0 - _erf_np(a)))
-    masked = a < A_UNMASKED
-    lam = np.where(masked, np.maximum(lam, 0.0), 0.0)
-    if not derivatives:
-        return lam
-    free = masked & (a_raw == a) & (spread2 > 0)
-    d_a = np.where(free, -np.exp(-a * a) / (2.0 * a * a * SQRT_PI), 0.0)
-    inv = np.where(free, 1.0 / np.maximum(spread2, 1e-300), 0.0)
-    return (lam, d_a * (-a * sigma1 * w[..., 0] ** 2 * inv), d_a * (-a * sigma2 * w[..., 1] ** 2 * inv))
-
-
-#: Winsorised slopes (docs/faithful.md §5): a texel's slope counts at most WINSOR_C times the map's
-#: (winsorised) rms slope, and never less than WINSOR_FLOOR (tan 60°). The repository's maps reach
-#: 1.2-2.5 times their rms (bumps, egg crates, noise at any steepness and resolution): they are never
-#: capped, and their σ is the plain rms bit for bit.
-WINSOR_C = 5.0
-WINSOR_FLOOR = math.sqrt(3.0)
-
-
-def slope_cap2(s2: np.ndarray, winsor=(WINSOR_C, WINSOR_FLOOR)):
-    """The squared cap t² of the squared slope magnitudes ``s2`` (float64): None where no texel
-    exceeds WINSOR_C × their rms (nothing capped), else the largest t² ≥ WINSOR_FLOOR² with
-    t² = WINSOR_C² · mean(min(s2, t²)) (a texel at the clamp among 16² cannot make the whole map rough).
-    Iterated from the plain rms: t² falls and the capped set grows, so at most len(s2) steps.
-    ``winsor``: (WINSOR_C, WINSOR_FLOOR); (inf, inf) caps nothing."""
-    n, c2, floor2 = len(s2), winsor[0] * winsor[0], winsor[1] * winsor[1]
-    t2 = max(c2 * float(np.mean(s2)), floor2)
-    if not float(np.max(s2, initial=0.0)) > t2:
-        return None
-    for _ in range(n + 1):
-        capped = s2 > t2
-        k, rest = int(capped.sum()), float(s2[~capped].sum())
-        # Where the capped set is ``capped``, t² = c²(rest + k·t²)/n in closed form.
-        new = max(floor2, c2 * rest / (n - c2 * k)) if n > c2 * k else floor2
-        if np.array_equal(s2 > new, capped):
-            return new
-        t2 = new
-    return t2
-
-
-def _cap_attached(sx, sy, s2_np, t2):
-    """sx, sy (Dr.Jit) with the slopes over the cap ``t2`` (slope_cap2 of their detached s2_np)
-    scaled onto it; t² as a Dr.Jit value of the uncapped slopes where it is above the floor, so
-    that the fixed point's derivative is exact."""
-    n, c2 = len(s2_np), WINSOR_C * WINSOR_C
-    capped_np = s2_np > t2
-    capped = mi.Bool(capped_np)
-    s2 = sx * sx + sy * sy
-    if t2 > WINSOR_FLOOR * WINSOR_FLOOR:
-        t2 = c2 * dr.sum(dr.select(capped, 0.0, s2)) / (n - c2 * int(capped_np.sum()))
-    scale = dr.select(capped, dr.sqrt(t2 / dr.select(capped, s2, 1.0)), 1.0)
-    return sx * scale, sy * scale
-
-
-def attached_slopes(wp, strength=None):
-    """(σ1, σ2, φ_e) of the unit normals ``wp`` (a Dr.Jit Vector3f, e.g. the map decoded at
-    texel centres) as Dr.Jit values that carry wp's derivatives: :func:`principal_slopes`'s
-    quantities in closed form (the 2×2 eigenproblem), with its winsorised slopes. Where an
-    eigenvalue or the anisotropy is zero (a flat or isotropic map) their square roots have no
-    derivative; they get the central one, 0. ``strength``: wp was decoded at strength 1 and the map
-    is used at this strength, 0: the slopes are strength × those of wp (exact while no normal is
-    clamped; none is capped near strength 0, where every slope is below WINSOR_FLOOR), so that σ has
-    its derivative at strength 0 (where √(σ²) has none)."""
-    z = dr.maximum(wp.z, 1e-3)
-    sx, sy = -wp.x / z, -wp.y / z
-    if strength is None:
-        s2_np = np.square(np.array(dr.detach(sx), np.float64)) + np.square(np.array(dr.detach(sy), np.float64))
-        t2 = slope_cap2(s2_np)
-        if t2 is not None:
-            sx, sy = _cap_attached(sx, sy, s2_np, t2)
-    a, b, c = dr.mean(sx * sx), dr.mean(sx * sy), dr.mean(sy * sy)
-    q = dr.square(0.5 * (a - c)) + b * b
-    iso = q > 1e-24
-    r = dr.select(iso, dr.sqrt(dr.select(iso, q, 1.0)), 0.0)
-
-    def root(x):
-        ok = x > 1e-24
-        return dr.select(ok, dr.sqrt(dr.select(ok, x, 1.0)), 0.0)
-
-    s1, s2 = root(0.5 * (a + c) + r), root(0.5 * (a + c) - r)
-    phi = dr.select(iso, 0.5 * dr.atan2(dr.select(iso, 2.0 * b, 0.0), dr.select(iso, a - c, 1.0)), 0.0)
-    if strength is not None:
-        s1, s2 = s1 * strength, s2 * strength
-    return s1, s2, phi
-
-
-def principal_slopes(normals: np.ndarray, winsor=(WINSOR_C, WINSOR_FLOOR)):
-    """(σ1, σ2, φ_e): the principal rms slopes of unit normals (N×3) about the macro normal
-    (σ1 ≥ σ2) and the angle of σ1's axis from the tangent frame's x axis. Slopes over the cap of
-    :func:`slope_cap2` (a few texels far steeper than the rest, ``winsor`` its parameters) are
-    scaled onto it first."""
-    n = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
-    z = np.maximum(n[:, 2], 1e-3)
-    sx, sy = -n[:, 0] / z, -n[:, 1] / z
-    s2 = sx * sx + sy * sy
-    t2 = slope_cap2(s2, winsor)
-    if t2 is not None:
-        scale = np.where(s2 > t2, np.sqrt(t2 / np.where(s2 > t2, s2, 1.0)), 1.0)
-        sx, sy = sx * scale, sy * scale
-    cov = np.array([[np.mean(sx * sx), np.mean(sx * sy)], [np.mean(sx * sy), np.mean(sy * sy)]])
-    values, vectors = np.linalg.eigh(cov)                       # ascending
-    s1, s2 = math.sqrt(max(values[1], 0.0)), math.sqrt(max(values[0], 0.0))
-    return s1, s2, math.atan2(vectors[1, 1], vectors[0, 1])
-
-
-# -- The blocked share of a Lambertian facet's light: B(cosθ_p, φ_p, G1(ω_i)) -------------------
-
-TABLE_COS = 40      # θ_p from 0 to acos(COS_P_MIN), uniform in the angle (B changes fastest near 90°)
-TABLE_PHI = 9       # the facet's azimuth in the slopes' principal frame, folded into [0, π/2]
-TABLE_G = 40        # G1(ω_i)^⅓, G1 = 1/(1 + Λ(ω_i)), from 0 to 1 (B changes fastest as G1 → 0)
-_QUAD = 48          # quadrature: _QUAD² stratified cosine-weighted directions on the facet
-
-
-def _quadrature():
-    """Stratified cosine-weighted directions around +z (deterministic)."""
-    u = (np.arange(_QUAD) + 0.5) / _QUAD
-    u1, u2 = np.meshgrid(u, u, indexing="ij")
-    r, phi = np.sqrt(u1.ravel()), 2.0 * np.pi * u2.ravel()
-    return np.stack([r * np.cos(phi), r * np.sin(phi), np.sqrt(np.maximum(1.0 - r * r, 0.0))], -1)
-
-
-@functools.lru_cache(maxsize=8)
-def blocked_table(sigma1: float, sigma2: float, cos_min: float, derivatives: bool = False):
-    """B[i, j, k]: 1 − ∫ (1/π)⟨ω,ω_p⟩ S(ω|ω_i) dω for a white Lambertian facet at θ_p = θ_i
-    (TABLE_COS steps from 0 to acos(``cos_min``)), azimuth φ_j (TABLE_PHI steps over [0, π/2])
-    in the slopes' principal frame, and G1(ω_i) = g_k³ (g_k: TABLE_G steps from 0 to 1).
-
-    With ``derivatives``: (B, ∂B/∂σ1, ∂B/∂σ2) at fixed G1(ω_i) (its own σ-dependence is the
-    lookup's), by the same quadrature: ∂S/∂Λ(ω) = −(1 + Λ_i)/(1 + Λ_i + Λ(ω))². Cached (scenes
-    that share a map rebuild the same tables after each update): treat the arrays as read-only."""
-    local = _quadrature()
-    g = np.linspace(0.0, 1.0, TABLE_G) ** 3
-    lam_i = np.where(g > 0, 1.0 / np.maximum(g, 1e-30) - 1.0, 1e30)[:, None]
-    table = np.zeros((TABLE_COS, TABLE_PHI, TABLE_G))
-    d1, d2 = np.zeros_like(table), np.zeros_like(table)
-    for i, theta in enumerate(np.linspace(0.0, math.acos(cos_min), TABLE_COS)):
-        c, s = math.cos(theta), math.sin(theta)
-        for j, phi in enumerate(np.linspace(0.0, 0.5 * math.pi, TABLE_PHI)):
-            # The facet's frame: n = ω_p, t1 = the up-slope direction in its plane, t2 = n × t1.
-            wp = np.array([s * math.cos(phi), s * math.sin(phi), c])
-            t1 = np.array([-c * math.cos(phi), -c * math.sin(phi), s]) if s > 1e-9 else np.array([1.0, 0, 0])
-            t2 = np.cross(wp, t1)
-            d = local[:, :1] * t1 + local[:, 1:2] * t2 + local[:, 2:3] * wp
-            lam_d, dl1, dl2 = smith_lambda_np(d, sigma1, sigma2, derivatives=True)
-            lam_d = lam_d[None, :]
-            up = d[None, :, 2] > 0
-            seen = np.where(up, (1.0 + lam_i) / (1.0 + lam_i + lam_d), 0.0)
-            table[i, j] = 1.0 - seen.mean(axis=1)
-            if derivatives:
-                d_seen = np.where(up, (1.0 + lam_i) / (1.0 + lam_i + lam_d) ** 2, 0.0)   # −∂S/∂Λ
-                d1[i, j] = (d_seen * dl1[None, :]).mean(axis=1)
-                d2[i, j] = (d_seen * dl2[None, :]).mean(axis=1)
-    out = (np.clip(table, 0.0, 1.0).astype(np.float32), d1.astype(np.float32), d2.astype(np.float32))
-    for a in out:
-        a.setflags(write=False)
-    return out if derivatives else out[0]
-
-
-def _gather(table, index):
-    """table[index]: a Dr.Jit gather in JIT variants, numpy indexing in scalar ones."""
-    if dr.is_jit_v(mi.Float):
-        return dr.gather(mi.Float, table, index)
-    return float(table[int(index)])
-
-
-def _held(x, differentiable):
-    """x, its derivative dropped where ``differentiable`` is false (same value either way)."""
-    return dr.select(differentiable, x, dr.detach(x)) if dr.is_diff_v(x) else x
-
-
-def lookup(table, cos_min, cos_p, phi, g):
-    """Trilinear lookup of B(θ_p, φ ∈ [0, π/2], G1 = g) in the table (flat, G innermost)."""
-    def axis(x, n):
-        x = dr.clip(x, 0.0, 1.0) * (n - 1)
-        x0 = dr.minimum(mi.UInt32(x), n - 2)
-        return x0, x - mi.Float(x0)
-    # acos at 1 and ∛ at 0 have infinite derivatives: there the axis is held (the value is the same).
-    c = dr.clip(cos_p, cos_min, 1.0)
-    theta = _held(dr.acos(c), c < 1.0)
-    g = dr.clip(g, 0.0, 1.0)
-    xc, fc = axis(theta * (1.0 / math.acos(cos_min)), TABLE_COS)
-    xp, fp = axis(phi * (2.0 / math.pi), TABLE_PHI)
-    xg, fg = axis(_held(dr.cbrt(g), g > 0.0), TABLE_G)
-    acc = mi.Float(0.0)
-    for dc, wc in ((0, 1.0 - fc), (1, fc)):
-        for dp, wph in ((0, 1.0 - fp), (1, fp)):
-            base = ((xc + dc) * TABLE_PHI + (xp + dp)) * TABLE_G + xg
-            v0, v1 = _gather(table, base), _gather(table, base + 1)
-            acc += (wc * wph) * dr.lerp(v0, v1, fg)
-    return acc
+                                 hash_floats, uniform)
+from mfnormal.models.shading import to_tangent_frame
 
 
 # -- The model at one shading point ------------------------------------------------------------
@@ -817,8 +586,3 @@ def _select_frame(mask, a, b):
 
 
 # -- The map's rms slope --------------------------------------------------------------------
-
-def rms_slope(normals: np.ndarray) -> float:
-    """(Isotropic summary) √((σ1² + σ2²)/2) of :func:`principal_slopes`."""
-    s1, s2, _ = principal_slopes(normals)
-    return math.sqrt(0.5 * (s1 * s1 + s2 * s2))

@@ -26,6 +26,8 @@ import drjit as dr
 import mitsuba as mi
 
 from mfnormal.models import analytic, faithful, walk
+from mfnormal.models.walk_pdf import mis_pdf
+from mfnormal.models.walk_replay import replays
 from mfnormal.models.microsurface import COS_P_MIN
 
 MODELS = ("faithful", "analytic", "separable", "nonseparable")
@@ -163,20 +165,20 @@ class Walk:
     def eval_pdf(self, ctx, sp, wo, active, want_value=True, want_pdf=True):
         params = self.params
         return (walk.eval(sp, params, wo, active) if want_value else mi.Spectrum(0.0),
-                walk.mis_pdf(sp, params, wo, active) if want_pdf else mi.Float(0.0))
+                mis_pdf(sp, params, wo, active) if want_pdf else mi.Float(0.0))
 
     def sample(self, ctx, sp, sample1, sample2, active):
         return walk.sample(sp, self.params, sample1, sample2, mi.Bool(active))
 
     def fuses(self, sp) -> bool:
         """One walk serves both (walk.eval_sample), except where derivatives are taken."""
-        return not ((sp.attached and dr.is_diff_v(mi.Float)) or walk.replays(sp))
+        return not ((sp.attached and dr.is_diff_v(mi.Float)) or replays(sp))
 
     def eval_pdf_sample(self, ctx, sp, wo, sample1, sample2, active):
         """(value, pdf, (bs, weight)): ``sample``'s walk with ``eval``'s NEE toward ``wo``."""
         params = self.params
         value, sampled = walk.eval_sample(sp, params, wo, sample1, sample2, active)
-        return value, walk.mis_pdf(sp, params, wo, active), sampled
+        return value, mis_pdf(sp, params, wo, active), sampled
 
 
 def make(name, tangent_facet, nested, source, walk_values):

@@ -18,9 +18,9 @@ every vertex, which forgets height correlation (§4.1).
   mirror's escape), so the low-order part of ``eval`` is deterministic; with a
   same-material tangent facet each vertex also connects to the next facet by a
   sample from ω_o, MIS-weighted against the walk's own (``connect``, §4.8);
-- ``mis_pdf``: a deterministic function for MIS (§5): the exact density of the
-  low-order terms plus a cosine lobe for the rest, boosted by the nested lobe's
-  sharpness where longer walks are likely (variance-aware MIS).
+- ``mis_pdf`` (:mod:`~mfnormal.models.walk_pdf`): a deterministic function for MIS (§5): the
+  exact density of the low-order terms plus a cosine lobe for the rest, boosted by the nested
+  lobe's sharpness where longer walks are likely (variance-aware MIS).
 - ``eval_sample``: both from one walk (§4.10, primal only): ``eval_walk`` run with
   ``sample_walk``'s numbers, so its walker is ``sample``'s and its L an unbiased ``eval``.
 
@@ -29,7 +29,7 @@ facet), ``add_nee`` (NEE at a vertex), ``bounce`` (nested sample, ``cross`` to
 the other facet or out, ``roulette``). Each takes a :class:`WalkParams`; each
 loop returns its :class:`Walker`, whose ``depth`` is the walk's bounce count.
 
-Derivatives (docs/model.md §9): both loops carry everything they read as loop state
+Derivatives (docs/model.md §9, :mod:`~mfnormal.models.walk_replay`): both loops carry everything they read as loop state
 and have a ``max_iterations`` hint (``max_bounces``: no walk iterates more), so forward
 and reverse mode run through them. The estimators' derivatives are unbiased: every
 decision (start facet, escape, roulette) is taken with detached numbers, and the
@@ -43,7 +43,7 @@ kernels the extra terms are constant-folded away.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import drjit as dr
 import mitsuba as mi
@@ -53,6 +53,9 @@ from mfnormal.models.microsurface import negate, replace_grad
 from mfnormal.models.rng import (SALT_WALK_EVAL, SALT_WALK_SAMPLE, SLOT_START_FACET, choose, hash_floats, slot_connect,
                   slot_escape, slot_nested, slot_roulette, uniform)
 from mfnormal.models.shading import broadcast, select_frame
+from mfnormal.models.walk_pdf import first_interval, mis_pdf
+from mfnormal.models.walk_replay import (Replay, _crest_jacobian, _g1_jacobian, _land_jacobian, attached_interval,
+                                         calls, replays)
 
 # Default cap of a walk's facet bounces; walks still on the microsurface after it are dropped.
 MAX_BOUNCES = 1024
@@ -102,144 +105,9 @@ class Walker:
                             # led here (0 at the start and after a delta lobe; ``connect``)
 
 
-# -- Derivatives: the replayed walk (docs/model.md §9) -------------------------------------
-
-
-def _rel(f):
-    """f/detach(f) − 1: value 0, derivative df/f (per channel)."""
-    fd = dr.detach(f)
-    ok = fd != 0.0
-    return dr.select(ok, f / dr.select(ok, fd, 1.0) - 1.0, 0.0)
-
-
-@dataclass
-class Replay:
-    """A walk's derivative, built while the walk is replayed (loop state of the replay).
-
-    The replayed walk carries only detached values from vertex to vertex; what a vertex
-    adds or multiplies is recomputed attached to the microsurface (ω_p) and the nested
-    BSDF, and ``G`` sums zero-valued terms whose derivative is the estimate's. For eval,
-    L = Σ_k e_k N_k and dL = Σ_k e_k dN_k + Σ_j (what L gains after factor j)·df_j/f_j
-    (the reformulation of path replay backpropagation, Vicini et al. 2021), which needs
-    the walk's L from a first, primal pass (``total``) and the contributions so far
-    (``done``); for sample, de = e·Σ_j df_j/f_j. The loop's derivative is thereby a sum
-    over its iterations, which Dr.Jit reverses without storing the walk (its sum-style
-    reverse mode, ``max_iterations=-1``). The non-separable walk's interval [a, b]
-    depends on ω_p through every crossing before: the walker carries its Jacobian
-    (``Walker.ja``, ``jb``), and a vertex uses a + ja·Δ with Δ = ω_p − detach(ω_p).
-    """
-
-    G: mi.Spectrum
-    done: mi.Spectrum = None    # eval only
-    total: mi.Spectrum = None
-    exit: mi.Vector3f = None    # sample only: zero-valued, the exit direction's derivative
-
-    def leave(self, d, mask):
-        """The walk leaves along d (attached after a delta event: the mirror or a delta lobe):
-        the exit direction takes d's derivative. (Directions are detached from one vertex
-        to the next: a walk keeps the derivative of its last delta event only.)"""
-        if self.exit is not None:
-            self.exit = self.exit + dr.select(mask, d - dr.detach(d), 0.0)
-
-    def factor(self, f, mask, after_extra=0.0):
-        """e ← e·f for attached f (value detach(f)): G += (what L gains after it)·df/f."""
-        rel = _rel(f)
-        if self.total is not None:
-            rel = (self.total - self.done + after_extra) * rel
-        self.G = self.G + dr.select(mask, rel, 0.0)
-
-    def add(self, c, mask):
-        """L ← L + c for an attached contribution c (its throughput detached)."""
-        self.G = self.G + dr.select(mask, c - dr.detach(c), 0.0)
-        self.done = self.done + dr.select(mask, dr.detach(c), 0.0)
-
-
-def replays(sp):
-    """Whether a walk at ``sp`` needs its derivative: ω_p, ω_i or the nested BSDF (a probe
-    evaluation, which costs nothing in kernels) carry derivatives."""
-    if not dr.is_diff_v(mi.Float):
-        return False
-    return dr.grad_enabled(sp.wp) or dr.grad_enabled(sp.wi) or sp.nested_attached()
-
-
-def calls(sp):
-    """``sp`` with indirect nested calls where INDIRECT_NESTED_CALLS is set and no derivative
-    is taken (``replays``): forward mode through a callable's implicit inputs (the nested
-    BSDF's parameters) inside the walk loops fails in Dr.Jit 1.5 (an edge outside the
-    dr.isolate_grad scope)."""
-    return sp.with_indirect_calls() if INDIRECT_NESTED_CALLS and not replays(sp) else sp
-
-
-def attached_interval(sp, w, rp):
-    """The walker's [a, b] with the derivative of its dependence on ω_p (replayed
-    non-separable walks), else as it is."""
-    if rp is None or w.ja is None:
-        return w.a, w.b
-    delta = sp.wp - dr.detach(sp.wp)
-    return w.a + dr.dot(w.ja, delta), w.b + dr.dot(w.jb, delta)
-
-
-def _crest_jacobian(sp, on_p, d, d_pre, sign):
-    """(∂τ/∂ω_p, ∂κ/∂ω_p) of ``sp.crest_map(on_p, d)`` for a ray along d (detached) whose
-    across-groove component is x = −⟨d, ω_t⟩ = sign·⟨d_pre, p_xy⟩/sinθ_p: d = d_pre leaving
-    a vertex (sign 1), or d = flip_t(d_pre) leaving the mirror (sign −1; d_z = d_pre_z, and
-    only ω_t moves). With r = cotθ_p d_z/|x|: toward the wall τ = r/(1 + r), κ = 1 + r;
-    from it τ = r, κ = 1/(1 − r) (microsurface.crest_map)."""
-    wp, s, cot = dr.detach(sp.wp), dr.detach(sp.sin_p), dr.detach(sp.cot_p)
-    ok = s > 0
-    inv = dr.select(ok, dr.rcp(dr.select(ok, s, 1.0)), 0.0)
-    c = d_pre.x * wp.x + d_pre.y * wp.y
-    x = sign * c * inv
-    g_x = (sign * inv) * mi.Vector3f(d_pre.x - c * wp.x * inv * inv, d_pre.y - c * wp.y * inv * inv, 0.0)
-    g_cot = mi.Vector3f(-wp.z * wp.x, -wp.z * wp.y, s * s) * (inv * inv * inv)
-    ax = dr.maximum(dr.abs(x), 1e-30)
-    raw = cot * d.z / ax
-    r = dr.clip(raw, -1e30, 1e30)
-    free = ok & (dr.abs(raw) < 1e30) & (dr.abs(x) > 1e-30)
-    g_r = dr.select(free, (d.z / ax) * g_cot - (cot * d.z * dr.sign(x) / (ax * ax)) * g_x, 0.0)
-    to_wall = on_p & (x > 0)
-    from_wall = negate(on_p) & (x < 0) & (r < 1.0)
-    k_p, k_t = 1.0 + r, 1.0 - r
-    g_tau = dr.select(to_wall & (k_p > 1e-30), g_r / (k_p * k_p), dr.select(from_wall, g_r, 0.0))
-    g_k = dr.select(to_wall & (k_p > 1e-30), g_r,
-                    dr.select(from_wall & (k_t > 1e-30), g_r / (k_t * k_t), 0.0))
-    return g_tau, g_k
-
-
-def _land_jacobian(lo, hi, j_lo, j_hi, tau, k, g_tau, g_k):
-    """The Jacobians of microsurface.land's [lo', hi'] from those of lo, hi, τ and κ."""
-    finite = k < ms.INF
-    k, tau = dr.select(finite, k, 1.0), dr.select(finite, tau, 0.0)
-    hi_raw, lo_raw = k * (hi - tau), k * (lo - tau)
-    hi_new = dr.clip(hi_raw, 0.0, 1.0)
-    g_hi = dr.select((hi_raw > 0.0) & (hi_raw < 1.0), (hi - tau) * g_k + k * (j_hi - g_tau), 0.0)
-    g_lo = dr.select(lo_raw > hi_new, g_hi, dr.select(lo_raw > 0.0, (lo - tau) * g_k + k * (j_lo - g_tau), 0.0))
-    return dr.select(finite, g_lo, 0.0), dr.select(finite, g_hi, 0.0)
-
-
-def _g1_jacobian(sp, w, on_p):
-    """∂G1(w, ω_m)/∂ω_p (microsurface.G1; ω_m = ω_p where on_p, else ω_t): the first
-    interval's, G1 = wp_z w_z / Ã(w) below 1, Ã = ⟨w, ω_p⟩₊ + ⟨w_xy, −p_xy⟩₊."""
-    wp = dr.detach(sp.wp)
-    a_p, a_t = dr.dot(w, wp), -(w.x * wp.x + w.y * wp.y)
-    total = dr.maximum(a_p, 0.0) + dr.maximum(a_t, 0.0)
-    ok = total > 0
-    inv = dr.select(ok, dr.rcp(dr.select(ok, total, 1.0)), 0.0)
-    wz = dr.maximum(w.z, 0.0)
-    g = wp.z * wz * inv
-    g_total = dr.select(a_p > 0, w, 0.0) + dr.select(a_t > 0, mi.Vector3f(-w.x, -w.y, 0.0), 0.0)
-    grad = (mi.Vector3f(0.0, 0.0, wz) - g * g_total) * inv
-    facing = dr.select(on_p, a_p > 0, a_t > 0)
-    return dr.select(facing & ok & (g < 1.0), grad, 0.0)
-
-
 # -- Steps --------------------------------------------------------------------------------
 
 
-def first_interval(sp, params, on_p):
-    """(a, b): the depths on the first facet that a ray from ω_i can hit, [0, G1(ω_i, m)]
-    (the top G1 of its height, Algorithm 2); [0, 1] for the separable walk."""
-    return mi.Float(0.0), mi.Float(1.0) if params.separable else sp.G1(sp.wi, on_p)
 
 
 def start(sp, on_p, a, b, active):
@@ -707,163 +575,3 @@ def eval_sample(sp, params, wo, sample1, sample2, active):
     L, w = eval_walk(sp, params, wo, on, (sample1, sample2, walking))
     value = dr.select(on & dr.all(dr.isfinite(L)), dr.maximum(L, 0.0), 0.0)
     return value, exit_sample(sp, params, w)
-
-
-def _escape(sp, h, on_p, d):
-    """The fraction of rays from depths h = (a, b) on facet ``on_p`` along d that leave.
-
-    Only above the facet's plane: below it, κ = ∞ must not count as an escape
-    (nested pdfs such as llvm roughplastic's are not zero there)."""
-    above = dr.dot(d, dr.select(on_p, sp.wp, sp.wt)) > 0
-    return dr.select(above, ms.escape_fraction(h[0], h[1], sp.crest_map(on_p, d)[0]), 0.0)
-
-
-def _land(sp, params, h, on_p, d):
-    """The depths on the other facet reached by the rays from h along d that do not escape."""
-    if params.separable:
-        return mi.Float(0.0), mi.Float(1.0)
-    return ms.land(h[0], h[1], *sp.crest_map(on_p, d))
-
-
-def second_visit(sp, params, h, w_in):
-    """P(a walk on p lit from w_in, its nested sample at the lobe centre (the mirror
-    direction about ω_p), crosses to t and, reflected there as by a mirror, lands on p
-    again): how likely a second nested vertex is. Exact for a mirror-like nested
-    BSDF, which is where the boost is large."""
-    p, t = mi.Bool(True), mi.Bool(False)
-    d1 = 2.0 * dr.dot(w_in, sp.wp) * sp.wp - w_in
-    q = (1.0 - _escape(sp, h, p, d1)) * (1.0 - _escape(sp, _land(sp, params, h, p, d1), t, sp.flip_t(d1)))
-    return dr.select(dr.dot(d1, sp.wp) > 0, q, 0.0)
-
-
-def glossy_wall_terms(sp, params, wo, lp, active):
-    """The MIS pdf's terms for the walks that ``eval`` estimates stochastically with a
-    same-material tangent facet (they take the boost, docs/model.md §5): the two-vertex
-    walks i→p→t→o and i→t→p→o with the t bounce taken as a mirror (the centre of a glossy
-    wall's lobe; without them BSDF samples reflected off a glossy wall got almost no MIS
-    weight: this pdf was 7-14× below the walk's density at α = 0.05), and the three-vertex
-    walks (``third_vertex``), which the plain density leaves to its cosine rest. Their reach
-    and escape probabilities are the separable model's, for both models: the non-separable
-    model's depth intervals make them exactly zero at some lobe centres whose neighbourhood
-    the glossy walks still reach (the pdf was 33× below the walk's density there).
-    Returns (the two-vertex terms, the three-vertex terms)."""
-    loose = replace(params, separable=True)
-    p, t = mi.Bool(True), mi.Bool(False)
-    wi = sp.wi
-    wo_m, wi_m = sp.flip_t(wo), sp.flip_t(wi)
-    h = first_interval(sp, loose, p)
-    e_pto = lp * (1.0 - _escape(sp, h, p, wo_m)) * _escape(sp, h, t, wo)           # i→p→t→o
-    e_tpo = (1.0 - lp) * _escape(sp, h, p, wo)                                      # i→t→p→o
-    two = (sp.pdf(sp.frame_p, wi, wo_m, active & (e_pto > 0)) * e_pto
-           + sp.pdf(sp.frame_p, wi_m, wo, active & (e_tpo > 0)) * e_tpo)
-    return two, third_vertex(sp, loose, h, wo, lp, active)
-
-
-def third_vertex(sp, params, h, wo, lp, active):
-    """The density toward wo of the walks whose first two nested samples take their lobes'
-    centres (the mirror directions about the first facet and then about the other) and whose
-    third vertex, on the first facet again, leaves toward wo: share·P(reach it)·(escape
-    toward wo)·its nested pdf. With a same-material tangent facet these three-vertex walks
-    (p → t → p, share λ_p; t → p → t, share λ_t) give narrow lobes of their own, far from the
-    two-vertex terms (the pdf was 50-100× below the walk's density there at GGX α = 0.05,
-    docs/model.md §5). Of the two starts the one with the larger weight gives the term (one
-    nested call; a deterministic choice, which MIS allows)."""
-    q_p, v_p = _third_vertex_reach(sp, params, h, mi.Bool(True), wo, lp)
-    q_t, v_t = _third_vertex_reach(sp, params, h, mi.Bool(False), wo, 1.0 - lp)
-    use_p = q_p >= q_t
-    q = dr.maximum(q_p, q_t)
-    return sp.pdf(select_frame(use_p, sp.frame_p, sp.frame_t), dr.select(use_p, v_p, v_t), wo, active & (q > 0)) * q
-
-
-def _third_vertex_reach(sp, params, h, on_p, wo, share):
-    """(share·P(reach the third vertex)·escape toward wo, the direction it is lit from) for a
-    walk from ω_i that starts on facet ``on_p`` at depths h (``third_vertex``)."""
-    off = negate(on_p)
-    frame = select_frame(on_p, sp.frame_p, sp.frame_t)
-    n_other = dr.select(on_p, sp.wt, sp.wp)
-    d1 = 2.0 * dr.dot(sp.wi, frame.n) * frame.n - sp.wi
-    d2 = d1 - 2.0 * dr.dot(d1, n_other) * n_other
-    h2 = _land(sp, params, h, on_p, d1)
-    q = (share * (1.0 - _escape(sp, h, on_p, d1)) * (1.0 - _escape(sp, h2, off, d2))
-         * _escape(sp, _land(sp, params, h2, off, d2), on_p, wo))
-    return dr.select((dr.dot(d1, frame.n) > 0) & (dr.dot(d2, n_other) > 0), q, 0.0), -d2
-
-
-def mis_pdf(sp, params, wo, active):
-    """Deterministic MIS pdf (docs/model.md §5): a density approximation, variance-aware boosted.
-
-    The exact density of walks that leave after their first nested sample (with a
-    mirror tangent facet: including the mirror legs i→p→t→o, i→t→p→o and i→t→p→t→o;
-    with a same-material one, i→p→t→o and i→t→p→o with the t bounce approximated by
-    a mirror), using the model's own escape probabilities, plus a cosine lobe of
-    weight 1 − cosθ_p for the longer walks. For white Lambertian facets and a mirror
-    tangent facet the separable walk's density is exactly cosθ_o/π (§4.7), and so is
-    this pdf.
-
-    The terms that ``eval`` estimates stochastically are multiplied by the boost c of
-    ``stochastic_share_boost`` (variance-aware MIS; ``mis_boost_max`` = 1 leaves the
-    plain density approximation): with a same-material tangent facet the two-bounce
-    terms, and for the longer walks a cosine lobe of weight (c − 1)·q2 is added, q2
-    the chance of a second nested vertex for a walk whose first nested sample takes
-    its lobe's centre (zero where that centre leaves the microsurface, so that light
-    samples keep their weight where longer walks are rare).
-    """
-    sp = calls(sp)
-    wi = sp.wi
-    active = mi.Bool(active) & (wi.z > 0) & (wo.z > 0)
-    p, t = mi.Bool(True), mi.Bool(False)
-    lp = sp.lambda_p(wi)
-    wo_m, wi_m = sp.flip_t(wo), sp.flip_t(wi)
-    h_p = first_interval(sp, params, p)
-    h_tp = _land(sp, params, first_interval(sp, params, t), t, -wi_m)   # on p after a t start's mirror bounce
-    e_po = lp * _escape(sp, h_p, p, wo)                                                            # i→p→o
-    e_pto = lp * (1.0 - _escape(sp, h_p, p, wo_m)) * _escape(sp, _land(sp, params, h_p, p, wo_m), t, wo)  # i→p→t→o
-    e_tpo = (1.0 - lp) * _escape(sp, h_tp, p, wo)                                                  # i→t→p→o
-    stochastic = longer = 0.0
-    if params.specular_tangent:
-        e_tpto = ((1.0 - lp) * (1.0 - _escape(sp, h_tp, p, wo_m))
-                  * _escape(sp, _land(sp, params, h_tp, p, wo_m), t, wo))                          # i→t→p→t→o
-        explicit = (sp.pdf(sp.frame_p, wi, wo, active & (e_po > 0)) * e_po
-                    + sp.pdf(sp.frame_p, wi, wo_m, active & (e_pto > 0)) * e_pto
-                    + sp.pdf(sp.frame_p, wi_m, wo, active & (e_tpo > 0)) * e_tpo
-                    + sp.pdf(sp.frame_p, wi_m, wo_m, active & (e_tpto > 0)) * e_tpto)
-    else:
-        e_to = (1.0 - lp) * _escape(sp, first_interval(sp, params, t), t, wo)                     # i→t→o
-        explicit = (sp.pdf(sp.frame_p, wi, wo, active & (e_po > 0)) * e_po
-                    + sp.pdf(sp.frame_t, wi, wo, active & (e_to > 0)) * e_to)
-        stochastic, longer = glossy_wall_terms(sp, params, wo, lp, active)
-    # 1 − cosθ_p as sin²θ_p/(1 + cosθ_p): never negative (a float32 unit ω_p can have z > 1)
-    # and non-zero for tilts below float32's 1 − cos resolution (θ_p ≲ 3e-4).
-    rest = sp.sin_p * sp.sin_p / (1.0 + sp.wp.z) * dr.maximum(wo.z, 0.0) * dr.inv_pi
-    # The longer walks' share by the chance q2 that a walk has them: a cosine lobe of weight
-    # c·q2 instead of the plain density's 1 − cosθ_p, where c > 1, and with a same-material
-    # tangent facet the three-vertex lobes (a select, not a branch: mis_boost_max is a
-    # kernel input).
-    c = stochastic_share_boost(sp, params.mis_boost_max, active)
-    q2 = lp * second_visit(sp, params, h_p, wi) + (1.0 - lp) * second_visit(sp, params, h_tp, wi_m)
-    boosted = explicit + stochastic * c + rest + (c - 1.0) * q2 * dr.maximum(wo.z, 0.0) * dr.inv_pi
-    if not params.specular_tangent:
-        boosted += (c - 1.0) * longer
-    pdf = dr.select(params.mis_boost_max > 1.0, boosted, explicit + stochastic + rest)
-    return dr.select(active & dr.isfinite(pdf), pdf, 0.0)
-
-
-def stochastic_share_boost(sp, boost_max, active):
-    """Variance-aware MIS factor for the longer walks' share of the MIS pdf.
-
-    ``eval`` is exact-in-expectation but noisy for the walks past their first
-    nested sample: one random direction per vertex, evaluated against a nested lobe
-    that is as sharp as the material. Light samples weighted by that noisy value
-    give fireflies on glossy facets; BSDF samples of the same paths have weights
-    near the albedo. Variance-aware MIS (Grittmann et al. 2019) divides a
-    technique's weight by the relative variance of its estimate; here it is
-    applied as a boost of the BSDF technique's weight on the longer walks,
-    proportional to the nested lobe's sharpness: π × the nested pdf of the
-    mirror direction at normal incidence (1 for Lambertian, 1/(4α²) for GGX),
-    clamped to [1, boost_max] (mis_pdf selects the density approximation for
-    boost_max = 1). Deterministic per shading point, so MIS
-    stays unbiased; the low-order terms, whose ``eval`` is deterministic, keep
-    their exact density.
-    """
-    sharp = dr.pi * sp.pdf(sp.frame_p, sp.wp, sp.wp, active)
-    return dr.clip(sharp, 1.0, boost_max)

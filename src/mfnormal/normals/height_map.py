@@ -136,7 +136,7 @@ class HeightMap:
     def slopes(self, attached=False):
         """The map's principal rms slopes (σ1, σ2, φ_e) on the unit square (:func:`height_map_normals`,
         twice the texel resolution: the bilinear gradient is linear across a cell), and None."""
-        from mfnormal.models.faithful import principal_slopes
+        from mfnormal.models.neighbourhood import principal_slopes
         res = 256 if dr.is_jit_v(mi.Float) else 32
         params = mi.traverse(self.texture)
         if "data" in params.keys():

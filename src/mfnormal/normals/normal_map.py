@@ -134,10 +134,10 @@ class NormalMap:
 
     def slopes(self, attached=False):
         """(σ1, σ2, φ_e), the map's principal rms slopes about the macro normal and their axis,
-        from its decoded texels (faithful.principal_slopes); and, where the map or ``strength``
+        from its decoded texels (neighbourhood.principal_slopes); and, where the map or ``strength``
         carry derivatives and ``attached``, the same as Dr.Jit values that carry them
-        (faithful.attached_slopes), else None."""
-        from mfnormal.models.faithful import attached_slopes, principal_slopes
+        (neighbourhood.attached_slopes), else None."""
+        from mfnormal.models.neighbourhood import attached_slopes, principal_slopes
         res = 256 if dr.is_jit_v(mi.Float) else 32
         params = mi.traverse(self.texture)
         if "data" in params.keys():
