@@ -1,19 +1,46 @@
-"""``mfnormal_path``: Mitsuba's path tracer, calling each BSDF's ``eval_pdf_sample``.
+r"""
+.. _integrator-mfnormal_path:
+
+Path tracer calling each BSDF's eval_pdf_sample (:monosp:`mfnormal_path`)
+-------------------------------------------------------------------------
+
+.. pluginparameters::
+
+ * - max_depth
+   - |int|
+   - Longest path depth (-1: unbounded; 1: only directly visible emitters). Default: -1, as ``path``.
+ * - rr_depth
+   - |int|
+   - Depth from which Russian roulette may stop a path. Default: 5, as ``path``.
+ * - hide_emitters
+   - |bool|
+   - Hide directly visible emitters. Default: false.
 
 Mitsuba 3.9.1's ``path`` calls ``bsdf->eval_pdf_sample(ctx, si, wo, s1, s2)`` at every
 vertex (the NEE toward the light sample ``wo`` and the continuation sample), but its Python
 trampoline does not forward that method: for a Python BSDF the C++ default runs
 ``eval_pdf`` and then ``sample``. For the random-walk models these are two walks, two loops
-with their own SIMD tails; :meth:`plugin.NormalMapMicrofacet.eval_pdf_sample` does both with
+with their own SIMD tails; ``normalmap_microfacet``'s ``eval_pdf_sample`` does both with
 one walk. This integrator is ``path`` (the same algorithm and the same order of the
 sampler's numbers: an image of built-in BSDFs equals ``path``'s to float rounding) whose
 BSDF call is a ``dr.dispatch`` over the shapes' BSDFs, so that a Python BSDF's own
 ``eval_pdf_sample`` runs (a built-in's is its C++ method).
 
-Parameters: ``max_depth`` (default -1: unbounded), ``rr_depth`` (default 5),
-``hide_emitters`` (default false), as ``path``'s. Primal rendering only: it does not
-re-evaluate the BSDF for derivatives as ``path`` does; under AD (a ray that carries
-derivatives) it raises, use ``prb`` there (``mfnormal_prb`` for the random walks). Unpolarised variants only.
+Primal rendering only: it does not re-evaluate the BSDF for derivatives as ``path`` does;
+under AD (a ray that carries derivatives) it raises, use ``prb`` there (``mfnormal_prb`` for
+the random walks). Unpolarised variants only.
+
+.. tabs::
+    .. code-tab:: xml
+
+        <integrator type="mfnormal_path">
+            <integer name="max_depth" value="8"/>
+        </integrator>
+
+    .. code-tab:: python
+
+        'type': 'mfnormal_path',
+        'max_depth': 8
 """
 
 from __future__ import annotations
