@@ -167,14 +167,25 @@ def _module_names(tree) -> set:
     return names
 
 
+#: Attributes a module documents as the way to customise it, not patches: the warnings module's
+#: ``showwarning`` ("you may replace this function ... by assigning to warnings.showwarning"),
+#: which the command line sets inside ``warnings.catch_warnings()`` to print one-line warnings.
+HOOKS = {("warnings", "showwarning")}
+
+
 def monkeypatches(source: str) -> list:
     """The lines of ``source`` that replace attributes at run time: pytest's ``monkeypatch``,
-    ``mock.patch``, or ``setattr`` on a module (a name the file binds to a module)."""
+    ``mock.patch``, or ``setattr`` on or assignment to an attribute of a module (a name the file
+    binds to a module)."""
     tree = ast.parse(source)
     modules = _module_names(tree)
     hits = {n.lineno for n in ast.walk(tree)
             if isinstance(n, ast.Call) and isinstance(n.func, ast.Name) and n.func.id == "setattr"
             and n.args and isinstance(n.args[0], ast.Name) and n.args[0].id in modules}
+    hits |= {n.lineno for n in ast.walk(tree) if isinstance(n, (ast.Assign, ast.AugAssign))
+             for t in (n.targets if isinstance(n, ast.Assign) else [n.target])
+             if isinstance(t, ast.Attribute) and isinstance(t.value, ast.Name) and t.value.id in modules
+             and (t.value.id, t.attr) not in HOOKS}
     hits |= {i for i, line in enumerate(source.splitlines(), 1) if "monkeypatch" in line or "mock.patch" in line}
     return sorted(hits)
 
@@ -183,6 +194,7 @@ def test_the_monkeypatch_finder_finds_one():
     assert monkeypatches("import os\nsetattr(os, 'sep', '/')\n") == [2]
     assert monkeypatches("from mfnormal.models import faithful\nsetattr(faithful, 'X', 1)\n") == [2]
     assert monkeypatches("def t(monkeypatch):\n    pass\n") == [1]
+    assert monkeypatches("from mfnormal.models import walk\nwalk.FLAG = True\n") == [2]
     assert monkeypatches("class S:\n    pass\nbs = S()\nsetattr(bs, 'wo', 1)\n") == []
 
 

@@ -63,19 +63,13 @@ M = 1 << 20          # eval queries (distinct si.p) per configuration and estima
 
 def eval_samples(model, wp, wi, wo, connected=True):
     """M evaluations of one (ω_p, ω_i, ω_o) query with distinct si.p (their own walks); with
-    ``connected`` = False the walk without its connection (walk.connect returning zero, the
-    NEE weight 1): the plain estimator (its NEE evaluated from ω_o toward w_in,
+    ``connected`` = False the walk without its connection (``WalkParams.connect``: NEE alone,
+    weight 1): the plain estimator (its NEE evaluated from ω_o toward w_in,
     equal by the nested conductor's reciprocity)."""
-    bsdf = make_bsdf(GGX, encode(wp[None]), model, "same")
-    saved = walk.connect, walk.connection_weight
-    if not connected:
-        walk.connect = lambda sp, params, w, *a, **k: (dr.zeros(mi.Spectrum, dr.width(w.a)), mi.Bool(False))
-        walk.connection_weight = lambda p_in, p_o: dr.full(mi.Float, 1.0, dr.width(p_in))
-    try:
-        si = make_si(np.tile(wi, (M, 1)), 1, 0, np.arange(M))
-        return np3(bsdf.eval(mi.BSDFContext(), si, vec3(np.tile(wo, (M, 1)))))[:, 0]
-    finally:
-        walk.connect, walk.connection_weight = saved
+    sp = make_bsdf(GGX, encode(wp[None]), model, "same").shading_point(
+        mi.BSDFContext(), make_si(np.tile(wi, (M, 1)), 1, 0, np.arange(M)))
+    params = walk.WalkParams(separable=model == "separable", specular_tangent=False, connect=connected)
+    return np3(walk.eval(sp, params, vec3(np.tile(wo, (M, 1))), mi.Bool(True)))[:, 0]
 
 
 @pytest.mark.parametrize("model,config", DOUBLE_GLOSSY, ids=[f"{m}-{k}" for k, (m, _) in enumerate(DOUBLE_GLOSSY)])

@@ -16,6 +16,7 @@ deterministic. The measured numbers quoted in docstrings come from
 ``pytest -s tests/test_walk.py``, which prints them.
 """
 
+import dataclasses
 import functools
 import math
 
@@ -1110,14 +1111,14 @@ INDIRECT_QUERIES = 4096
 
 def walk_outputs_and_ops(nested, params, indirect, seed=900):
     """(eval, mis_pdf, sample's direction, weight and pdf as numpy arrays; the operation count of
-    the kernels that compute them, summed) with walk.INDIRECT_NESTED_CALLS = ``indirect``."""
+    the kernels that compute them, summed) with ``WalkParams.indirect_calls`` = ``indirect``."""
     rng = np.random.default_rng(seed)
     n = INDIRECT_QUERIES
     wi, wo = random_hemisphere(rng, n, 0.05), random_hemisphere(rng, n, 0.05)
     wp = random_hemisphere(rng, n, 0.35)     # tilts up to ~70°
     sp = shading.ShadingPoint(nested, mi.BSDFContext(), make_si(wi, 1, 0, np.arange(n)), vec3(wp))
-    flag, history = walk.INDIRECT_NESTED_CALLS, dr.flag(dr.JitFlag.KernelHistory)
-    walk.INDIRECT_NESTED_CALLS = indirect
+    params = dataclasses.replace(params, indirect_calls=indirect)
+    history = dr.flag(dr.JitFlag.KernelHistory)
     dr.set_flag(dr.JitFlag.KernelHistory, True)
     try:
         on = mi.Bool(True)
@@ -1128,7 +1129,6 @@ def walk_outputs_and_ops(nested, params, indirect, seed=900):
         dr.eval(f, pdf, bs.wo, bs.pdf, weight)
         ops = sum(h["operation_count"] for h in dr.kernel_history() if h["type"] == dr.KernelType.JIT)
     finally:
-        walk.INDIRECT_NESTED_CALLS = flag
         dr.set_flag(dr.JitFlag.KernelHistory, history)
     return [np3(f), np1(pdf), np3(bs.wo), np3(weight), np1(bs.pdf)], ops
 
@@ -1137,7 +1137,7 @@ def walk_outputs_and_ops(nested, params, indirect, seed=900):
 @pytest.mark.parametrize("model,tangent_facet", [("separable", "specular"), ("nonseparable", "same")],
                          ids=["separable-specular", "nonseparable-same"])
 def test_indirect_nested_calls_give_the_same_values_in_smaller_kernels(model, tangent_facet):
-    """With ``walk.INDIRECT_NESTED_CALLS`` the walks call the nested BSDF through one-target
+    """With ``WalkParams.indirect_calls`` the walks call the nested BSDF through one-target
     ``dr.switch`` callables, which Dr.Jit compiles once per kernel for identical call sites:
     eval, mis_pdf and sample (2^12 random queries, GGX α = 0.05 gold facets: benchmarks/run.py's
     ggx_0.05) give the same numbers

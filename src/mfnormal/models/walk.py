@@ -63,11 +63,6 @@ MAX_BOUNCES = 1024
 RR_DEPTH = 3
 # Default cap of the boost of the longer walks' share in the MIS pdf (GGX α ≤ 1/16 reaches it).
 MIS_BOOST_MAX = 64.0
-# Call the nested BSDF through one callable per method (ShadingPoint.with_indirect_calls) instead
-# of inlining it at each of the walks' call sites: on the demo, kernels −13-20 % operations, the
-# first-render compile −5-15 % (ggx_0.05; roughplastic: none), the render time +6-14 % (docs/model.md
-# §4.9). Off: the render-time targets come first. Read when a kernel is traced.
-INDIRECT_NESTED_CALLS = False
 
 
 @dataclass(frozen=True)
@@ -84,6 +79,15 @@ class WalkParams:
     max_bounces: int = MAX_BOUNCES       # facet bounces before a walk is dropped
     rr_depth: int = RR_DEPTH             # Russian roulette from this many bounces on (0: never)
     mis_boost_max: float = MIS_BOOST_MAX  # cap of the variance-aware MIS boost (1: none)
+    # Call the nested BSDF through one callable per method (ShadingPoint.with_indirect_calls)
+    # instead of inlining it at each of the walks' call sites: on the demo, kernels −13-20 %
+    # operations, the first-render compile −5-15 % (ggx_0.05; roughplastic: none), the render time
+    # +6-14 % (docs/model.md §4.9). Off: the render-time targets come first. Chooses the kernel's code.
+    indirect_calls: bool = False
+    # With a same-material tangent facet, connect each vertex to the next facet by an
+    # MIS-weighted sample from ω_o (``connect``, docs/model.md §4.8); False: the plain
+    # estimator, NEE alone (the reference the connection is tested against).
+    connect: bool = True
 
 
 @dataclass
@@ -276,7 +280,7 @@ def add_nee(L, sp, params, to, on_p, w_in, h_a, h_b, scale, active, p_in=None):
     if p_in is None:
         L += scale * sp.eval(frame, w_in, to.wo, active & (w2 > 0)) * w2
     else:
-        L += scale * connected_nee(sp, frame, w_in, to.wo, p_in, active & (w2 > 0)) * w2
+        L += scale * connected_nee(sp, frame, w_in, to.wo, p_in, active & (w2 > 0), params.connect) * w2
     if params.specular_tangent:
         wr = dr.select(to.g_o_t > 0, ms.fraction_inside(h_a, h_b, to.r_lo, to.r_hi), 0.0)
         L += scale * sp.eval(sp.frame_p, w_in, to.wo_m, active & (wr > 0)) * wr
@@ -325,18 +329,18 @@ def connect(sp, params, w, to, seed, a, b, rp=None):
     return dr.select(ok, c, 0.0), ok
 
 
-def connected_nee(sp, frame, w_in, wo, p_in, active):
+def connected_nee(sp, frame, w_in, wo, p_in, active, weighted=True):
     """f_m(w_in, ω_o)⟨ω_o, ω_m⟩ at a vertex that the walk reached by its own nested sample
     (density p_in > 0), times the balance-heuristic weight against ``connect``'s sample of
     the same direction from ω_o (``connection_weight``). One nested call, eval_pdf from ω_o
     toward w_in: its pdf is p_o, its value f_m(ω_o, w_in)⟨w_in, ω_m⟩, which reciprocity
     turns into the NEE's (×⟨ω_o, ω_m⟩/⟨w_in, ω_m⟩). Where p_in = 0 (the first vertex, after a
-    delta lobe) the plain eval from w_in, weight 1."""
+    delta lobe) the plain eval from w_in, weight 1; ``weighted`` false (no connection): weight 1."""
     swap = p_in > 0
     value, p_o = sp.eval_pdf(frame, dr.select(swap, wo, w_in), dr.select(swap, w_in, wo), active)
     cos_in = dr.dot(w_in, frame.n)
     f = dr.select(swap, value * (dr.dot(wo, frame.n) / dr.select(swap & (cos_in > 0), cos_in, 1.0)), value)
-    return f * connection_weight(p_in, dr.detach(p_o))
+    return f * connection_weight(p_in, dr.detach(p_o)) if weighted else f
 
 
 def connection_weight(p_in, p_o):
@@ -407,7 +411,7 @@ def sample_walk(sp, params, sample1, sample2, active):
 
 def _sample_walk(sp, params, sample1, sample2, active):
     """:func:`sample_walk` and its Replay (the throughput's derivative; None without)."""
-    sp = calls(sp)
+    sp = calls(sp, params)
     active = mi.Bool(active) & (sp.wi.z > 0)
     seed = hash_floats(SALT_WALK_SAMPLE, sample1, sample2.x, sample2.y)
     replay = replays(sp)
@@ -457,7 +461,7 @@ def _eval_run(sp, params, wo, u_start, walk_active, active, seed, numbers, rp):
         on = dr.select(at_start, active, w.walking & active)   # (eval: w.walking ⊆ active)
         nee = (at, params, to, w.on_p | at_start, dr.select(at_start, at.wi, -d_in), dr.select(at_start, 0.0, a),
                dr.select(at_start, b_p, b), dr.select(at_start, mi.Spectrum(lp), w.e), on, w.p_in)
-        if not params.specular_tangent:
+        if not params.specular_tangent and params.connect:
             c_next, on_next = connect(at, params, w, to, seed, a, b, rp)
             if rp is None:
                 L += c_next
@@ -471,7 +475,8 @@ def _eval_run(sp, params, wo, u_start, walk_active, active, seed, numbers, rp):
             # The start's choice and the mirror's escape came before this NEE, which only
             # the latter affects (the first NEE is the start's expectation); the
             # connection from the start facet depends on the choice.
-            rp.factor(p_start, at_start & active, 0.0 if params.specular_tangent else dr.detach(c_next))
+            rp.factor(p_start, at_start & active,
+                          0.0 if params.specular_tangent or not params.connect else dr.detach(c_next))
             if p_fold is not None:
                 rp.factor(p_fold, folded, dr.select(at_start, 0.0, dr.detach(c)))
         s1, s2 = nested_numbers(seed, w.depth)
@@ -501,7 +506,7 @@ def eval_walk(sp, params, wo, active, numbers=None):
     nested sample and seed), so its walker is ``sample_walk``'s, and runs on ``walk_active``
     (ω_i above the horizon) while the NEE is only taken on ``active``.
     """
-    sp = calls(sp)
+    sp = calls(sp, params)
     wi = sp.wi
     active = mi.Bool(active) & (wi.z > 0)
     if numbers is None:

@@ -125,7 +125,7 @@ def mis_pdf(sp, params, wo, active):
     its lobe's centre (zero where that centre leaves the microsurface, so that light
     samples keep their weight where longer walks are rare).
     """
-    sp = calls(sp)
+    sp = calls(sp, params)
     wi = sp.wi
     active = mi.Bool(active) & (wi.z > 0) & (wo.z > 0)
     p, t = mi.Bool(True), mi.Bool(False)

@@ -74,12 +74,12 @@ def replays(sp):
     return dr.grad_enabled(sp.wp) or dr.grad_enabled(sp.wi) or sp.nested_attached()
 
 
-def calls(sp):
-    """``sp`` with indirect nested calls where INDIRECT_NESTED_CALLS is set and no derivative
+def calls(sp, params):
+    """``sp`` with indirect nested calls where ``params.indirect_calls`` is set and no derivative
     is taken (``replays``): forward mode through a callable's implicit inputs (the nested
     BSDF's parameters) inside the walk loops fails in Dr.Jit 1.5 (an edge outside the
     dr.isolate_grad scope)."""
-    return sp.with_indirect_calls() if INDIRECT_NESTED_CALLS and not replays(sp) else sp
+    return sp.with_indirect_calls() if params.indirect_calls and not replays(sp) else sp
 
 
 def attached_interval(sp, w, rp):
