@@ -197,7 +197,7 @@ def geomean(xs):
 
 def import_mitsuba(variant: str | None = None):
     """Mitsuba in ``variant`` (default VARIANT) with the plugin and the probes registered; an
-    unknown or unusable variant raises mfnormal.cli.CLIError (one line)."""
+    unknown or unusable variant raises mfnormal.cli.commands.CLIError (one line)."""
     global mfnormal, mi, dr
     import mfnormal          # noqa: F401  (before mitsuba: selects a working libLLVM)
     import drjit as dr
