@@ -50,7 +50,7 @@ Metrics:
 5. peak memory: max RSS of the metric-2 subprocess.
 
 Writes ``results.json`` and ``RESULTS.md`` into ``--out``. ``--quick`` runs a
-subset at tiny sizes (a smoke test, < 1 minute); its timings mean nothing.
+subset at tiny sizes (a smoke test, about 2 minutes on 2 cores); its timings mean nothing.
 ``--variant`` (default llvm_ad_rgb) renders in another Mitsuba variant, e.g.
 ``cuda_ad_rgb`` on a GPU; an unknown or unusable variant is a one-line error.
 """
@@ -197,7 +197,7 @@ def geomean(xs):
 
 def import_mitsuba(variant: str | None = None):
     """Mitsuba in ``variant`` (default VARIANT) with the plugin and the probes registered; an
-    unknown or unusable variant raises mfnormal.cli.CLIError (one line)."""
+    unknown or unusable variant raises mfnormal.cli.commands.CLIError (one line)."""
     global mfnormal, mi, dr
     import mfnormal          # noqa: F401  (before mitsuba: selects a working libLLVM)
     import drjit as dr
@@ -1195,7 +1195,7 @@ def throughput_lines(results: dict) -> list:
 def parse_args(argv):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--quick", action="store_true", help="tiny smoke run (< 1 min), numbers meaningless")
+    ap.add_argument("--quick", action="store_true", help="tiny smoke run (about 2 min), numbers meaningless")
     ap.add_argument("--profile", choices=sorted(PROFILES), default="all",
                     help="full (192×144, every metric), production (1280×720: time and compile), or all "
                          "(both, and benchmarks/backward.py; the default)")
