@@ -177,7 +177,7 @@ CASES = [
     ("nested_thindielectric", "thindielectric.xml", [], "renders"),
     ("nested_roughdielectric", "roughdielectric.xml", [], "renders"),
     # The plugin reports its nested BSDF's transmission flags although it only reflects,
-    # so Mitsuba's twosided refuses it; renders if plugin.py strips those flags.
+    # so Mitsuba's twosided refuses it; renders if the plugin strips those flags.
     ("twosided_around_plugin_with_dielectric", "twosided_dielectric.xml", [], ("renders or", "transmission")),
 ]
 # The walks too, on the cases that stress the microsurface geometry rather than file loading.

@@ -12,7 +12,7 @@
 - path tracing equals light tracing (``ptracer``) with the geometric macro normal;
 - parameter checks and ``mi.traverse``.
 
-References are independent of ``normals.py``: Mitsuba's ``bumpmap`` (its perturbed normal read
+References are independent of ``mfnormal.normals``: Mitsuba's ``bumpmap`` (its perturbed normal read
 back from a white Lambertian lobe), numpy formulas, Mitsuba's integrators. Fixed seeds.
 """
 

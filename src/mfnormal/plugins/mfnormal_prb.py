@@ -27,7 +27,7 @@ estimate f̂ it is L·∂f̂/f̂, a ratio of estimates whose expectation is not 
 declares ``stochastic_eval`` (the walks of ``normalmap_microfacet``), the adjoint pass instead
 re-draws ``bsdf.sample`` with the primal pass's sample numbers, gradients on, and uses the
 relative derivative of its **weight**: the walks' weight carries an unbiased derivative
-(score terms p/detach(p) for each of the walk's decisions, detached directions; walk.py).
+(score terms p/detach(p) for each of the walk's decisions, detached directions; models/walk.py).
 Every other BSDF (built-in ones, the deterministic models ``faithful`` and ``analytic``) is
 differentiated exactly as ``prb`` does, through ``bsdf.eval`` (tested equal to ``prb``).
 Light from NEE is linear in the eval estimate and needs nothing new.
