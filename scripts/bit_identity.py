@@ -8,7 +8,7 @@ For refactors that must not change behaviour: record on the code before the
 change (keep the file outside git), compare after it. Every configuration
 (model × tangent facet × nested BSDF, each normal source on a smooth-shaded
 mesh — vertex tangents, height map, the geometric macro normal with and
-without a map — reverse-mode derivatives w.r.t. the map, and a few with other ``max_bounces``,
+without a map — forward-mode derivatives along the map's texels, and a few with other ``max_bounces``,
 ``rr_depth``, ``mis_boost_max``, ``strength`` and convention values) answers
 the same ``N_QUERIES`` queries through the plugin's ``eval``, ``pdf``,
 ``eval_pdf`` and ``sample`` (direction, pdf, weight, sampled type and
@@ -324,10 +324,13 @@ def run_mesh(model, tf, nested, source, tex, q, mode=mi.TransportMode.Radiance):
 
 
 def run_grad(model, tf, nested, tex, q):
-    """The reverse-mode derivative of sum(eval) and of sum(sample weight) w.r.t. the normal map's texels."""
+    """Forward-mode derivatives of eval and of the sample weight along a fixed direction of the
+    normal map's texels (per query: gathers only, so the same numbers on every run; a reverse-mode
+    gradient of the map sums queries with atomic adds in a thread-dependent order)."""
     bsdf = plugin(model, tf, nested, {}, tex)
     params = mi.traverse(bsdf)
     key = "normalmap.data"
+    direction = mi.TensorXf(np.random.default_rng(8).uniform(-0.1, 0.1, np.array(params[key]).shape).astype(np.float32))
     out = {}
     for what in ("eval", "sample_weight"):
         data = mi.TensorXf(params[key])
@@ -340,8 +343,8 @@ def run_grad(model, tf, nested, tex, q):
             y = bsdf.eval(ctx, si, mi.Vector3f(*(_f(q["wo"][:, i]) for i in range(3))))
         else:
             y = bsdf.sample(ctx, si, _f(q["u"][:, 0]), mi.Point2f(_f(q["u"][:, 1]), _f(q["u"][:, 2])))[1]
-        dr.backward(dr.sum(dr.sum(y)))
-        out[f"grad_{what}"] = _np(dr.grad(data))
+        dr.set_grad(data, direction)
+        out[f"grad_{what}"] = _np(dr.forward_to(y))
     return out
 
 
