@@ -16,8 +16,8 @@ without asking which it is:
 
 The models: :class:`Faithful` (the default, :mod:`mfnormal.models.faithful`), :class:`Analytic`
 (the paper's, :mod:`mfnormal.models.analytic`) and :class:`Walk` (the separable and
-non-separable random walks, :mod:`mfnormal.models.walk`). :func:`make` builds one from the
-plugin's parameters.
+non-separable random walks, :mod:`mfnormal.models.walk`). :func:`from_properties` builds one
+from the plugin's parameters.
 """
 
 from __future__ import annotations
@@ -199,3 +199,11 @@ def make(name, tangent_facet, nested, source, walk_values):
         return Walk(name, tangent_facet, values)
     model.tangent_facet, model.ok = tangent_facet, values    # the walk values, checked and shown
     return model
+
+
+def from_properties(props, nested, source):
+    """The model a ``normalmap_microfacet``'s properties ask for (``model``, ``tangent_facet``,
+    ``max_bounces``, ``rr_depth``, ``mis_boost_max``), checked."""
+    return make(props.get("model", DEFAULT_MODEL), props.get("tangent_facet", "specular"), nested, source,
+                (props.get("max_bounces", walk.MAX_BOUNCES), props.get("rr_depth", walk.RR_DEPTH),
+                 props.get("mis_boost_max", walk.MIS_BOOST_MAX)))

@@ -204,8 +204,8 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from mfnormal.models import walk
-from mfnormal.models.interface import DEFAULT_MODEL, MODELS, make
+from mfnormal.models import interface
+from mfnormal.models.interface import DEFAULT_MODEL, MODELS
 from mfnormal.models.microsurface import negate, replace_grad
 from mfnormal.normals.macro import macro_of
 from mfnormal.normals.normal_map import NUDGES, NormalMap
@@ -227,10 +227,7 @@ class NormalMapMicrofacet:
         type(self).__mro__[1].__init__(self, props)   # the variant's mi.BSDF
         self.nested, self.source, self.macro, self.strength = from_properties(props)
         self.normalmap = self.source.texture if isinstance(self.source, NormalMap) else None
-        self.model = make(props.get("model", DEFAULT_MODEL), props.get("tangent_facet", "specular"),
-                                         self.nested, self.source,
-                                         (props.get("max_bounces", walk.MAX_BOUNCES), props.get("rr_depth", walk.RR_DEPTH),
-                                          props.get("mis_boost_max", walk.MIS_BOOST_MAX)))
+        self.model = interface.from_properties(props, self.nested, self.source)
         self._flat_texels = self.source.flat_texels()
 
         # The microsurface only reflects: report the nested BSDF's reflection components.
