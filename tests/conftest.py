@@ -8,6 +8,7 @@ any test module is imported. Some tests switch to ``scalar_rgb``; the variant is
 process-global and the plugin is registered per variant, so each test gets the suite's back.
 """
 
+import os
 import shutil
 
 import pytest
@@ -24,6 +25,23 @@ def pytest_configure(config):
 
 def pytest_report_header(config):
     return f"mfnormal: variant {VARIANT} (MFNORMAL_VARIANT)"
+
+
+# -- Slow tests ------------------------------------------------------------------------------------
+# ``@pytest.mark.slow``: scale tests, and the cases of a check beyond those the default run keeps
+# (every model and contract has at least one case in the default run). They run with
+# MFNORMAL_SLOW=1.
+
+SLOW = os.environ.get("MFNORMAL_SLOW", "") not in ("", "0")
+
+
+def pytest_collection_modifyitems(config, items):
+    if SLOW:
+        return
+    skip = pytest.mark.skip(reason="slow: MFNORMAL_SLOW=1 runs it")
+    for item in items:
+        if item.get_closest_marker("slow") is not None:
+            item.add_marker(skip)
 
 
 @pytest.fixture(autouse=True)
