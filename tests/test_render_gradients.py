@@ -149,27 +149,36 @@ def fd_image(sc, params, what, base, h, spp, steps=(1.0,)):
     return mean_over_steps(fds)
 
 
-def prepare(model, facet, what, h, spp):
-    """The scene, its parameters, θ (attached, at 0, in the scene), the FD image and the
-    standard error of its mean over the FD's steps (:data:`STEPS` for the deterministic
-    models, one step for the walk)."""
+def reference(model, facet, what, h, spp):
+    """The scene, its parameters, the map's texels, the FD image and the standard error of its
+    mean over the FD's steps (:data:`STEPS` for the deterministic models, one step for the walk)."""
     sc = scene(model, facet)
     params = mi.traverse(sc)
     base = np.array(params[key_of(params, "texel")])
     ref, ref_se = fd_image(sc, params, what, base, h, spp, STEPS if facet is None else (1.0,))
     assert abs(ref.mean()) > 1e-4 and np.abs(ref).max() > 1e-3, "the scene must see the parameter"
+    return sc, params, base, ref, ref_se
+
+
+def attach(params, what, base):
+    """θ, attached, at 0, in the scene's parameters."""
     theta = mi.Float(0.0)
     dr.enable_grad(theta)
     update(params, what, base, theta)
-    return sc, params, theta, ref, ref_se
+    return theta
 
 
-def forward_image(model, facet, what, h, integrator, spp):
+def prepare(model, facet, what, h, spp):
+    """The scene, its parameters, θ (attached, at 0, in the scene), the FD image and the
+    standard error of its mean over the FD's steps (:func:`reference`)."""
+    sc, params, base, ref, ref_se = reference(model, facet, what, h, spp)
+    return sc, params, attach(params, what, base), ref, ref_se
+
+
+def render_forward(sc, theta, integrator, spp):
     """Mitsuba's forward protocol (module docstring): θ's tangent into the scene, then render_forward."""
-    sc, params, theta, ref, ref_se = prepare(model, facet, what, h, spp)
     dr.forward(theta, dr.ADFlag.ClearEdges)
-    img = load_integrator(integrator).render_forward(sc, params=theta, seed=0, spp=spp)
-    return np.array(img, np.float64), ref, ref_se
+    return np.array(load_integrator(integrator).render_forward(sc, params=theta, seed=0, spp=spp), np.float64)
 
 
 def paired_se(fwd, ref):
@@ -186,7 +195,8 @@ def test_render_forward_gradient_matches_finite_differences(model, facet, h, tol
     |AD − FD| / max(|FD|, 10 % of max |FD|) (Mitsuba's test style) below tol_img, and the
     images' means within 4 paired standard errors + tol_mean relative."""
     spp = SPP_WALK if facet is not None else SPP
-    fwd, ref, ref_se = forward_image(model, facet, what, h, integrator, spp)
+    sc, params, theta, ref, ref_se = prepare(model, facet, what, h, spp)
+    fwd = render_forward(sc, theta, integrator, spp)
     err = float((np.abs(fwd - ref) / np.maximum(np.abs(ref), 0.1 * np.abs(ref).max())).mean())
     se = float(np.hypot(paired_se(fwd, ref), ref_se))
     print(f"{model} {what} {integrator} forward: mean {fwd.mean():+.5g}, FD {ref.mean():+.5g} ± {se:.2g} "
@@ -202,10 +212,11 @@ def test_render_reverse_gradient_matches_finite_differences(model, facet, h, tol
     4 standard errors: the FD's over its steps (deterministic models) and, for the walk, the
     paired one of its forward image against the FD's."""
     spp = SPP_WALK if facet is not None else SPP
+    sc, params, base, ref, ref_se = reference(model, facet, what, h, spp)
     se = 0.0
-    if facet is not None:
-        se = paired_se(*forward_image(model, facet, what, h, integrator, spp)[:2])
-    sc, params, theta, ref, ref_se = prepare(model, facet, what, h, spp)
+    if facet is not None:       # the walk's forward image, on the same scene and FD image
+        se = paired_se(render_forward(sc, attach(params, what, base), integrator, spp), ref)
+    theta = attach(params, what, base)
     se = float(np.hypot(se, ref_se))
     # Mitsuba's reverse protocol (its test03_rendering_backward): render_backward at the FD's
     # seed, so that both use the same samples (mi.render's reverse pass draws others, from
@@ -229,12 +240,15 @@ def test_mi_render_reverse_equals_forward_at_its_gradient_seed(model, facet, wha
     up to float32 summation (1e-3 relative). Measured: faithful strength −0.0169446 both (the
     FD at seed 0, −0.017335, differs by the pixel integration's sampling: 2.2 %)."""
     spp = SPP_WALK if facet is not None else SPP
-    sc, params, theta, *_ = prepare(model, facet, what, 0.02 if facet is not None else 1e-3, spp)
+    sc = scene(model, facet)
+    params = mi.traverse(sc)
+    base = np.array(params[key_of(params, "texel")])
+    theta = attach(params, what, base)
     integrator = load_integrator("prb")
     img = mi.render(sc, params, integrator=integrator, seed=0, spp=spp)
     dr.backward(dr.mean(img, axis=None))
     bwd = float(np.array(dr.grad(theta)).ravel()[0])
-    sc, params, theta, *_ = prepare(model, facet, what, 0.02 if facet is not None else 1e-3, spp)
+    theta = attach(params, what, base)
     dr.forward(theta, dr.ADFlag.ClearEdges)
     fwd = np.array(integrator.render_forward(sc, params=theta, seed=int(mi.sample_tea_32(0, 1)[0]), spp=spp),
                    np.float64).mean()
