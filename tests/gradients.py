@@ -22,7 +22,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from helpers import make_si, random_hemisphere, vec3
+from helpers import floats, make_si, point2, random_hemisphere, tensor, vec3
 
 
 @dataclass
@@ -92,7 +92,7 @@ def _with_value(params, key, value):
         data = np.array(params["normalmap.data"]).copy()
         data[:, index, channel] = value        # Mitsuba stores a 1-row bitmap as 2 rows
         key = "normalmap.data"
-        arr = mi.TensorXf(data)
+        arr = tensor(data)
     else:
         arr = type(params[key])(value)
     params[key] = arr
@@ -124,7 +124,7 @@ def query_values(bsdf, si, wo, u, what="eval"):
     if what == "pdf":
         return bsdf.pdf(ctx, si, wo) * test_function(wo)
     if what == "sample":
-        bs, w = bsdf.sample(ctx, si, mi.Float(u[:, 0]), mi.Point2f(u[:, 1], u[:, 2]))
+        bs, w = bsdf.sample(ctx, si, floats(u[:, 0]), point2(u[:, 1:]))
         return (w[0] + w[1] + w[2]) / 3.0 * test_function(bs.wo)
     raise ValueError(what)
 
@@ -151,7 +151,7 @@ def check(bsdf, key, si, wo, u, h, what="eval", one_sided=False, steps=(1.0,)):
         _, index, channel = key
         seed = np.zeros(np.array(arr).shape, np.float32)
         seed[:, index, channel] = 1.0
-        dr.set_grad(arr, mi.TensorXf(seed))
+        dr.set_grad(arr, tensor(seed))
     else:
         dr.set_grad(arr, 1.0)
     d_q = np.array(dr.forward_to(q, flags=dr.ADFlag.Default | dr.ADFlag.AllowNoGrad), np.float64)

@@ -66,10 +66,47 @@ def p_two_sided(z):
 # -- Dr.Jit <-> numpy ------------------------------------------------------------------------
 
 
+def aligned(a, dtype=np.float32):
+    """``a`` as a contiguous numpy array of ``dtype`` that starts on a 64-byte boundary.
+
+    Dr.Jit reads a numpy array where it lies, and its LLVM backend compiles the loads from it
+    as aligned or unaligned depending on where the array starts: the same computation on
+    arrays that start elsewhere is another kernel, compiled again and missing the kernel
+    cache (every input a coin flip with numpy's 16-byte-aligned allocations). Inputs built
+    here always give the same kernel."""
+    a = np.asarray(a, dtype)
+    buf = np.empty(a.nbytes + 64, np.uint8)
+    start = (-buf.ctypes.data) % 64
+    out = buf[start:start + a.nbytes].view(dtype).reshape(a.shape)
+    out[...] = a
+    return out
+
+
+def floats(a):
+    """mi.Float from values (as float32, :func:`aligned`)."""
+    return mi.Float(aligned(np.ravel(a)))
+
+
+def uints(a):
+    """mi.UInt32 from values (:func:`aligned`)."""
+    return mi.UInt32(aligned(np.ravel(a), np.uint32))
+
+
+def tensor(a):
+    """mi.TensorXf from a float32 numpy array of any shape (:func:`aligned`)."""
+    return mi.TensorXf(aligned(a))
+
+
 def vec3(a):
-    """mi.Vector3f from (n, 3) or (3,) values (as float32)."""
+    """mi.Vector3f from (n, 3) or (3,) values (as float32, :func:`aligned`)."""
     a = np.asarray(a, np.float32).reshape(-1, 3)
-    return mi.Vector3f(a[:, 0], a[:, 1], a[:, 2])
+    return mi.Vector3f(*(aligned(a[:, i]) for i in range(3)))
+
+
+def point2(a):
+    """mi.Point2f from (n, 2) values (as float32, :func:`aligned`)."""
+    a = np.asarray(a, np.float32).reshape(-1, 2)
+    return mi.Point2f(aligned(a[:, 0]), aligned(a[:, 1]))
 
 
 def np3(v, n=None):
@@ -115,11 +152,10 @@ def make_si(wi, n_texels=1, texel_index=None, p_index=None):
     si = dr.zeros(mi.SurfaceInteraction3f, n)
     si.wi = vec3(wi)
     u = (np.broadcast_to(np.asarray(texel_index, np.float64), (n,)) + 0.5) / n_texels
-    si.uv = mi.Point2f(u.astype(np.float32), np.full(n, 0.5, np.float32))
+    si.uv = mi.Point2f(aligned(u), aligned(np.full(n, 0.5)))
     if p_index is not None:
         k = np.broadcast_to(np.asarray(p_index, np.int64), (n,))
-        si.p = mi.Point3f((k % (1 << 22)).astype(np.float32), (k // (1 << 22)).astype(np.float32),
-                          np.zeros(n, np.float32))
+        si.p = mi.Point3f(aligned(k % (1 << 22)), aligned(k // (1 << 22)), aligned(np.zeros(n)))
     si.sh_frame = mi.Frame3f(mi.Vector3f(1, 0, 0), mi.Vector3f(0, 1, 0), mi.Vector3f(0, 0, 1))
     si.n = mi.Normal3f(0, 0, 1)
     return si

@@ -24,7 +24,7 @@ mi.set_variant(VARIANT)
 mfnormal.register()
 
 import helpers  # noqa: E402
-from helpers import (NESTED, WHITE, decode_ref, encode, make_si, normalmap, np1, np3,  # noqa: E402
+from helpers import (NESTED, WHITE, floats, decode_ref, encode, make_si, normalmap, np1, np3,  # noqa: E402
                      random_hemisphere, sph, vec3)
 
 
@@ -73,8 +73,8 @@ def query(bsdf, si, wo):
 def sample(bsdf, si, sample1, sample2):
     """(wo, pdf, weight) of bsdf.sample for arrays of sample1 (n) and sample2 (n×2)."""
     n = len(sample1)
-    bs, weight = bsdf.sample(mi.BSDFContext(), si, mi.Float(np.asarray(sample1, np.float32)),
-                             mi.Point2f(np.asarray(sample2, np.float32).T.copy()))
+    bs, weight = bsdf.sample(mi.BSDFContext(), si, floats(sample1),
+                             helpers.point2(np.asarray(sample2, np.float32).T))
     return np3(bs.wo, n), np1(bs.pdf, n), np3(weight, n)
 
 
@@ -538,7 +538,7 @@ def test_degenerate_input_never_breaks(nested):
 
     # The setup must really hand non-finite texels to the plugin.
     probe = dr.zeros(mi.SurfaceInteraction3f, t)
-    probe.uv = mi.Point2f(((np.arange(t) + 0.5) / t).astype(np.float32), np.full(t, 0.5, np.float32))
+    probe.uv = mi.Point2f(floats((np.arange(t) + 0.5) / t), floats(np.full(t, 0.5)))
     raw = np3(mi.load_dict(normalmap(texels)).eval_3(probe))
     assert np.isnan(raw[0, 0]) and np.isinf(raw[3, 0])
 

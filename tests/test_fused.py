@@ -28,7 +28,7 @@ from variant import VARIANT  # noqa: E402
 mi.set_variant(VARIANT)
 mfnormal.register()
 
-from helpers import bumps_normalmap, encode, make_bsdf, make_si, np1, np3, small_scene, sph, vec3  # noqa: E402
+from helpers import bumps_normalmap, encode, floats, make_bsdf, make_si, np1, np3, small_scene, sph, vec3  # noqa: E402
 
 WALKS = [("separable", "specular"), ("separable", "same"), ("nonseparable", "specular"), ("nonseparable", "same")]
 WALK_IDS = [f"{m}-{t}" for m, t in WALKS]
@@ -132,8 +132,8 @@ def _queries(n, seed):
     rng = np.random.default_rng(seed)
     wi = np.tile(sph(40, 2.0), (n, 1))
     wo = np.tile(sph(30, -1.0), (n, 1))
-    s1 = mi.Float(rng.random(n).astype(np.float32))
-    s2 = mi.Point2f(rng.random(n).astype(np.float32), rng.random(n).astype(np.float32))
+    s1 = floats(rng.random(n))
+    s2 = mi.Point2f(floats(rng.random(n)), floats(rng.random(n)))
     return wi, wo, s1, s2
 
 

@@ -379,7 +379,7 @@ def inherited_zero_pdf(case, kind, si, wo, value, pdf):
         return suspect
     q = np.flatnonzero(suspect)
     nested = mi.load_dict(case["nested"])
-    sub = dr.gather(type(si), si, mi.UInt32(q.astype(np.uint32)))
+    sub = dr.gather(type(si), si, helpers.uints(q))
     ctx = mi.BSDFContext()
     own_value, own_pdf = nested.eval_pdf(ctx, sub, vec3(wo[q]))
     own_value, own_pdf = np3(own_value, len(q)), np1(own_pdf, len(q))
@@ -445,7 +445,7 @@ def test_fuzzed_queries_are_finite_valid_and_bounded(model, tangent_facet, kind,
         return np3(value, n), np1(pdf, n)
 
     def sample():
-        bs, weight = bsdf.sample(ctx, si, mi.Float(u[:, 0].copy()), mi.Point2f(u[:, 1].copy(), u[:, 2].copy()))
+        bs, weight = bsdf.sample(ctx, si, helpers.floats(u[:, 0]), helpers.point2(u[:, 1:]))
         return np3(bs.wo, n), np1(bs.pdf, n), np3(weight, n)
 
     # A walk's eval is eval_pdf's first half, bit for bit: check it on a slice only.
@@ -549,7 +549,7 @@ def test_nonseparable_walk_conserves_energy_at_grazing_incidence(tangent_facet):
     rng = np.random.default_rng(30)
     si, ctx = same_query(wi, m), mi.BSDFContext()
     u = rng.random((m, 3)).astype(np.float32)
-    weight = np3(bsdf.sample(ctx, si, mi.Float(u[:, 0].copy()), mi.Point2f(u[:, 1].copy(), u[:, 2].copy()))[1], m)
+    weight = np3(bsdf.sample(ctx, si, helpers.floats(u[:, 0]), helpers.point2(u[:, 1:]))[1], m)
     r, phi = np.sqrt(u[:, 1]), 2 * np.pi * u[:, 2]
     wo = np.stack([r * np.cos(phi), r * np.sin(phi), np.sqrt(1 - u[:, 1])], 1).astype(np.float32)
     y = np.pi * np3(bsdf.eval(ctx, si, vec3(wo)), m)[:, 0] / wo[:, 2]
@@ -664,7 +664,7 @@ def test_nonseparable_eval_is_unbiased_within_1e_6_of_the_horizon(case):
     m = 1 << 18
     u = np.random.default_rng(32).random((m, 3)).astype(np.float32)
     si, ctx = same_query(wi, m), mi.BSDFContext()
-    weight = np3(bsdf.sample(ctx, si, mi.Float(u[:, 0].copy()), mi.Point2f(u[:, 1].copy(), u[:, 2].copy()))[1], m)
+    weight = np3(bsdf.sample(ctx, si, helpers.floats(u[:, 0]), helpers.point2(u[:, 1:]))[1], m)
     r, phi = np.sqrt(u[:, 1]), 2 * np.pi * u[:, 2]
     wo = np.stack([r * np.cos(phi), r * np.sin(phi), np.sqrt(1 - u[:, 1])], 1).astype(np.float32)
     y = np.pi * np3(bsdf.eval(ctx, si, vec3(wo)), m)[:, 0] / wo[:, 2]

@@ -22,7 +22,7 @@ import pytest
 mi.set_variant("llvm_ad_rgb")
 mfnormal.register()
 
-from helpers import encode, make_bsdf, make_si, np1, np3, sph, vec3  # noqa: E402
+from helpers import encode, floats, make_bsdf, make_si, np1, np3, point2, sph, vec3  # noqa: E402
 from mfnormal.models import walk  # noqa: E402
 
 GGX = {"type": "roughconductor", "distribution": "ggx", "alpha": 0.05}
@@ -122,8 +122,8 @@ def test_mis_pdf_covers_the_glossy_wall_lobes(model):
         bsdf = make_bsdf(GGX, encode(wp[None]), model, "same")
         pdf = np1(bsdf.pdf(mi.BSDFContext(), make_si(wi[None]), vec3(wo[None])))[0]
         u = rng.random((EXITS, 3)).astype(np.float32)
-        bs, _ = bsdf.sample(mi.BSDFContext(), make_si(np.tile(wi, (EXITS, 1))), mi.Float(u[:, 0]),
-                            mi.Point2f(u[:, 1], u[:, 2]))
+        bs, _ = bsdf.sample(mi.BSDFContext(), make_si(np.tile(wi, (EXITS, 1))), floats(u[:, 0]),
+                            point2(u[:, 1:]))
         near = (np1(bs.pdf) > 0) & (np3(bs.wo) @ wo > c)
         density = near.mean() / (2.0 * np.pi * (1.0 - c))
         print(f"\n{model} ω_o {np.round(wo, 3)}: exit density {density:.4g}, pdf {pdf:.4g} "

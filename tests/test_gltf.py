@@ -31,6 +31,7 @@ mi.set_variant(VARIANT)
 mfnormal.register()
 
 from gltf_writer import Material, Primitive, png_bytes, write_glb  # noqa: E402
+from helpers import floats, uints  # noqa: E402
 
 from mfnormal.cli import commands as cli, rendering  # noqa: E402
 from mfnormal.io.gltf import load_gltf  # noqa: E402
@@ -61,10 +62,10 @@ def mesh(positions, normals, uvs, faces, bsdf: dict):
     m = mi.Mesh("reference", len(positions), len(faces), props, has_vertex_normals=True,
                 has_vertex_texcoords=True)
     params = mi.traverse(m)
-    params["vertex_positions"] = mi.Float(positions.astype(np.float32).ravel())
-    params["vertex_normals"] = mi.Float(normals.astype(np.float32).ravel())
-    params["vertex_texcoords"] = mi.Float(uvs.astype(np.float32).ravel())
-    params["faces"] = mi.UInt32(faces.astype(np.uint32).ravel())
+    params["vertex_positions"] = floats(positions)
+    params["vertex_normals"] = floats(normals)
+    params["vertex_texcoords"] = floats(uvs)
+    params["faces"] = uints(faces)
     params.update()
     return m
 

@@ -46,7 +46,7 @@ import mitsuba as mi
 import numpy as np
 import pytest
 from cli_checks import assert_one_line_error  # noqa: E402
-from helpers import xml_plugin, xml_scene  # noqa: E402
+from helpers import floats, point2, vec3, xml_plugin, xml_scene  # noqa: E402
 
 from variant import VARIANT  # noqa: E402  (MFNORMAL_VARIANT, tests/variant.py)
 mi.set_variant(VARIANT)
@@ -320,13 +320,13 @@ def test_nested_transmission_is_dropped(nested, model):
     phi = rng.uniform(0, 2 * np.pi, n)
     wi = np.stack([np.sqrt(1 - z * z) * np.cos(phi), np.sqrt(1 - z * z) * np.sin(phi), z], 1).astype(np.float32)
     si = dr.zeros(mi.SurfaceInteraction3f, n)
-    si.wi = mi.Vector3f(wi[:, 0].copy(), wi[:, 1].copy(), wi[:, 2].copy())
+    si.wi = vec3(wi)
     si.uv = mi.Point2f(0.5, 0.5)
     si.p = mi.Point3f(dr.arange(mi.Float, n), 0, 0)
     si.sh_frame = mi.Frame3f(mi.Vector3f(1, 0, 0), mi.Vector3f(0, 1, 0), mi.Vector3f(0, 0, 1))
     ctx = mi.BSDFContext()
     u = rng.random((n, 3)).astype(np.float32)
-    s1, s2 = mi.Float(u[:, 0].copy()), mi.Point2f(u[:, 1].copy(), u[:, 2].copy())
+    s1, s2 = floats(u[:, 0]), point2(u[:, 1:])
     plugin, ref = flat_plugin(nested, model), mi.load_dict(nested)
     bs, w = plugin.sample(ctx, si, s1, s2)
     bs_ref, w_ref = ref.sample(ctx, si, s1, s2)
@@ -347,7 +347,7 @@ def test_nested_transmission_is_dropped(nested, model):
     below = wo_ref.copy()
     below[:, 2] = -np.abs(below[:, 2]) - 1e-3
     below /= np.linalg.norm(below, axis=1, keepdims=True)
-    wo_below = mi.Vector3f(*(below[:, i].astype(np.float32).copy() for i in range(3)))
+    wo_below = vec3(below)
     assert np.all(np.array(plugin.eval(ctx, si, wo_below)) == 0)
     assert np.all(np.array(plugin.pdf(ctx, si, wo_below)) == 0)
     print(f"\n{nested['type']} {model}: mean weight {w.mean():.4f} (nested {w_ref.mean():.4f}), "

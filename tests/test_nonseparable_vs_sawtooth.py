@@ -36,6 +36,7 @@ from variant import VARIANT  # noqa: E402  (MFNORMAL_VARIANT, tests/variant.py)
 mi.set_variant(VARIANT)
 mfnormal.register()
 
+from helpers import floats, vec3  # noqa: E402
 from reference import sawtooth_compare as C  # noqa: E402
 
 N_PATHS = 400_000       # paths per side (tracer and model) per case
@@ -143,9 +144,9 @@ def test_walk_models_are_reciprocal(model, tangent_facet):
     wo = np.repeat([q[1] for q in queries], RECIPROCITY_N, axis=0).astype(np.float32)
     n = len(wi)
     si = dr.zeros(mi.SurfaceInteraction3f, n)
-    si.wi = mi.Vector3f(*[np.ascontiguousarray(wi[:, j], np.float32) for j in range(3)])
-    si.p = mi.Point3f(mi.Float(np.arange(n, dtype=np.float32)), 0.0, 0.0)
-    wo_v = mi.Vector3f(*[wo[:, j].copy() for j in range(3)])
+    si.wi = vec3(wi)
+    si.p = mi.Point3f(floats(np.arange(n)), 0.0, 0.0)
+    wo_v = vec3(wo)
     f_cos = np.array(bsdf.eval(mi.BSDFContext(), si, wo_v))[0]
     f = (f_cos / wo[:, 2]).reshape(len(queries), RECIPROCITY_N)
     mean, se = f.mean(axis=1), f.std(axis=1, ddof=1) / np.sqrt(RECIPROCITY_N)

@@ -29,7 +29,8 @@ import pytest
 mi.set_variant(VARIANT)
 mfnormal.register()
 
-from helpers import WHITE, encode, np1, np3, p_two_sided, random_hemisphere, sph, vec3  # noqa: E402
+from helpers import (WHITE, encode, floats, np1, np3, p_two_sided, random_hemisphere, sph,  # noqa: E402
+                     uints, vec3)
 
 from validation import heightfield as H  # noqa: E402
 
@@ -82,10 +83,10 @@ def make_mesh(bsdf, normals, tangents=None):
     props["bsdf"] = mi.load_dict(bsdf)
     mesh = mi.Mesh("quads", len(QUAD_P), len(QUAD_F), props, has_vertex_normals=True, has_vertex_texcoords=True)
     params = mi.traverse(mesh)
-    params["vertex_positions"] = mi.Float(QUAD_P.astype(np.float32).ravel())
-    params["vertex_normals"] = mi.Float(np.float32(normals).ravel())
-    params["vertex_texcoords"] = mi.Float(QUAD_UV.astype(np.float32).ravel())
-    params["faces"] = mi.UInt32(QUAD_F.astype(np.uint32).ravel())
+    params["vertex_positions"] = floats(QUAD_P)
+    params["vertex_normals"] = floats(normals)
+    params["vertex_texcoords"] = floats(QUAD_UV)
+    params["faces"] = uints(QUAD_F)
     params.update()
     if tangents is not None:
         mesh.add_attribute("vertex_tangent", 3, np.float32(tangents[:, :3]).ravel())
@@ -103,7 +104,7 @@ def mesh_hits(mesh, n, rng):
     fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
     fn /= np.linalg.norm(fn, axis=1, keepdims=True)
     o = p + 0.5 * fn
-    si = scene.ray_intersect(mi.Ray3f(mi.Point3f(*(mi.Float(np.float32(o[:, i])) for i in range(3))), vec3(-fn)))
+    si = scene.ray_intersect(mi.Ray3f(mi.Point3f(*(floats(o[:, i]) for i in range(3))), vec3(-fn)))
     assert np.all(np.array(si.is_valid()))
     return si
 
@@ -212,7 +213,7 @@ def test_height_map_and_normal_map_of_the_same_heights_agree_within_the_derivati
     si.sh_frame = mi.Frame3f(*(mi.Vector3f(*r) for r in IDENTITY))
     si.n = mi.Normal3f(0, 0, 1)
     si.dp_du, si.dp_dv = mi.Vector3f(1, 0, 0), mi.Vector3f(0, -1, 0)
-    si.uv = mi.Point2f(np.float32(uv[:, 0]), np.float32(uv[:, 1]))
+    si.uv = mi.Point2f(floats(uv[:, 0]), floats(uv[:, 1]))
     si.wi = vec3(np.tile(sph(20.0, 0.4), (n, 1)))
     exact = hf.normal(uv[:, 0], 1.0 - uv[:, 1])
     wo = vec3(random_hemisphere(rng, n, 0.05))
@@ -259,12 +260,12 @@ def queries(n, rng, tilt_g=35.0):
     si = dr.zeros(mi.SurfaceInteraction3f, n)
     si.sh_frame = mi.Frame3f(*(mi.Vector3f(*r) for r in IDENTITY))
     ng = tilted_normals(rng, n, tilt_g)
-    si.n = mi.Normal3f(*(mi.Float(np.float32(ng[:, i])) for i in range(3)))
+    si.n = mi.Normal3f(*(floats(ng[:, i]) for i in range(3)))
     si.dp_du = vec3(np.tile([1.2, 0.3, 0.1], (n, 1)) + rng.normal(0, 0.1, (n, 3)))
     si.dp_dv = vec3(np.tile([0.2, -0.9, 0.05], (n, 1)) + rng.normal(0, 0.1, (n, 3)))
-    si.uv = mi.Point2f(np.float32(rng.random(n)), np.float32(rng.random(n)))
+    si.uv = mi.Point2f(floats(rng.random(n)), floats(rng.random(n)))
     k = np.arange(n)
-    si.p = mi.Point3f(np.float32(k % 4096), np.float32(k // 4096), np.zeros(n, np.float32))
+    si.p = mi.Point3f(floats(k % 4096), floats(k // 4096), floats(np.zeros(n)))
     return si, ng / np.linalg.norm(ng, axis=1, keepdims=True)
 
 
@@ -314,7 +315,7 @@ def test_contracts_hold(model, config):
                 assert np.array_equal(v1, v) and np.array_equal(p1, p)
             assert not np.any((v.max(1) > 1e-30) & (p <= 0))
             u = rng.random((n, 3)).astype(np.float32)
-            bs, w = b.sample(ctx, si, mi.Float(u[:, 0]), mi.Point2f(u[:, 1], u[:, 2]))
+            bs, w = b.sample(ctx, si, floats(u[:, 0]), mi.Point2f(floats(u[:, 1]), floats(u[:, 2])))
             s_wo, s_pdf, w = np3(bs.wo, n), np1(bs.pdf, n), np3(w, n)
             assert np.all(np.isfinite(w)) and np.all(w >= 0) and np.all(np.isfinite(s_wo))
             live = w.max(1) > 0
@@ -371,8 +372,8 @@ def test_walks_are_reciprocal_about_the_triangles_normal():
     pairs, m = 12, 4096
     si, ng = queries(pairs * m, rng)
     ng = np.repeat(ng[::m], m, 0)
-    si.n = mi.Normal3f(*(mi.Float(np.float32(ng[:, i])) for i in range(3)))
-    si.uv = mi.Point2f(np.float32(np.repeat(rng.random(pairs), m)), np.float32(np.repeat(rng.random(pairs), m)))
+    si.n = mi.Normal3f(*(floats(ng[:, i]) for i in range(3)))
+    si.uv = mi.Point2f(floats(np.repeat(rng.random(pairs), m)), floats(np.repeat(rng.random(pairs), m)))
     a, b = reciprocity_pairs(rng, pairs, ng[::m])
     a, b = np.repeat(a, m, 0), np.repeat(b, m, 0)
     z = []
@@ -434,8 +435,8 @@ def test_white_furnace_with_the_geometric_macro_normal(model):
         ngs = tilted_normals(rng, groups, 40.0)
         ngs[:5] = sph(10.0, rng.uniform(0, 6.3, 5))
         ng = np.repeat(ngs, m, 0)
-        si.n = mi.Normal3f(*(mi.Float(np.float32(ng[:, i])) for i in range(3)))
-        si.uv = mi.Point2f(np.float32(np.repeat(rng.random(groups), m)), np.float32(np.repeat(rng.random(groups), m)))
+        si.n = mi.Normal3f(*(floats(ng[:, i]) for i in range(3)))
+        si.uv = mi.Point2f(floats(np.repeat(rng.random(groups), m)), floats(np.repeat(rng.random(groups), m)))
         # ω_i about n_g: θ up to 85°
         local = sph(rng.uniform(0, 85, groups), rng.uniform(0, 2 * np.pi, groups))
         wi = []
@@ -445,7 +446,7 @@ def test_white_furnace_with_the_geometric_macro_normal(model):
             wi.append(d[0] * s + d[1] * np.cross(nv, s) + d[2] * nv)
         si.wi = vec3(np.repeat(np.array(wi), m, 0))
         u = rng.random((groups * m, 3)).astype(np.float32)
-        _, w = bsdf.sample(mi.BSDFContext(), si, mi.Float(u[:, 0]), mi.Point2f(u[:, 1], u[:, 2]))
+        _, w = bsdf.sample(mi.BSDFContext(), si, floats(u[:, 0]), mi.Point2f(floats(u[:, 1]), floats(u[:, 2])))
         w = np3(w)[:, 0].reshape(groups, m)
         mean, se = w.mean(1), w.std(1) / math.sqrt(m)
         tol = 0.01 if model == "faithful" else 0.005
@@ -646,7 +647,7 @@ def test_shadow_terminator_wedge_is_not_black():
     n = 4096
     si, _ = queries(n, rng)
     ng = np.tile(sph(30.0, 0.0), (n, 1))
-    si.n = mi.Normal3f(*(mi.Float(np.float32(ng[:, i])) for i in range(3)))
+    si.n = mi.Normal3f(*(floats(ng[:, i]) for i in range(3)))
     wi = np.tile(sph(100.0, 0.0), (n, 1))           # 10° below the shading plane, 60° above n_g's
     si.wi = vec3(wi)
     wo = vec3(np.tile(sph(20.0, np.pi / 4), (n, 1)))
@@ -654,7 +655,7 @@ def test_shadow_terminator_wedge_is_not_black():
         b = plugin(NESTED["diffuse"], model=model, macro_normal="geometric")
         assert np.all(np3(b.eval(mi.BSDFContext(), si, wo)) > 0), model
         u = rng.random((n, 3)).astype(np.float32)
-        _, w = b.sample(mi.BSDFContext(), si, mi.Float(u[:, 0]), mi.Point2f(u[:, 1], u[:, 2]))
+        _, w = b.sample(mi.BSDFContext(), si, floats(u[:, 0]), mi.Point2f(floats(u[:, 1]), floats(u[:, 2])))
         assert np3(w).mean() > 0.1, model
     plain = mi.load_dict(NESTED["diffuse"])
     assert np.all(np3(plain.eval(mi.BSDFContext(), si, wo)) == 0)

@@ -46,7 +46,7 @@ import pytest
 mi.set_variant(VARIANT)
 mfnormal.register()
 
-from helpers import np1, np3, vec3  # noqa: E402
+from helpers import floats, np1, np3, point2, vec3  # noqa: E402
 from test_fuzz import SPECIAL_DIRECTIONS, SPECIAL_TEXELS, random_directions, random_texels  # noqa: E402
 
 LONG = os.environ.get("MFNORMAL_FUZZ_LONG", "") not in ("", "0")
@@ -173,11 +173,11 @@ def build(config, rng, n):
     si = dr.zeros(mi.SurfaceInteraction3f, n)
     si.sh_frame = mi.Frame3f(mi.Vector3f(1, 0, 0), mi.Vector3f(0, 1, 0), mi.Vector3f(0, 0, 1))
     with np.errstate(over="ignore"):
-        si.n = mi.Normal3f(*(mi.Float(ng[:, i].astype(np.float32)) for i in range(3)))
+        si.n = mi.Normal3f(*(floats(ng[:, i]) for i in range(3)))
         si.dp_du, si.dp_dv = vec3(du), vec3(dv)
-    si.uv = mi.Point2f(uv[:, 0].astype(np.float32), uv[:, 1].astype(np.float32))
+    si.uv = point2(uv)
     k = np.arange(n)
-    si.p = mi.Point3f((k % 4096).astype(np.float32), (k // 4096).astype(np.float32), np.zeros(n, np.float32))
+    si.p = mi.Point3f(floats(k % 4096), floats(k // 4096), floats(np.zeros(n)))
     si.wi = vec3(wi)
     u = np.minimum(rng.random((n, 3)), ONE_MINUS_EPS).astype(np.float32)
     return si, wi.astype(np.float32).astype(np.float64), wo.astype(np.float32), u, macro, slice(start, n)
@@ -227,7 +227,7 @@ def test_fuzzed_normal_sources_are_finite_valid_and_bounded(model, facet, config
         value, pdf = timed(lambda: (lambda v, p: (np3(v, n), np1(p, n)))(*bsdf.eval_pdf(ctx, si, vec3(wo))))
         value1 = timed(lambda: np3(bsdf.eval(ctx, si, vec3(wo)), n))
         pdf1 = timed(lambda: np1(bsdf.pdf(ctx, si, vec3(wo)), n))
-        bs, w = bsdf.sample(ctx, si, mi.Float(u[:, 0].copy()), mi.Point2f(u[:, 1].copy(), u[:, 2].copy()))
+        bs, w = bsdf.sample(ctx, si, floats(u[:, 0]), point2(u[:, 1:]))
         s_wo, s_pdf, s_w = timed(lambda: (np3(bs.wo, n), np1(bs.pdf, n), np3(w, n)))
 
         failures = []

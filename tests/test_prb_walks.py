@@ -29,6 +29,7 @@ from variant import VARIANT  # noqa: E402
 mi.set_variant(VARIANT)
 mfnormal.register()
 
+from helpers import tensor  # noqa: E402
 from test_render_gradients import NESTED, RES, TEXELS, camera, key_of, update  # noqa: E402
 
 SLOW = os.environ.get("MFNORMAL_SLOW") == "1"
@@ -54,7 +55,7 @@ def env_scene(bsdf, spp=SPP, ball=False):
 
 def mapped(model, facet=None):
     bsdf = {"type": "normalmap_microfacet", "model": model, "bsdf": NESTED,
-            "normalmap": {"type": "bitmap", "data": mi.TensorXf(TEXELS), "raw": True, "filter_type": "nearest"}}
+            "normalmap": {"type": "bitmap", "data": tensor(TEXELS), "raw": True, "filter_type": "nearest"}}
     if facet is not None:
         bsdf["tangent_facet"] = facet
     return bsdf

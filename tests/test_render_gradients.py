@@ -48,7 +48,7 @@ mi.set_variant(VARIANT)
 mfnormal.register()
 
 from gradients import mean_over_steps  # noqa: E402
-from helpers import encode, sph  # noqa: E402
+from helpers import encode, sph, tensor  # noqa: E402
 
 RES, SPP, SPP_WALK = 24, 16, 64
 STEPS = tuple(np.linspace(0.8, 1.2, 5))   # the deterministic models' FD steps, factors of h
@@ -103,7 +103,7 @@ def camera(spp):
 
 def scene(model, facet, nested=None):
     bsdf = {"type": "normalmap_microfacet", "model": model, "bsdf": NESTED if nested is None else nested,
-            "normalmap": {"type": "bitmap", "data": mi.TensorXf(TEXELS), "raw": True,
+            "normalmap": {"type": "bitmap", "data": tensor(TEXELS), "raw": True,
                           "filter_type": "nearest"}}
     if facet is not None:
         bsdf["tangent_facet"] = facet
@@ -128,7 +128,7 @@ def update(params, what, base, theta):
     if what == "texel":
         mask = np.zeros_like(TEXELS)
         mask[1, 2, 0] = 1.0
-        params[key] = mi.TensorXf(base) + theta * mi.TensorXf(mask)
+        params[key] = tensor(base) + theta * tensor(mask)
     else:
         params[key] = mi.Float(1.0) + theta
     params.update()

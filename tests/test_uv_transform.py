@@ -18,6 +18,8 @@ import pytest
 mi.set_variant(VARIANT)
 mfnormal.register()
 
+from helpers import floats, tensor  # noqa: E402
+
 JIT = dr.is_jit_v(mi.Float)
 pytestmark = pytest.mark.skipif(not JIT, reason="the transform is hoisted in JIT variants only")
 
@@ -27,7 +29,7 @@ OTHER = mi.ScalarTransform4f().scale([3.0, 2.0, 1])
 
 
 def texels(seed=1, shape=(37, 53)):
-    return mi.TensorXf(np.random.default_rng(seed).random((*shape, 3)).astype(np.float32))
+    return tensor(np.random.default_rng(seed).random((*shape, 3)))
 
 
 def bsdf(to_uv, filter_type="bilinear", model="analytic", data=None):
@@ -39,8 +41,8 @@ def bsdf(to_uv, filter_type="bilinear", model="analytic", data=None):
 def queries(n=1 << 16, seed=2):
     rng = np.random.default_rng(seed)
     si = dr.zeros(mi.SurfaceInteraction3f, n)
-    si.uv = mi.Point2f(mi.Float(rng.random(n).astype(np.float32) * 3 - 1),
-                       mi.Float(rng.random(n).astype(np.float32) * 3 - 1))
+    si.uv = mi.Point2f(floats(rng.random(n).astype(np.float32) * 3 - 1),
+                       floats(rng.random(n).astype(np.float32) * 3 - 1))
     return si
 
 

@@ -31,8 +31,8 @@ from variant import VARIANT  # noqa: E402  (MFNORMAL_VARIANT, tests/variant.py)
 mi.set_variant(VARIANT)
 mfnormal.register()
 
-from helpers import (WHITE, encode, make_bsdf, make_si, np1, np3, p_two_sided, random_hemisphere,  # noqa: E402
-                     sph, vec3)
+from helpers import (WHITE, encode, floats, make_bsdf, make_si, np1, np3, p_two_sided, point2,  # noqa: E402
+                     random_hemisphere, sph, vec3)
 from mfnormal.models import shading, walk, walk_pdf  # noqa: E402
 from reference.naive_walk import naive_eval  # noqa: E402
 
@@ -69,8 +69,7 @@ def run_sample(bsdf, wi, texel_index, n_texels, u):
         e = min(n, s + CHUNK)
         si = make_si(rows(wi, s, e), n_texels, rows(texel_index, s, e))
         uc = u[s:e].astype(np.float32)
-        bs, w = bsdf.sample(mi.BSDFContext(), si, mi.Float(uc[:, 0].copy()),
-                            mi.Point2f(uc[:, 1].copy(), uc[:, 2].copy()))
+        bs, w = bsdf.sample(mi.BSDFContext(), si, floats(uc[:, 0]), point2(uc[:, 1:]))
         wo[s:e], pdf[s:e], weight[s:e] = np3(bs.wo), np1(bs.pdf), np3(w)
     return wo, pdf, weight
 
@@ -316,7 +315,7 @@ def test_walk_loops_count_their_bounces(model, tangent_facet):
         bsdf = make_bsdf(WHITE, texels, model, tangent_facet, max_bounces=3, rr_depth=0)
         si = make_si(sph(0.0)[None].repeat(n, 0) if texel else wi, 2, texel, np.arange(n))
         sp = bsdf.shading_point(mi.BSDFContext(), si)
-        w = walk.sample_walk(sp, bsdf.model.params, mi.Float(u[:, 0]), mi.Point2f(u[:, 1], u[:, 2]), True)
+        w = walk.sample_walk(sp, bsdf.model.params, floats(u[:, 0]), point2(u[:, 1:]), True)
         depth, escaped = np1(w.depth), np.array(w.escaped)
         if texel == 0:
             assert np.all(depth == 1) and np.all(escaped)
@@ -902,8 +901,7 @@ def test_degenerate_input_is_finite_and_nonnegative(model, tangent_facet):
         value = np3(bsdf.eval(ctx, si, vec3(wo)))
         pdf = np1(bsdf.pdf(ctx, si, vec3(wo)))
         value_ep, pdf_ep = bsdf.eval_pdf(ctx, si, vec3(wo))
-        bs, weight = bsdf.sample(ctx, si, mi.Float(u[:, 0].astype(np.float32)),
-                                 mi.Point2f(u[:, 1].astype(np.float32), u[:, 2].astype(np.float32)))
+        bs, weight = bsdf.sample(ctx, si, floats(u[:, 0]), point2(u[:, 1:]))
         s_wo, s_pdf, s_w = np3(bs.wo), np1(bs.pdf), np3(weight)
         for name, x in (("eval", value), ("pdf", pdf), ("eval_pdf.value", np3(value_ep)),
                         ("eval_pdf.pdf", np1(pdf_ep)), ("sample weight", s_w), ("sample pdf", s_pdf)):
@@ -938,7 +936,7 @@ def test_flat_map_reproduces_the_nested_bsdf(model, tangent_facet):
         bsdf = make_bsdf(spec, flat, model, tangent_facet)
         ref = mi.load_dict(spec)
         si = make_si(wi, 1, 0, np.arange(n))
-        s1, s2 = mi.Float(u[:, 0].copy()), mi.Point2f(u[:, 1].copy(), u[:, 2].copy())
+        s1, s2 = floats(u[:, 0]), point2(u[:, 1:])
         assert np.array_equal(np3(bsdf.eval(ctx, si, vec3(wo))), np3(ref.eval(ctx, si, vec3(wo)))), name
         assert np.allclose(np1(bsdf.pdf(ctx, si, vec3(wo))), np1(ref.pdf(ctx, si, vec3(wo))), rtol=1e-6, atol=0)
         bs, w = bsdf.sample(ctx, si, s1, s2)
@@ -1124,7 +1122,7 @@ def walk_outputs_and_ops(nested, params, indirect, seed=900):
         on = mi.Bool(True)
         f = walk.eval(sp, params, vec3(wo), on)
         pdf = walk_pdf.mis_pdf(sp, params, vec3(wo), on)
-        bs, weight = walk.sample(sp, params, mi.Float(rng.uniform(size=n)), mi.Point2f(*rng.uniform(size=(2, n))), on)
+        bs, weight = walk.sample(sp, params, floats(rng.uniform(size=n)), point2(rng.uniform(size=(2, n)).T), on)
         dr.kernel_history_clear()
         dr.eval(f, pdf, bs.wo, bs.pdf, weight)
         ops = sum(h["operation_count"] for h in dr.kernel_history() if h["type"] == dr.KernelType.JIT)

@@ -12,7 +12,7 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from helpers import bumps_normalmap
+from helpers import bumps_normalmap, floats, point2
 
 SEED, SPP = 5, 4
 # (parameter, a value other than the default) for each walk parameter.
@@ -138,7 +138,7 @@ def test_a_max_bounces_update_caps_the_walk():
 
     def longest():
         sp = bsdf.shading_point(mi.BSDFContext(), si)
-        w = walk.sample_walk(sp, bsdf.model.params, mi.Float(u[:, 0]), mi.Point2f(u[:, 1], u[:, 2]), True)
+        w = walk.sample_walk(sp, bsdf.model.params, floats(u[:, 0]), point2(u[:, 1:]), True)
         return int(np.array(w.depth).max())
 
     assert longest() > 8

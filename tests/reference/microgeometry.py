@@ -59,6 +59,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from helpers import floats, uints, vec3  # noqa: E402
 from variant import VARIANT  # noqa: E402  (MFNORMAL_VARIANT, tests/variant.py)
 # Ray origins start this far above the crest (nothing lies above Z = 1).
 START_ABOVE = 1e-2
@@ -90,8 +91,7 @@ def rotate_z(v, angle):
 
 
 def _vec3(a):
-    a = np.asarray(a, np.float32).reshape(-1, 3)
-    return mi.Vector3f(a[:, 0].copy(), a[:, 1].copy(), a[:, 2].copy())
+    return vec3(a)
 
 
 def _np3(v):
@@ -156,8 +156,8 @@ class SawtoothScene:
         props["bsdf"] = mi.load_dict(bsdf)
         mesh = mi.Mesh(name, verts.shape[0], faces.shape[0], props)
         params = mi.traverse(mesh)
-        params["vertex_positions"] = mi.Float(verts.astype(np.float32).ravel())
-        params["faces"] = mi.UInt32(faces.ravel())
+        params["vertex_positions"] = floats(verts)
+        params["faces"] = uints(faces)
         params.update()
         return mesh
 
@@ -290,8 +290,8 @@ def plugin_sample(theta_p_deg: float, nested: dict, model: str, tangent_facet: s
     si.uv = mi.Point2f(0.5, 0.5)
     si.n = mi.Normal3f(0, 0, 1)
     si.sh_frame = mi.Frame3f(mi.Vector3f(1, 0, 0), mi.Vector3f(0, 1, 0), mi.Vector3f(0, 0, 1))
-    bs, w = bsdf.sample(mi.BSDFContext(), si, mi.Float(rng.random(n, np.float32)),
-                        mi.Point2f(rng.random(n, np.float32), rng.random(n, np.float32)))
+    bs, w = bsdf.sample(mi.BSDFContext(), si, floats(rng.random(n, np.float32)),
+                        mi.Point2f(floats(rng.random(n, np.float32)), floats(rng.random(n, np.float32))))
     wo = rotate_z(_np3(bs.wo), -phi_p)
     w = _gray(w)
     w = np.where(np.isfinite(w), w, 0.0)

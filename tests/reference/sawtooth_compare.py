@@ -138,20 +138,22 @@ def _si(wi, n, p_y=None):
     """n interactions with the single direction wi; with p_y, query k gets si.p = (k, p_y, 0)."""
     import drjit as dr
     import mitsuba as mi
+    from helpers import floats
     si = dr.zeros(mi.SurfaceInteraction3f, n)
     wi = np.asarray(wi, np.float64)
     si.wi = mi.Vector3f(*[float(c) for c in wi])
     if p_y is not None:
-        si.p = mi.Point3f(mi.Float(np.arange(n, dtype=np.float32)), float(p_y), 0.0)
+        si.p = mi.Point3f(floats(np.arange(n)), float(p_y), 0.0)
     return si
 
 
 def model_paths(case, model, n, seed):
     """(wo, weight) of n ``sample()`` calls of the plugin (weight: red channel of the throughput)."""
     import mitsuba as mi
+    from helpers import floats
     bsdf = make_bsdf(model, case.tangent_facet, case.wp)
     u = np.random.default_rng(seed).random((3, n), dtype=np.float32)
-    bs, w = bsdf.sample(mi.BSDFContext(), _si(case.wi, n), mi.Float(u[0]), mi.Point2f(u[1], u[2]))
+    bs, w = bsdf.sample(mi.BSDFContext(), _si(case.wi, n), floats(u[0]), mi.Point2f(floats(u[1]), floats(u[2])))
     wo = np.array(bs.wo, np.float64).T
     return wo, np.array(w, np.float64)[0]
 
@@ -163,11 +165,12 @@ def eval_cells(case, model, m_per_cell, seed):
     (exact in float32), so every query draws its own NEE walk. ∫_cell eval dω = (π/N_CELLS)·E[eval/cosθ_o].
     """
     import mitsuba as mi
+    from helpers import vec3
     bsdf = make_bsdf(model, case.tangent_facet, case.wp)
     wo = cell_directions(m_per_cell, np.random.default_rng(seed))
     n = len(wo)
     si = _si(case.wi, n, p_y=seed)
-    wo_v = mi.Vector3f(*[np.ascontiguousarray(wo[:, k], np.float32) for k in range(3)])
+    wo_v = vec3(wo)
     f = np.array(bsdf.eval(mi.BSDFContext(), si, wo_v), np.float64)[0]
     g = (f / wo[:, 2]).reshape(N_CELLS, m_per_cell) * (np.pi / N_CELLS)
     return g.mean(axis=1), g.var(axis=1, ddof=1) / m_per_cell
