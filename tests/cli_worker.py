@@ -115,6 +115,15 @@ class Worker:
                       seconds=time.monotonic() - start)
 
 
+    def completed(self, args, cwd, timeout: float = 300.0) -> subprocess.CompletedProcess:
+        """:meth:`run` as the process a user would see: its exit code, stdout and stderr. A crash,
+        an exception escaping ``main`` (a traceback, in a process of its own) or a timeout fails
+        the calling test here."""
+        result = self.run(args, cwd, timeout)
+        assert result.rc is not None, result.describe()
+        return subprocess.CompletedProcess([str(a) for a in args], result.rc, result.stdout, result.stderr)
+
+
 def _read_quietly(path: Path) -> str:
     try:
         return path.read_text(errors="replace")

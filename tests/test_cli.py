@@ -1,8 +1,9 @@
 """Bad input to ``mfnormal render`` and ``mfnormal compare``: one line on stderr, non-zero exit.
 
-Each case runs the command line in a subprocess, as a user would, on a tiny scene
-written into a temporary directory: a normal-mapped rectangle (or a PLY quad)
-under a constant sky. The good scene renders (so a failure below is the bad
+Each case runs the command line in a child process, as a user would (a subprocess
+of its own, or for the parametrised cases the module's command-line worker,
+tests/cli_worker.py, which imports Mitsuba once), on a tiny scene written into a
+temporary directory: a normal-mapped rectangle (or a PLY quad) under a constant sky. The good scene renders (so a failure below is the bad
 input's, not the fixture's); each bad variant must fail with a single line that
 names the problem, and without a traceback.
 
@@ -114,15 +115,15 @@ COMPARE_NEEDLES = {"unknown_model": ["unused", "model=fancy"]}
 
 
 @pytest.mark.parametrize("case,args,scene,needles", CASES, ids=[c[0] for c in CASES])
-def test_render_rejects_bad_input(scenes, tmp_path, case, args, scene, needles):
-    proc = run_cli("render", scene, *args, "-o", str(tmp_path / "out"), cwd=scenes)
+def test_render_rejects_bad_input(worker, scenes, tmp_path, case, args, scene, needles):
+    proc = worker.completed(["render", scene, *args, "-o", tmp_path / "out"], cwd=scenes)
     assert_one_line_error(proc, *needles)
     assert not (tmp_path / "out.exr").exists()
 
 
 @pytest.mark.parametrize("case,args,scene,needles", CASES, ids=[c[0] for c in CASES])
-def test_compare_rejects_bad_input(scenes, tmp_path, case, args, scene, needles):
-    proc = run_cli("compare", scene, *args, "--quick", "-o", str(tmp_path / "report"), cwd=scenes)
+def test_compare_rejects_bad_input(worker, scenes, tmp_path, case, args, scene, needles):
+    proc = worker.completed(["compare", scene, *args, "--quick", "-o", tmp_path / "report"], cwd=scenes)
     assert_one_line_error(proc, *COMPARE_NEEDLES.get(case, needles))
     assert not (tmp_path / "report" / "report.html").exists()
 

@@ -252,15 +252,6 @@ def run_cli(*args, cwd, timeout=300):
                           capture_output=True, text=True, timeout=timeout)
 
 
-def run_in(worker, *args, cwd):
-    """``mfnormal ARGS`` in the module's command-line worker (tests/cli_worker.py: one process for
-    every case, so one Mitsuba import; a crash kills the worker, not pytest), as the process a
-    user would see: a crash, an exception escaping ``main`` or a hang fails here."""
-    result = worker.run(args, cwd=cwd, timeout=300)
-    assert result.rc is not None, result.describe()
-    return subprocess.CompletedProcess(args, result.rc, result.stdout, result.stderr)
-
-
 def assert_renders_finite(proc, exr):
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "NaN" not in proc.stderr and "Inf" not in proc.stderr, proc.stderr
@@ -282,7 +273,7 @@ def case_params():
 @pytest.mark.parametrize("scene,args,expected", case_params())
 def test_hostile_scene_renders_finite_or_fails_in_one_line(worker, scenes, tmp_path, scene, args, expected):
     defines = [x for a in args for x in ("-D", a)]
-    proc = run_in(worker, "render", scene, *defines, "-o", str(tmp_path / "out"), cwd=scenes)
+    proc = worker.completed(["render", scene, *defines, "-o", tmp_path / "out"], cwd=scenes)
     if expected == "renders" or (expected[0] == "renders or" and proc.returncode == 0):
         assert_renders_finite(proc, tmp_path / "out.exr")
     elif expected[0] == "renders or":
