@@ -36,7 +36,6 @@ import mfnormal  # noqa: F401  (first: selects a working libLLVM)
 import drjit as dr
 import mitsuba as mi
 from variant import VARIANT  # noqa: E402  (MFNORMAL_VARIANT, tests/variant.py)
-import os
 
 import numpy as np
 import pytest
@@ -50,18 +49,16 @@ from helpers import encode, make_bsdf, sph  # noqa: E402
 MODELS = [("faithful", None), ("analytic", None), ("separable", "specular"), ("separable", "same"),
           ("nonseparable", "specular"), ("nonseparable", "same")]
 IDS = ["faithful", "analytic", "separable-specular", "separable-same", "nonseparable-specular", "nonseparable-same"]
-# CI runs the deterministic models and one walk (~60 s on 2 cores); MFNORMAL_SLOW=1 runs every walk.
-SLOW = os.environ.get("MFNORMAL_SLOW") == "1"
+# The default run takes the deterministic models and one walk; MFNORMAL_SLOW=1 every walk.
 FAST = {"faithful", "analytic"}
 
 
 def params(fast_walk=None):
-    """The model × facet cases: every one with MFNORMAL_SLOW=1, else the deterministic models
-    (and the walk ``fast_walk``), the others marked slow (skipped)."""
+    """The model × facet cases: the deterministic models (and the walk ``fast_walk``), the others
+    marked slow (run with MFNORMAL_SLOW=1)."""
     out = []
     for (model, facet), name in zip(MODELS, IDS):
-        marks = () if SLOW or name in FAST or name == fast_walk else (
-            pytest.mark.skip(reason="a walk: MFNORMAL_SLOW=1"),)
+        marks = () if name in FAST or name == fast_walk else (pytest.mark.slow,)
         out.append(pytest.param(model, facet, id=name, marks=marks))
     return out
 

@@ -54,7 +54,6 @@ mi.set_variant(VARIANT)
 mfnormal.register()
 
 ROOT = Path(__file__).resolve().parents[1]
-SLOW = os.environ.get("MFNORMAL_SLOW", "") not in ("", "0")
 
 
 # -- Files -------------------------------------------------------------------------------------
@@ -485,7 +484,6 @@ def run_measured(args, cwd, timeout):
 
 
 @pytest.mark.slow
-@pytest.mark.skipif(not SLOW, reason="scale test: set MFNORMAL_SLOW=1")
 @pytest.mark.parametrize("model", ["analytic", "nonseparable"])
 def test_two_million_triangles_and_8k_normal_map_at_1080p(scenes, tmp_path, model):
     """A 2,000,000-triangle mesh (a 1000×1000-quad bumpy terrain with UVs, binary PLY)

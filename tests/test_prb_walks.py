@@ -18,7 +18,6 @@ mfnormal_prb within ±6.4 % and 2.7 SE for all four walks × {texel, strength}; 
 
 import mfnormal  # noqa: F401  (first: selects a working libLLVM)
 
-import os
 
 import drjit as dr
 import mitsuba as mi
@@ -32,7 +31,6 @@ mfnormal.register()
 from helpers import tensor  # noqa: E402
 from test_render_gradients import NESTED, RES, TEXELS, camera, key_of, update  # noqa: E402
 
-SLOW = os.environ.get("MFNORMAL_SLOW") == "1"
 SPP, H, NSEEDS = 64, 0.02, 8
 WALKS = [("nonseparable", "same"), ("separable", "specular"), ("nonseparable", "specular"),
          ("separable", "same")]
@@ -103,7 +101,7 @@ def offset(rows, col):
 
 @pytest.mark.parametrize("model, facet, what", [
     pytest.param(m, f, w, id=f"{m}-{f}-{w}",
-                 marks=[] if SLOW or (m, f, w) in FAST else [pytest.mark.skip(reason="MFNORMAL_SLOW=1")])
+                 marks=[] if (m, f, w) in FAST else [pytest.mark.slow])
     for m, f in WALKS for w in ("texel", "strength")])
 def test_mfnormal_prb_walk_gradients_match_finite_differences_under_environment(model, facet, what):
     """Forward and reverse mode of ``mfnormal_prb`` against the FD over NSEEDS seeds (module
@@ -133,7 +131,7 @@ def test_mfnormal_prb_walk_gradient_with_indirect_light():
     assert abs(diff) < 4 * se + 0.03 * abs(fd), (diff, se, fd)
 
 
-@pytest.mark.skipif(not SLOW, reason="MFNORMAL_SLOW=1")
+@pytest.mark.slow
 def test_mirror_facet_walk_texel_gradient_is_biased_under_varying_radiance():
     """Documents what ``mfnormal_prb`` does not cover (docs/model.md §9): a mirror-facet walk
     reaches part of its directions through a mirror bounce, a delta lobe whose direction moves

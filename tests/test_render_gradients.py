@@ -36,7 +36,6 @@ Tolerances: stated per case at ``CASES``.
 
 import mfnormal  # noqa: F401  (first: selects a working libLLVM)
 
-import os
 
 import drjit as dr
 import mitsuba as mi
@@ -62,8 +61,7 @@ NESTED = {"type": "roughplastic", "distribution": "ggx", "alpha": 0.2,
 CASES = [("faithful", None, 1e-3, 0.05, 0.01),
          ("analytic", None, 1e-3, 0.05, 0.01),
          ("nonseparable", "same", 0.02, 0.5, 0.03)]
-SLOW = os.environ.get("MFNORMAL_SLOW") == "1"
-# CI runs these (one per integrator and model); MFNORMAL_SLOW=1 every combination.
+# The default run takes these (one per integrator and model); MFNORMAL_SLOW=1 every combination.
 FAST = {("faithful", "texel", "prb"), ("analytic", "strength", "prb_projective"),
         ("nonseparable", "texel", "prb"), ("faithful", "strength", "direct_projective"),
         ("analytic", "texel", "path"), ("nonseparable", "strength", "path"),
@@ -80,8 +78,8 @@ def cases(mode):
         for what in ("texel", "strength"):
             for integrator in INTEGRATORS:
                 marks = []
-                if not SLOW and (model, what, integrator) not in FAST:
-                    marks.append(pytest.mark.skip(reason="MFNORMAL_SLOW=1"))
+                if (model, what, integrator) not in FAST:
+                    marks.append(pytest.mark.slow)
                 out.append(pytest.param(model, facet, h, tf, tb, what, integrator, marks=marks,
                                         id=f"{model}-{what}-{integrator}"))
     return out
@@ -231,7 +229,7 @@ def test_render_reverse_gradient_matches_finite_differences(model, facet, h, tol
 
 @pytest.mark.parametrize("model, facet, what", [
     pytest.param(m, f, w, id=f"{m}-{w}",
-                 marks=[] if SLOW or (m, w) == ("faithful", "strength") else [pytest.mark.skip(reason="MFNORMAL_SLOW=1")])
+                 marks=[] if (m, w) == ("faithful", "strength") else [pytest.mark.slow])
     for m, f, _, _, _ in CASES for w in ("texel", "strength")])
 def test_mi_render_reverse_equals_forward_at_its_gradient_seed(model, facet, what):
     """What an optimisation runs: ``mi.render`` then ``dr.backward``. Its reverse pass samples
