@@ -247,3 +247,17 @@ def write_maps(folder) -> None:
     bumps[2:6, 2:6] = (200, 128, 220)
     (folder / "normalmap.png").write_bytes(png_bytes(bumps))
     (folder / "gray.png").write_bytes(png_bytes(np.full((8, 8), 128, np.uint8)))
+
+
+def mesh(name, positions, normals, uvs, faces, bsdf: dict):
+    """A Mitsuba mesh called ``name`` with vertex normals and uvs, its material ``bsdf`` (a dict)."""
+    props = mi.Properties()
+    props["bsdf"] = mi.load_dict(bsdf)
+    m = mi.Mesh(name, len(positions), len(faces), props, has_vertex_normals=True, has_vertex_texcoords=True)
+    params = mi.traverse(m)
+    params["vertex_positions"] = floats(positions)
+    params["vertex_normals"] = floats(normals)
+    params["vertex_texcoords"] = floats(uvs)
+    params["faces"] = uints(faces)
+    params.update()
+    return m

@@ -31,7 +31,8 @@ mi.set_variant(VARIANT)
 mfnormal.register()
 
 from gltf_writer import Material, Primitive, png_bytes, write_glb  # noqa: E402
-from helpers import floats, uints  # noqa: E402
+import helpers  # noqa: E402
+
 
 from mfnormal.cli import commands as cli, rendering  # noqa: E402
 from mfnormal.io.gltf import load_gltf  # noqa: E402
@@ -57,17 +58,7 @@ def render(scene: dict, spp: int, seed: int = 0):
 
 def mesh(positions, normals, uvs, faces, bsdf: dict):
     """A Mitsuba mesh with ``bsdf`` (the references' geometry, without any tangent attribute)."""
-    props = mi.Properties()
-    props["bsdf"] = mi.load_dict(bsdf)
-    m = mi.Mesh("reference", len(positions), len(faces), props, has_vertex_normals=True,
-                has_vertex_texcoords=True)
-    params = mi.traverse(m)
-    params["vertex_positions"] = floats(positions)
-    params["vertex_normals"] = floats(normals)
-    params["vertex_texcoords"] = floats(uvs)
-    params["faces"] = uints(faces)
-    params.update()
-    return m
+    return helpers.mesh("reference", positions, normals, uvs, faces, bsdf)
 
 
 # A quad of two triangles; the second one's UV island is mirrored in u.

@@ -29,8 +29,9 @@ import pytest
 mi.set_variant(VARIANT)
 mfnormal.register()
 
+import helpers  # noqa: E402
 from helpers import (WHITE, encode, floats, np1, np3, p_two_sided, random_hemisphere, sph,  # noqa: E402
-                     uints, vec3)
+                     vec3)
 
 from validation import heightfield as H  # noqa: E402
 
@@ -79,15 +80,7 @@ def tilted_normals(rng, n, deg=25.0):
 
 
 def make_mesh(bsdf, normals, tangents=None):
-    props = mi.Properties()
-    props["bsdf"] = mi.load_dict(bsdf)
-    mesh = mi.Mesh("quads", len(QUAD_P), len(QUAD_F), props, has_vertex_normals=True, has_vertex_texcoords=True)
-    params = mi.traverse(mesh)
-    params["vertex_positions"] = floats(QUAD_P)
-    params["vertex_normals"] = floats(normals)
-    params["vertex_texcoords"] = floats(QUAD_UV)
-    params["faces"] = uints(QUAD_F)
-    params.update()
+    mesh = helpers.mesh("quads", QUAD_P, normals, QUAD_UV, QUAD_F, bsdf)
     if tangents is not None:
         mesh.add_attribute("vertex_tangent", 3, np.float32(tangents[:, :3]).ravel())
         mesh.add_attribute("vertex_tangent_sign", 1, np.float32(tangents[:, 3]))
