@@ -74,7 +74,7 @@ def sample(bsdf, si, sample1, sample2):
     """(wo, pdf, weight) of bsdf.sample for arrays of sample1 (n) and sample2 (n×2)."""
     n = len(sample1)
     bs, weight = bsdf.sample(mi.BSDFContext(), si, floats(sample1),
-                             helpers.point2(np.asarray(sample2, np.float32).T))
+                             helpers.point2(np.asarray(sample2, np.float32)))
     return np3(bs.wo, n), np1(bs.pdf, n), np3(weight, n)
 
 

@@ -196,7 +196,7 @@ class Result:
 def _faithful_models(scene):
     """The default model (``faithful.Model``) of each shape's ``normalmap_microfacet`` in ``scene``."""
     for shape in scene.shapes():
-        model = getattr(shape.bsdf(), "faithful", None)
+        model = getattr(getattr(shape.bsdf(), "model", None), "core", None)   # interface.Faithful.core
         if model is not None:
             yield model
 
