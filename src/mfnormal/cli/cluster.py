@@ -9,7 +9,8 @@ scheduler`` / ``dask worker``), by ``dask-jobqueue`` on SLURM/PBS/SGE or by
 What travels:
 
 - the scene (:func:`scene_spec`): an XML scene's text with every file it names
-  (``<include>``, ``filename`` and the plugin's ``normalmap``, after ``$`` substitution)
+  (``<include>``, ``filename`` and the plugin's ``normalmap`` and ``heightmap``, after ``$``
+  substitution)
   read on the client and renamed after its content; a glTF file with the buffers and
   images its JSON names. Nothing else is read. With ``shared=True`` the workers load the
   scene from its path (a file system they share with the client) and nothing travels;
@@ -50,20 +51,21 @@ from pathlib import Path
 import numpy as np
 
 from mfnormal.io.messages import one_line
-from mfnormal.io.inputs import CLIError
+from mfnormal.io.inputs import FILE_STRINGS, CLIError, check_regular_file
 
-__all__ = ["CLUSTER_HELP", "Target", "parse_cluster", "Cluster", "SceneSpec", "scene_spec",
+__all__ = ["CLUSTER_HELP", "SCHEMES", "Target", "parse_cluster", "security", "quiet_logs", "Cluster", "SceneSpec", "scene_spec",
            "xml_bundle", "files_digest", "versions", "render_chunk", "render_rgb_job", "set_worker_variant"]
 
 CLUSTER_HELP = ("render on a Dask.distributed cluster: local:N (N worker processes on this "
-                "machine) or a scheduler's address (tcp://HOST:PORT); needs "
-                "pip install 'mfnormal[cluster]'")
+                "machine, listening on loopback only) or a scheduler's address (tcp://HOST:PORT, "
+                "tls://HOST:PORT with --cluster-tls-*); needs pip install 'mfnormal[cluster]'")
+#: The address schemes of ``--cluster ADDRESS``; those that encrypt need certificates.
+SCHEMES = ("tcp", "tls", "ws", "wss")
+SECURE_SCHEMES = ("tls", "wss")
 #: How often a failed task is retried (on any worker); a lost worker's tasks are
 #: resubmitted by the scheduler on its own (``distributed.scheduler.allowed-failures``).
 RETRIES = 2
-#: The XML properties that name a file (besides ``<include filename>`` and ``filename=`` attributes).
-FILE_STRINGS = ("filename", "normalmap")
-_ADDRESS = re.compile(r"^(?:(tcp|tls|ws|wss|ucx)://)?(\[[0-9a-fA-F:]+\]|[\w.-]+):(\d{1,5})/?$")
+_ADDRESS = re.compile(r"^(?:(\w+)://)?(\[[0-9a-fA-F:]+\]|[\w.-]+):(\d{1,5})/?$")
 
 
 # ---------------------------------------------------------------------------
@@ -72,14 +74,17 @@ _ADDRESS = re.compile(r"^(?:(tcp|tls|ws|wss|ucx)://)?(\[[0-9a-fA-F:]+\]|[\w.-]+)
 
 @dataclass(frozen=True)
 class Target:
-    """Where to render: ``local`` with ``workers`` processes, or a scheduler ``address``."""
+    """Where to render: ``local`` with ``workers`` processes, or a scheduler ``address``;
+    ``tls`` the (CA, certificate, key) files of ``--cluster-tls-*`` (empty: none given)."""
     text: str
     workers: int = 0
     address: str = ""
+    tls: tuple = ()
 
 
-def parse_cluster(text: str) -> Target:
-    """``--cluster``'s value, checked (and Dask.distributed importable), or :class:`CLIError`."""
+def parse_cluster(text: str, tls: tuple = ()) -> Target:
+    """``--cluster``'s value and the ``--cluster-tls-*`` files ``tls`` (CA, certificate,
+    key; None where not given), checked (and Dask.distributed importable), or :class:`CLIError`."""
     value = text.strip()
     m_local = re.fullmatch(r"local(?::(.*))?", value)
     if m_local:
@@ -92,12 +97,71 @@ def parse_cluster(text: str) -> Target:
         if not m or not 1 <= int(m.group(3)) <= 65535:
             raise CLIError(f"--cluster {text}: expected local:N (N worker processes on this machine) "
                            "or a scheduler address, tcp://HOST:PORT or HOST:PORT")
-        target = Target(text, address=value if m.group(1) else f"tcp://{value}")
+        if m.group(1) and m.group(1).lower() not in SCHEMES:
+            raise CLIError(f"--cluster {text}: the {m.group(1)}:// protocol is not supported; use "
+                           f"{', '.join(s + '://' for s in SCHEMES)} (or local:N)")
+        target = Target(text, address=f"{(m.group(1) or 'tcp').lower()}://{value.split('://')[-1]}")
     try:
         import distributed  # noqa: F401
     except ImportError:
         raise CLIError(f"--cluster needs Dask.distributed: pip install 'mfnormal[cluster]'") from None
-    return target
+    return Target(target.text, target.workers, target.address, _check_tls(target, tls))
+
+
+def _check_tls(target: Target, tls: tuple) -> tuple:
+    """The ``--cluster-tls-*`` files (CA, certificate, key or None), checked against the
+    target: a TLS address needs certificates (these or Dask's configuration), a tcp:// one
+    takes none; each file a regular file."""
+    ca, cert, key = tuple(tls) + (None,) * (3 - len(tls))
+    scheme = target.address.split("://")[0]
+    if not any((ca, cert, key)):
+        if scheme in SECURE_SCHEMES and not _dask_tls_configured():
+            raise CLIError(f"--cluster {target.text}: a {scheme}:// scheduler needs certificates: "
+                           "--cluster-tls-ca, --cluster-tls-cert and --cluster-tls-key, or Dask's "
+                           "configuration (DASK_DISTRIBUTED__COMM__TLS__CA_FILE, "
+                           "..._CLIENT__CERT, ..._CLIENT__KEY)")
+        return ()
+    if target.address and scheme not in SECURE_SCHEMES:
+        raise CLIError(f"--cluster {target.text}: --cluster-tls-* need a tls:// scheduler address "
+                       f"({scheme}:// is not encrypted)")
+    if not (ca and cert):
+        raise CLIError("--cluster-tls-ca and --cluster-tls-cert go together (and --cluster-tls-key, "
+                       "unless the certificate file holds the key)")
+    for flag, path in (("--cluster-tls-ca", ca), ("--cluster-tls-cert", cert), ("--cluster-tls-key", key)):
+        if path is not None:
+            check_regular_file(path, f"{flag} {path}", f"{flag} {path}: no such file")
+    return (str(ca), str(cert), None if key is None else str(key))
+
+
+def _dask_tls_configured() -> bool:
+    """Whether Dask's own configuration names a CA and a client certificate."""
+    import dask
+
+    return bool(dask.config.get("distributed.comm.tls.ca-file", None)
+                and dask.config.get("distributed.comm.tls.client.cert", None))
+
+
+def security(tls: tuple, local: bool = False):
+    """Dask's ``Security`` of the ``--cluster-tls-*`` files (for ``local``, the scheduler's
+    and workers' too), or None (Dask's own configuration)."""
+    if not tls:
+        return None
+    from distributed import Security
+
+    ca, cert, key = tls
+    roles = ("client", "scheduler", "worker") if local else ("client",)
+    files = {f"tls_{role}_{kind}": path for role in roles for kind, path in (("cert", cert), ("key", key))
+             if path is not None}
+    return Security(tls_ca_file=ca, require_encryption=True, **files)
+
+
+def quiet_logs() -> None:
+    """Silence Dask's and Tornado's loggers in this process: what they would say (a
+    connection that sent bytes that are not Dask's, a worker that left) the client says in
+    one line, or it is not the user's business."""
+    for name in ["distributed", "tornado", *logging.root.manager.loggerDict]:
+        if name.startswith(("distributed", "tornado")):
+            logging.getLogger(name).setLevel(logging.CRITICAL + 1)
 
 
 # ---------------------------------------------------------------------------
@@ -405,6 +469,22 @@ def _files(files: dict) -> dict:
 # The client's side
 # ---------------------------------------------------------------------------
 
+def _local_cluster(target: Target):
+    """The ``LocalCluster`` of ``local:N``: scheduler, nannies and workers on loopback only,
+    no dashboard (the scheduler's health and metrics routes on a loopback port of its
+    own; Dask's default binds the dashboard to every interface), the workers' logs as
+    quiet as the client's (:mod:`mfnormal.cli.worker`); over TLS with the
+    ``--cluster-tls-*`` certificates when given."""
+    from distributed import LocalCluster
+
+    sec = security(target.tls, local=True)
+    return LocalCluster(n_workers=target.workers, threads_per_worker=1, processes=True,
+                        host="127.0.0.1", protocol="tls://" if sec else "tcp://", security=sec,
+                        dashboard_address=None, scheduler_kwargs={"dashboard_address": "127.0.0.1:0"},
+                        silence_logs=logging.CRITICAL, memory_limit=0,
+                        preload=["mfnormal.cli.worker"], preload_argv=["--quiet"])
+
+
 class Cluster:
     """A connection to the cluster of ``target`` (a context manager): starts the
     ``LocalCluster`` of ``local:N``, or connects to a scheduler and waits up to ``timeout``
@@ -432,25 +512,21 @@ class Cluster:
         self.close()
 
     def _connect(self):
-        from distributed import Client, LocalCluster
+        from distributed import Client
 
-        for name in ["distributed", *logging.root.manager.loggerDict]:
-            if name.startswith("distributed"):      # its errors are ours to tell, in one line
-                logging.getLogger(name).setLevel(logging.CRITICAL)
-
+        quiet_logs()                # their errors are ours to tell, in one line
         if self.target.workers:
             try:
-                self._local = LocalCluster(n_workers=self.target.workers, threads_per_worker=1,
-                                           processes=True, dashboard_address=":0",
-                                           silence_logs=logging.ERROR, memory_limit=0)
-                self.client = Client(self._local)
+                self._local = _local_cluster(self.target)
+                self.client = Client(self._local, security=security(self.target.tls, local=True))
             except Exception as exc:
                 raise CLIError(f"--cluster {self.target.text}: cannot start the local cluster: "
                                f"{one_line(exc)}") from None
             return
         try:
-            self.client = Client(self.target.address, timeout=f"{self.timeout}s")
-        except (OSError, TimeoutError, ValueError) as exc:
+            self.client = Client(self.target.address, timeout=f"{self.timeout}s",
+                                 security=security(self.target.tls))
+        except (OSError, TimeoutError, ValueError, TypeError) as exc:
             raise CLIError(f"--cluster {self.target.text}: cannot reach the scheduler "
                            f"({one_line(exc)})") from None
         try:

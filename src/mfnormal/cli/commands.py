@@ -1,7 +1,8 @@
 """The ``mfnormal`` command line: render scenes that use the plugin, and the bundled demo.
 
     mfnormal render SCENE.xml|MODEL.gltf|MODEL.glb [-o OUT] [--spp N] [--variant V] [-D key=value ...]
-                    [--chunks N] [--cluster local:N|ADDRESS [--shared-files] [--cluster-timeout S]]
+                    [--chunks N] [--cluster local:N|ADDRESS [--shared-files] [--cluster-timeout S]
+                     [--cluster-tls-ca FILE --cluster-tls-cert FILE --cluster-tls-key FILE]]
     mfnormal demo [-o OUT] [--spp N] [--resolution WxH] [--model M] [--seed N] ...
                                            (also mfnormal-demo)
     mfnormal compare SCENE [SCENE ...] [-o DIR] [--spp N] [--ref-spp N] [--quick] [--cluster ...]
@@ -29,8 +30,8 @@ from mfnormal.io.messages import one_line
 from mfnormal.report.methods import METHOD_BY_KEY, METHODS
 from mfnormal.cli.rendering import render_scene, use_variant
 from mfnormal.io.inputs import (CLIError, DEFAULT_LIMITS, LIMIT_HELP, Limits, Terminated, check_int32,
-                       check_output, check_render_size, check_scene_before_render, check_seed,
-                       check_spp, check_xml_scene, parse_limits, raise_on_sigterm)
+                       check_output, check_regular_file, check_render_size, check_scene_before_render,
+                       check_seed, check_spp, check_xml_scene, parse_limits, raise_on_sigterm)
 
 __all__ = ["CLIError", "main", "demo_main", "build_parser", "load_scene", "setup_variant",
            "parse_defines", "run_command"]
@@ -106,8 +107,7 @@ def load_scene(mi, path, params: dict[str, str], limits: Limits = DEFAULT_LIMITS
     from mfnormal.io.gltf import GLTF_SUFFIXES, GLTFError
 
     path = Path(path)
-    if not path.is_file():
-        raise CLIError(f"scene file not found: {path}")
+    check_regular_file(path, f"the scene {path}", f"scene file not found: {path}")
     gltf = path.suffix.lower() in GLTF_SUFFIXES
     if not gltf:
         check_xml_scene(path, params, limits)
@@ -174,12 +174,15 @@ def _check_cluster_args(args):
     timeout = getattr(args, "cluster_timeout", 60.0)
     if not (0 < timeout < float("inf")):
         raise CLIError(f"--cluster-timeout {timeout}: expected a number of seconds above 0")
+    tls = tuple(getattr(args, f"cluster_tls_{n}", None) for n in ("ca", "cert", "key"))
     if args.cluster is None:
         if getattr(args, "shared_files", False):
             raise CLIError("--shared-files goes with --cluster")
+        if any(tls):
+            raise CLIError("--cluster-tls-ca, --cluster-tls-cert and --cluster-tls-key go with --cluster")
         return None
     from mfnormal.cli.cluster import parse_cluster
-    return parse_cluster(args.cluster)
+    return parse_cluster(args.cluster, tls)
 
 
 def _render_on_cluster(args, target, scene, spp: int, params: dict, limits: Limits):
@@ -356,8 +359,9 @@ def cmd_compare(args) -> int:
     if args.validation and not Path(args.validation).is_dir():
         raise CLIError(f"validation directory not found: {args.validation}")
     for scene in args.scenes:
-        if scene not in BUNDLED and not Path(scene).is_file():
-            raise CLIError(f"scene file not found: {scene} (bundled scenes: {', '.join(BUNDLED)})")
+        if scene not in BUNDLED:
+            check_regular_file(scene, f"the scene {scene}",
+                               f"scene file not found: {scene} (bundled scenes: {', '.join(BUNDLED)})")
         if scene not in BUNDLED:
             check_xml_scene(scene, params, limits)
     command = "mfnormal " + " ".join(shlex.quote(a) for a in getattr(args, "argv", []))
@@ -407,6 +411,13 @@ def _add_scene_options(p):
     p.add_argument("--cluster-timeout", type=float, default=60.0, metavar="S",
                    help="seconds to wait for the scheduler, for a first worker, and with no "
                         "worker left (default 60)")
+    for name, what in (("ca", "the certificate authority (PEM) that signed the scheduler's and "
+                               "workers' certificates"),
+                       ("cert", "this client's certificate (PEM)"),
+                       ("key", "this client's private key (PEM), unless the certificate file holds it")):
+        p.add_argument(f"--cluster-tls-{name}", metavar="FILE",
+                       help=f"with --cluster tls://HOST:PORT (or local:N, then over TLS too): {what}; "
+                            "default: Dask's distributed.comm.tls configuration")
 
 
 def _positive_int(text: str) -> int:

@@ -47,14 +47,13 @@ import json
 import math
 import os
 import re
-import stat
 import struct
 from dataclasses import dataclass, field
 from pathlib import Path, PureWindowsPath
 from urllib.parse import unquote
 
 from mfnormal.io.image_headers import image_header
-from mfnormal.io.inputs import DEFAULT_LIMITS, Limits
+from mfnormal.io.inputs import DEFAULT_LIMITS, Limits, not_regular
 
 __all__ = ["GLTFError", "Model", "ImageData", "read_model", "image_header", "COMPONENT_SIZE",
            "TYPE_WIDTH"]
@@ -139,8 +138,9 @@ def _read_regular(path: Path, where: str, shown: str, budget: _Budget, length: i
         _fail(where, f"cannot open '{shown}' ({exc.strerror or type(exc).__name__})")
     try:
         st = os.fstat(fd)
-        if not stat.S_ISREG(st.st_mode):
-            _fail(where, f"'{shown}' is not a regular file")
+        kind = not_regular(st.st_mode)
+        if kind:
+            _fail(where, f"'{shown}' is {kind}, not a regular file")
         if length is None:
             length = st.st_size
         elif st.st_size < length:

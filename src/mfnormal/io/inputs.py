@@ -13,6 +13,9 @@ output folder with a temporary file that it removes at once, and writes nothing 
   sampler or ``<integer>`` values);
 - :func:`check_output`: the output name is not a folder, and its folder is (or
   can be created) writable;
+- :func:`not_regular` and :func:`check_regular_file`: a file that is read must be a
+  regular file (checked with ``os.stat``, before anything opens it: reading a FIFO or a
+  device may block for ever);
 - :func:`check_scene_before_render`: the loaded scene's sample count, film size
   and variant;
 - :class:`Terminated` and :func:`raise_on_sigterm`: SIGTERM as an exception, so
@@ -26,6 +29,7 @@ import math
 import os
 import re
 import signal
+import stat
 import tempfile
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass
@@ -35,11 +39,14 @@ from mfnormal.io.image_headers import file_image_size
 from mfnormal.io.scene_xml import PARAMETER, substitute
 
 __all__ = ["CLIError", "Limits", "DEFAULT_LIMITS", "LIMIT_HELP", "parse_limits", "check_spp",
-           "check_seed", "check_int32", "check_xml_scene", "check_output", "check_render_size",
+           "check_seed", "check_int32", "not_regular", "check_regular_file", "check_xml_scene",
+           "check_output", "check_render_size",
            "check_scene_before_render", "Terminated", "raise_on_sigterm", "INT32_MAX", "UINT32_MAX"]
 
 INT32_MIN, INT32_MAX = -(1 << 31), (1 << 31) - 1
 UINT32_MAX = (1 << 32) - 1
+#: The XML string properties that name a file: Mitsuba's ``filename`` and the plugin's maps.
+FILE_STRINGS = ("filename", "normalmap", "heightmap")
 
 
 class CLIError(Exception):
@@ -151,6 +158,61 @@ def check_int32(value: int, what: str, lo: int = INT32_MIN, hi: int = INT32_MAX)
     return value
 
 
+# -- Files -----------------------------------------------------------------------------------------
+
+#: What a file that is not a regular file is, by its ``os.stat`` mode.
+_KINDS = ((stat.S_ISDIR, "a folder"), (stat.S_ISFIFO, "a FIFO (named pipe)"),
+          (stat.S_ISCHR, "a character device"), (stat.S_ISBLK, "a block device"),
+          (stat.S_ISSOCK, "a socket"))
+
+
+def not_regular(mode: int) -> str | None:
+    """What a file of ``os.stat`` mode ``mode`` is ('a FIFO (named pipe)', 'a folder', ...),
+    or None for a regular file."""
+    if stat.S_ISREG(mode):
+        return None
+    return next((kind for test, kind in _KINDS if test(mode)), "not a regular file")
+
+
+def check_regular_file(path, what: str, missing: str | None = None) -> None:
+    """:class:`CLIError` when ``path`` (links followed) is a FIFO, a device, a folder or a
+    socket: ``what`` names it in the message. Checked with ``os.stat``, so nothing is opened
+    (opening a FIFO blocks until a writer comes). A missing file is ``missing``'s error when
+    given, else left to the loader's own."""
+    try:
+        kind = not_regular(os.stat(path).st_mode)
+    except (OSError, ValueError):   # missing, a loop of links, a NUL in the name
+        if missing:
+            raise CLIError(missing) from None
+        return
+    if kind:
+        raise CLIError(f"{what} is {kind}, not a regular file; give the path of a regular file")
+
+
+def _named_file(el: ET.Element) -> tuple | None:
+    """(file name as written, how the message names it) of an XML element that names
+    a file: ``<include filename>``, any ``filename`` attribute, ``<string name="filename">``
+    and the plugin's ``<string name="normalmap|heightmap">``; None for other elements."""
+    if "filename" in el.attrib:
+        return el.get("filename"), f"<{el.tag} filename>"
+    if el.tag == "string" and el.get("name") in FILE_STRINGS and el.get("value") is not None:
+        return el.get("value"), f'<string name="{el.get("name")}">'
+    return None
+
+
+def _check_named_file(el: ET.Element, file: Path, values: dict) -> None:
+    """The file ``el`` names (relative to ``file``'s folder, as Mitsuba resolves it, else
+    to the working folder) is not a FIFO, device or folder."""
+    named = _named_file(el)
+    if named is None:
+        return
+    name = substitute(named[0], values)
+    path = file.parent / name
+    if not os.path.exists(path):
+        path = Path(name)
+    check_regular_file(path, f"{file.name}: {named[1]} '{name}'")
+
+
 def check_xml_scene(path, params: dict, limits: Limits = DEFAULT_LIMITS) -> None:
     """Two checks of the XML scene ``path`` and its ``<include>``\\ s, after substituting
     their ``<default>``\\ s and ``params`` (``-D``), before Mitsuba loads it:
@@ -161,6 +223,9 @@ def check_xml_scene(path, params: dict, limits: Limits = DEFAULT_LIMITS) -> None
     - every image a ``<texture>`` or ``<emitter>`` names (``filename``) declares at most
       ``limits.image_pixels`` pixels in its header, and all of them together at most
       ``limits.texture_pixels``, as for a glTF model (:mod:`mfnormal.io.image_headers`).
+    - every file it names (``<include>``, ``filename``, the plugin's ``normalmap`` and
+      ``heightmap`` strings) is a regular file (:func:`check_regular_file`), before
+      anything opens it.
 
     Files that do not parse, and images that are missing or of another format, are left
     to Mitsuba's own error."""
@@ -178,6 +243,7 @@ def check_xml_scene(path, params: dict, limits: Limits = DEFAULT_LIMITS) -> None
             return
         values = {**{d.get("name"): d.get("value") for d in root.iter("default")}, **values}
         for el in root.iter():
+            _check_named_file(el, file, values)
             if el.tag == "integer" and el.get("value") is not None:
                 _check_xml_integer(el, file, values, params)
             elif el.tag == "include" and el.get("filename"):
