@@ -9,7 +9,9 @@ odd scene name), ``mfnormal demo`` or ``mfnormal compare --quick``: flags
 junk (``''``, ``1.5``, ``nan``, ``0x10``) and hostile names (a folder, a path
 under a file, a read-only place, ``..``, ``/dev/zero``), and ``-D key=value``
 pairs with known and unknown keys and values of every kind (numbers, NaN,
-±inf, 2^32, XML metacharacters, ``$`` references, paths). It runs in the worker
+±inf, 2^32, XML metacharacters, ``$`` references, paths), and scenes that name a FIFO,
+a link to one, a device or a folder as a texture, a ``<string name="normalmap">`` or an
+``<include>``, or are a FIFO (:func:`special_file_args`). It runs in the worker
 process (``tests/cli_worker.py``) and must end with either exit 0 and the
 outputs written, or exactly one ``mfnormal: error:`` line (after at most some
 ``mfnormal: warning:`` lines), exit 2 and nothing written — never a traceback,
@@ -155,6 +157,36 @@ def compare_args(draw):
     return args
 
 
+@st.composite
+def special_file_args(draw):
+    """``render`` or ``compare`` of a scene that names a FIFO, a link to one or a device
+    (:func:`add_special_files`), or is a FIFO: a one-line error, never a read that blocks."""
+    how = draw(st.sampled_from(["texture", "string_map", "include", "scene"]))
+    name = draw(st.sampled_from(["pipe.png", "link.png", "/dev/zero", "outdir"]))
+    scene = {"texture": "scene.xml", "string_map": "string_map.xml", "include": "include.xml",
+             "scene": draw(st.sampled_from(["pipe.xml", "link.xml"]))}[how]
+    command = draw(st.sampled_from(["render", "render", "compare"]))
+    args = [command, scene] + (["--quick", "--methods", "flat,analytic"] if command == "compare" else [])
+    if how in ("texture", "string_map"):
+        args += ["-D", f"nm={name}"]
+    return args + draw(defines(XML_KEYS[:4]))
+
+
+def add_special_files(root: Path) -> None:
+    """FIFOs (a map and a scene), links to them, and scenes that name them: an ``<include>``
+    of the FIFO scene, the plugin's map as a ``<string name="normalmap">``. Nothing ever
+    writes into the FIFOs: a command that opens one blocks until the worker's timeout."""
+    import os
+
+    os.mkfifo(root / "pipe.png")
+    os.mkfifo(root / "pipe.xml")
+    (root / "link.png").symlink_to("pipe.png")
+    (root / "link.xml").symlink_to("pipe.xml")
+    (root / "include.xml").write_text(SCENE.replace("</scene>", '<include filename="pipe.xml"/></scene>'))
+    texture = SCENE[SCENE.index('<texture type="bitmap" name="normalmap">'):SCENE.index("</texture>") + 10]
+    (root / "string_map.xml").write_text(SCENE.replace(texture, '<string name="normalmap" value="$nm"/>'))
+
+
 def make_sandbox(root: Path) -> Path:
     write_maps(root)
     (root / "scene.xml").write_text(SCENE)
@@ -165,6 +197,7 @@ def make_sandbox(root: Path) -> Path:
     doc, blobs = base_document()
     write_gltf(root / "model", doc, blobs)
     (root / "model.glb").write_bytes(glb_bytes(doc, blobs))
+    add_special_files(root)
     return root
 
 
@@ -192,9 +225,9 @@ report_throughput = STATS.report_fixture()
 def test_random_command_lines_render_or_fail_in_one_line(worker, data):
     with STATS.sandbox("mfnormal-clifuzz.") as root:
         make_sandbox(root)
-        kind = data.draw(st.sampled_from(["render"] * 7 + ["demo", "compare"]), label="command")
-        args = data.draw({"render": render_args(), "demo": demo_args(), "compare": compare_args()}[kind],
-                         label="args")
+        kind = data.draw(st.sampled_from(["render"] * 7 + ["demo", "compare", "special"]), label="command")
+        args = data.draw({"render": render_args(), "demo": demo_args(), "compare": compare_args(),
+                          "special": special_file_args()}[kind], label="args")
         before = snapshot(root)
         result = worker.run(args + FORCED, cwd=root, timeout=TIMEOUT)
         STATS.log(result, f"\t{args}")

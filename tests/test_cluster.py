@@ -131,6 +131,157 @@ def test_unreachable_scheduler_is_one_line_and_writes_nothing(tmp_path, capsys):
     assert _outputs(tmp_path) == []
 
 
+def test_an_unsupported_protocol_is_one_line_naming_the_supported_ones(tmp_path, capsys):
+    rc, _, err = _cli(["render", str(_scene(tmp_path)), "-o", str(tmp_path / "out"), "--cluster",
+                       "ucx://127.0.0.1:8786"], capsys)
+    assert rc == 2 and len(err.strip().splitlines()) == 1, err
+    assert "ucx:// protocol is not supported" in err and "tcp://, tls://" in err, err
+    assert _outputs(tmp_path) == []
+
+
+@pytest.mark.parametrize("args,needle", [
+    (["--cluster", "tls://127.0.0.1:8786"], "needs certificates: --cluster-tls-ca"),
+    (["--cluster", "tcp://127.0.0.1:8786", "--cluster-tls-ca", "c.pem", "--cluster-tls-cert", "c.pem"],
+     "need a tls:// scheduler address"),
+    (["--cluster", "tls://127.0.0.1:8786", "--cluster-tls-cert", "c.pem"], "go together"),
+    (["--cluster", "tls://127.0.0.1:8786", "--cluster-tls-ca", "fifo.pem", "--cluster-tls-cert", "c.pem"],
+     "--cluster-tls-ca fifo.pem is a FIFO"),
+    (["--cluster", "tls://127.0.0.1:8786", "--cluster-tls-ca", "absent.pem", "--cluster-tls-cert", "c.pem"],
+     "--cluster-tls-ca absent.pem: no such file"),
+    (["--cluster-tls-ca", "c.pem"], "go with --cluster"),
+])
+def test_tls_options_are_checked_before_any_work(tmp_path, capsys, args, needle):
+    scene = _scene(tmp_path)
+    (tmp_path / "c.pem").write_text("not used: the arguments are refused first")
+    os.mkfifo(tmp_path / "fifo.pem")
+    cwd = os.getcwd()
+    os.chdir(tmp_path)
+    try:
+        rc, _, err = _cli(["render", str(scene), "-o", "out", *args], capsys)
+    finally:
+        os.chdir(cwd)
+    assert rc == 2 and len(err.strip().splitlines()) == 1 and needle in err, err
+    assert _outputs(tmp_path) == []
+
+
+# -- Strangers -------------------------------------------------------------------------------
+
+
+def _listening(pid: int) -> set:
+    """(address, port, pid) of every TCP socket that process ``pid`` and its children listen on."""
+    import psutil
+
+    try:
+        parent = psutil.Process(pid)
+        procs = [parent, *parent.children(recursive=True)]
+    except psutil.NoSuchProcess:
+        return set()
+    found = set()
+    for proc in procs:
+        try:
+            found |= {(c.laddr.ip, c.laddr.port, proc.pid) for c in proc.net_connections("tcp")
+                      if c.status == psutil.CONN_LISTEN}
+        except psutil.NoSuchProcess:
+            pass
+    return found
+
+
+JUNK = (b"GET /json/identity.json HTTP/1.1\r\nHost: x\r\n\r\n", b"\xff" * 64,
+        bytes(range(256)) * 4)
+
+
+def test_a_local_cluster_listens_on_loopback_only_and_prints_nothing_for_junk_bytes(tmp_path):
+    """During a ``--cluster local:2`` render every socket of the client and its workers
+    listens on loopback (Dask's dashboard would listen on every interface), and bytes that
+    are not Dask's sent to each of them print nothing (Dask's comms logged a traceback per
+    connection: a frame length read from junk, "Unable to allocate 6.09 EiB"). The render
+    is long and ended with SIGTERM: its stderr then holds only "terminated"."""
+    scene = _scene(tmp_path, spp=1 << 20, width=48, height=36)
+    proc = subprocess.Popen([sys.executable, "-m", "mfnormal", "render", str(scene), "-o",
+                             str(tmp_path / "out"), "--cluster", "local:2"], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, cwd=str(ROOT))
+    try:
+        deadline, sockets = time.monotonic() + 120, set()
+        while time.monotonic() < deadline and proc.poll() is None:
+            sockets = _listening(proc.pid)
+            if len({pid for _, _, pid in sockets}) >= 3:       # the client and both workers
+                break
+            time.sleep(0.2)
+        assert len({pid for _, _, pid in sockets}) >= 3, (sockets, proc.poll())
+        time.sleep(1.0)
+        sockets = _listening(proc.pid)
+        assert {ip for ip, _, _ in sockets} <= {"127.0.0.1", "::1"}, sockets
+        for _, port, _ in sorted(sockets):
+            for junk in JUNK:
+                try:
+                    with socket.create_connection(("127.0.0.1", port), timeout=5) as s:
+                        s.sendall(junk)
+                        time.sleep(0.05)
+                except OSError:
+                    pass                            # a server that hung up on the junk: fine
+        time.sleep(2.0)
+        assert proc.poll() is None, proc.communicate()
+        proc.send_signal(signal.SIGTERM)
+        out, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    assert err.strip() == "mfnormal: terminated", err[-3000:]
+    assert proc.returncode == 143 and _outputs(tmp_path) == []
+
+
+def _certificate(folder: Path) -> tuple:
+    """A self-signed certificate and its key (PEM), made with the openssl command."""
+    import shutil
+
+    if shutil.which("openssl") is None:
+        pytest.skip("no openssl command to make a test certificate")
+    cert, key = folder / "cert.pem", folder / "key.pem"
+    subprocess.run(["openssl", "req", "-x509", "-newkey", "rsa:2048", "-nodes", "-keyout", str(key),
+                    "-out", str(cert), "-days", "1", "-subj", "/CN=mfnormal-test"], check=True,
+                   capture_output=True, timeout=60)
+    return cert, key
+
+
+def test_a_tls_scheduler_renders_with_certificates_from_the_options_or_dasks_configuration(
+        tmp_path, capsys):
+    """A scheduler and worker that take only TLS connections signed by a self-signed CA:
+    ``--cluster tls://`` with ``--cluster-tls-*`` renders what the chunks rendered here
+    give; so does Dask's own ``distributed.comm.tls`` configuration in their place; a
+    ``tcp://`` client is refused in one line."""
+    import logging
+
+    import dask
+
+    cert, key = _certificate(tmp_path)
+    roles = {f"tls_{r}_{k}": str(f) for r in ("scheduler", "worker", "client") for k, f in (("cert", cert),
+                                                                                           ("key", key))}
+    security = distributed.Security(tls_ca_file=str(cert), require_encryption=True, **roles)
+    scene = _scene(tmp_path)
+    tls = ["--cluster-tls-ca", str(cert), "--cluster-tls-cert", str(cert), "--cluster-tls-key", str(key)]
+    config = {"distributed.comm.tls.ca-file": str(cert), "distributed.comm.tls.client.cert": str(cert),
+              "distributed.comm.tls.client.key": str(key)}
+    with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=True, protocol="tls://",
+                                  host="127.0.0.1", security=security, dashboard_address=None,
+                                  silence_logs=logging.CRITICAL) as c:
+        address = c.scheduler_address
+        assert address.startswith("tls://")
+        run = ["render", str(scene), "--chunks", "3", "--cluster", address, "--cluster-timeout", "20"]
+        rc, out, err = _cli(run + ["-o", str(tmp_path / "out")] + tls, capsys)
+        assert rc == 0 and "3 chunks on 1 worker(s)" in out, err
+        with dask.config.set(config):
+            rc, _, err = _cli(run + ["-o", str(tmp_path / "config")], capsys)
+        assert rc == 0, err
+        rc, _, err = _cli(["render", str(scene), "-o", str(tmp_path / "plain"), "--cluster",
+                           address.replace("tls://", "tcp://"), "--cluster-timeout", "3"], capsys)
+    assert rc == 2 and "cannot reach the scheduler" in err and len(err.strip().splitlines()) == 1, err
+    same = _sequential(scene, 16, 3, 0)
+    assert np.abs(_exr(tmp_path / "out.exr") - same).max() <= TOL
+    assert np.abs(_exr(tmp_path / "config.exr") - same).max() <= TOL
+    assert not (tmp_path / "plain.exr").exists()
+
+
 # -- What travels ----------------------------------------------------------------------------
 
 
@@ -300,17 +451,45 @@ def test_a_render_whose_workers_all_leave_writes_nothing(tmp_path):
     assert _outputs(tmp_path) == []
 
 
-def test_a_render_whose_scheduler_is_lost_writes_nothing(tmp_path):
-    scene = _scene(tmp_path, spp=64, width=48, height=36)
-    c, client = _own_cluster(1)
-    proc = _render_process(scene, tmp_path / "out", c.scheduler_address, "--chunks", "8",
-                           "--cluster-timeout", "2")
+def _scheduler_process(folder: Path):
+    """A Dask scheduler in a process of its own, on loopback, and its address."""
+    file = folder / "scheduler.json"
+    proc = subprocess.Popen([sys.executable, "-m", "distributed.cli.dask_scheduler", "--host", "127.0.0.1",
+                             "--port", "0", "--no-dashboard", "--scheduler-file", str(file)],
+                            cwd=str(folder), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.monotonic() + 60
+    while not file.exists() and time.monotonic() < deadline and proc.poll() is None:
+        time.sleep(0.1)
+    import json
     try:
+        return proc, json.loads(file.read_text())["address"]
+    except (OSError, ValueError):
+        proc.kill()
+        raise AssertionError("the scheduler did not start") from None
+
+
+def test_a_render_whose_scheduler_is_lost_writes_nothing(tmp_path):
+    """The scheduler process is killed mid-render (a crash, a lost node): the render ends with
+    one line that says so. The scheduler dies at once, its worker alive: no interval without
+    a worker that the client could mistake for the workers leaving (closing a LocalCluster
+    stops its workers first, and under load its scheduler outlived --cluster-timeout)."""
+    scene = _scene(tmp_path, spp=64, width=48, height=36)
+    scheduler, address = _scheduler_process(tmp_path)
+    worker = subprocess.Popen([sys.executable, "-m", "distributed.cli.dask_worker", address, "--nthreads", "1",
+                               "--no-nanny", "--no-dashboard", "--host", "127.0.0.1"], cwd=str(tmp_path),
+                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    client = distributed.Client(address, timeout="60s")
+    try:
+        proc = _render_process(scene, tmp_path / "out", address, "--chunks", "8", "--cluster-timeout", "2")
         _processing_chunk(client)
+        scheduler.kill()
+        scheduler.wait(timeout=60)
+        out, err = proc.communicate(timeout=120)
     finally:
-        client.close()
-        c.close()
-    out, err = proc.communicate(timeout=120)
+        client.close(timeout=5)
+        for p in (scheduler, worker):
+            p.kill()
+            p.wait(timeout=60)
     assert proc.returncode == 2, out + err
     assert "lost the cluster" in err and len(err.strip().splitlines()) == 1, err
     assert _outputs(tmp_path) == []
