@@ -53,8 +53,9 @@ import numpy as np
 from mfnormal.io.messages import one_line
 from mfnormal.io.inputs import FILE_STRINGS, CLIError, check_regular_file
 
-__all__ = ["CLUSTER_HELP", "SCHEMES", "Target", "parse_cluster", "security", "quiet_logs", "Cluster", "SceneSpec", "scene_spec",
-           "xml_bundle", "files_digest", "versions", "render_chunk", "render_rgb_job", "set_worker_variant"]
+__all__ = ["CLUSTER_HELP", "SCHEMES", "Target", "parse_cluster", "security", "quiet_logs", "Cluster",
+           "SceneSpec", "scene_spec", "xml_bundle", "files_digest", "versions", "render_chunk",
+           "render_rgb_job", "set_worker_variant"]
 
 CLUSTER_HELP = ("render on a Dask.distributed cluster: local:N (N worker processes on this "
                 "machine, listening on loopback only) or a scheduler's address (tcp://HOST:PORT, "
