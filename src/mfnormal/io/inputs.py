@@ -25,6 +25,7 @@ output folder with a temporary file that it removes at once, and writes nothing 
 from __future__ import annotations
 
 import dataclasses
+import errno
 import math
 import os
 import re
@@ -166,6 +167,10 @@ _KINDS = ((stat.S_ISDIR, "a folder"), (stat.S_ISFIFO, "a FIFO (named pipe)"),
           (stat.S_ISSOCK, "a socket"))
 
 
+#: The errors of ``os.stat`` that mean "no such file" (as for ``Path.is_file``).
+_MISSING = (errno.ENOENT, errno.ENOTDIR, errno.EBADF, errno.ELOOP)
+
+
 def not_regular(mode: int) -> str | None:
     """What a file of ``os.stat`` mode ``mode`` is ('a FIFO (named pipe)', 'a folder', ...),
     or None for a regular file."""
@@ -178,13 +183,16 @@ def check_regular_file(path, what: str, missing: str | None = None) -> None:
     """:class:`CLIError` when ``path`` (links followed) is a FIFO, a device, a folder or a
     socket: ``what`` names it in the message. Checked with ``os.stat``, so nothing is opened
     (opening a FIFO blocks until a writer comes). A missing file is ``missing``'s error when
-    given, else left to the loader's own."""
+    given (another error of the system, e.g. a name too long, is raised as it is), else left
+    to the loader's own."""
     try:
         kind = not_regular(os.stat(path).st_mode)
-    except (OSError, ValueError):   # missing, a loop of links, a NUL in the name
-        if missing:
+    except (OSError, ValueError) as exc:   # missing, a loop of links, a NUL in the name, ...
+        if not missing:
+            return
+        if isinstance(exc, ValueError) or exc.errno in _MISSING:
             raise CLIError(missing) from None
-        return
+        raise
     if kind:
         raise CLIError(f"{what} is {kind}, not a regular file; give the path of a regular file")
 
