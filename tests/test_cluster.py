@@ -305,6 +305,18 @@ def test_the_bundle_holds_the_files_the_scene_names_and_nothing_else(tmp_path):
     assert next(k for k in files if k.endswith("mesh.obj")) in include
 
 
+def test_the_plugins_map_strings_travel_with_the_scene(tmp_path):
+    """``<string name="normalmap">`` and ``<string name="heightmap">`` name files as ``filename``
+    does: both are read into the bundle and renamed in the text."""
+    write_maps(tmp_path)
+    text = ('<scene version="3.0.0"><bsdf type="normalmap_microfacet"><string name="normalmap" '
+            'value="normalmap.png"/><bsdf type="diffuse"/></bsdf><bsdf type="normalmap_microfacet">'
+            '<string name="heightmap" value="gray.png"/><bsdf type="diffuse"/></bsdf></scene>')
+    bundled, _, files = xml_bundle(text, tmp_path, {})
+    assert sorted(files.values()) == sorted((tmp_path / n).read_bytes() for n in ("normalmap.png", "gray.png"))
+    assert all(f'value="{k}"' in bundled for k in files)
+
+
 # -- Rendering ---------------------------------------------------------------------------------
 
 
