@@ -362,7 +362,6 @@ def cmd_compare(args) -> int:
         if scene not in BUNDLED:
             check_regular_file(scene, f"the scene {scene}",
                                f"scene file not found: {scene} (bundled scenes: {', '.join(BUNDLED)})")
-        if scene not in BUNDLED:
             check_xml_scene(scene, params, limits)
     command = "mfnormal " + " ".join(shlex.quote(a) for a in getattr(args, "argv", []))
     try:

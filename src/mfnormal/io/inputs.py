@@ -165,8 +165,6 @@ def check_int32(value: int, what: str, lo: int = INT32_MIN, hi: int = INT32_MAX)
 _KINDS = ((stat.S_ISDIR, "a folder"), (stat.S_ISFIFO, "a FIFO (named pipe)"),
           (stat.S_ISCHR, "a character device"), (stat.S_ISBLK, "a block device"),
           (stat.S_ISSOCK, "a socket"))
-
-
 #: The errors of ``os.stat`` that mean "no such file" (as for ``Path.is_file``).
 _MISSING = (errno.ENOENT, errno.ENOTDIR, errno.EBADF, errno.ELOOP)
 
