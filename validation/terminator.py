@@ -29,7 +29,8 @@ normal at the pixel, which no shading and no shadow ray changes (measured: most 
 with the offset); the corresponding-point error holds only what the shading and the shadow rays
 do.
 
-Why a BSDF cannot remove the whole artifact (measured, see validation/results/terminator.md):
+Why a BSDF cannot remove the whole artifact (measured, see validation/results/normal_sources.md;
+the integrators' shadow-ray offset does: validation/results/terminator.md):
 on a convex mesh a shadow ray toward a direction below a triangle's plane enters the mesh and is
 blocked, so every BSDF is dark on the triangles that face away from the sun while the true
 sphere is still lit (dimly) over part of them; above a triangle's plane the interpolated normal

@@ -23,18 +23,26 @@ def smooth_shift(si, prim_uv, active=True):
     si, prim_uv = dr.detach(si), dr.detach(prim_uv)
     active = mi.Bool(active) & si.is_valid() & si.shape.is_mesh()
     mesh = mi.MeshPtr(dr.select(active, si.shape, dr.zeros(mi.ShapePtr)))
-    active &= mesh.has_vertex_normals()
-    face = mesh.face_indices(si.prim_index, active)
-    weights = (1.0 - prim_uv.x - prim_uv.y, prim_uv.x, prim_uv.y)
-    # Project p onto each vertex's tangent plane (outward only) and interpolate the projections
-    shift = mi.Vector3f(0.0)
-    for k, index in enumerate((face.x, face.y, face.z)):
-        v = mesh.vertex_position(index, active)
-        n = mi.Vector3f(dr.normalize(mesh.vertex_normal(index, active)))
-        shift -= weights[k] * dr.minimum(dr.dot(si.p - v, n), 0.0) * n
+    shift = dr.dispatch(mesh, _tangent_plane_shift, si.prim_index, prim_uv, si.p)
     height = dr.dot(shift, si.sh_frame.n)
     active &= dr.isfinite(height) & (height > (1.0 + dr.max(dr.abs(si.p))) * mi.math.RayEpsilon)
     return mi.Vector3f(dr.select(active, shift, 0.0))
+
+
+def _tangent_plane_shift(mesh, prim_index, prim_uv, p):
+    """On one shape of the scene: p projected onto each vertex's tangent plane (outward only), the projections
+    interpolated with the barycentrics, minus p (0 on a mesh without vertex normals and on other
+    shapes)."""
+    shift = mi.Vector3f(0.0)
+    if not (mesh.is_mesh() and mesh.has_vertex_normals()):     # the registry holds every shape
+        return shift
+    face = mesh.face_indices(prim_index)
+    weights = (1.0 - prim_uv.x - prim_uv.y, prim_uv.x, prim_uv.y)
+    for k, index in enumerate((face.x, face.y, face.z)):
+        v = mesh.vertex_position(index)
+        n = mi.Vector3f(dr.normalize(mesh.vertex_normal(index)))
+        shift -= weights[k] * dr.minimum(dr.dot(p - v, n), 0.0) * n
+    return shift
 
 
 def moved(si, shift):
