@@ -30,9 +30,9 @@ def smooth_shift(si, prim_uv, active=True):
 
 
 def _tangent_plane_shift(mesh, prim_index, prim_uv, p):
-    """On one shape of the scene: p projected onto each vertex's tangent plane (outward only), the projections
-    interpolated with the barycentrics, minus p (0 on a mesh without vertex normals and on other
-    shapes)."""
+    """On one shape of the scene: p projected onto each vertex's tangent plane (outward only),
+    the projections interpolated with the barycentrics, minus p (0 on a mesh without vertex
+    normals and on other shapes)."""
     shift = mi.Vector3f(0.0)
     if not (mesh.is_mesh() and mesh.has_vertex_normals()):     # the registry holds every shape
         return shift
