@@ -12,13 +12,25 @@ visible disc, for several tessellations and BSDF wrappers (:data:`METHODS`):
   (:class:`ChiangTerminator`, plugin ``chiang_terminator``, the reference written here);
 - ``geometric``: ``normalmap_microfacet`` with no map and ``macro_normal="geometric"`` (ours;
   ``geometric_MODEL`` for other models);
-- ``flat``: face normals (the facets a terminator fix should not bring back).
+- ``flat``: face normals (the facets a terminator fix should not bring back);
+- ``offset``: the material as in ``plain``, rendered by ``mfnormal_path`` with its
+  ``terminator_offset`` (shadow rays from the smooth surface, Hanika 2021); ``offset_geometric``:
+  ``geometric`` rendered so (:data:`INTEGRATORS`; every other method is rendered by ``path``).
 
 :func:`render_case` renders the truth and every method and measures, per method, the error in
 the **terminator band** (pixels whose true normal is within :data:`BAND_DEG` of the sun's
-horizon) and over the whole disc, and the share of near-black pixels.
+horizon) and over the whole disc, and the share of near-black pixels; and the same in the band
+against the **corresponding point** of the true sphere (``band_corr``): a mesh pixel is compared
+with the truth at the radial projection q = p/|p| of its hit point p, the point whose normal its
+vertex normals interpolate (they are the sphere's, so the interpolated normal at p is exactly q),
+band by q's normal (:func:`corresponding_truth`). The pixel-aligned band error also holds the
+mesh's shape: the hit point lies inside the sphere, its interpolated normal is q, not the true
+normal at the pixel, which no shading and no shadow ray changes (measured: most of what remains
+with the offset); the corresponding-point error holds only what the shading and the shadow rays
+do.
 
-Why a BSDF cannot remove the whole artifact (measured, see validation/results/terminator.md):
+Why a BSDF cannot remove the whole artifact (measured, see validation/results/normal_sources.md;
+the integrators' shadow-ray offset does: validation/results/terminator.md):
 on a convex mesh a shadow ray toward a direction below a triangle's plane enters the mesh and is
 blocked, so every BSDF is dark on the triangles that face away from the sun while the true
 sphere is still lit (dimly) over part of them; above a triangle's plane the interpolated normal
@@ -32,6 +44,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import mfnormal  # noqa: F401  (before mitsuba: selects a working libLLVM)
 import drjit as dr
 import mitsuba as mi
 import numpy as np
@@ -39,7 +52,8 @@ import numpy as np
 from validation.heightfield import triangle_mesh
 
 __all__ = ["icosphere", "lowpoly_mesh", "ChiangTerminator", "register", "METHODS", "MATERIALS",
-           "Case", "scene_dict", "render", "render_case", "band_mask", "BAND_DEG", "chiang_G"]
+           "INTEGRATORS", "Case", "scene_dict", "render", "render_case", "band_mask", "BAND_DEG", "chiang_G",
+           "corresponding_truth"]
 
 #: The terminator band: pixels whose true normal is within this many degrees of the sun's horizon.
 BAND_DEG = 25.0
@@ -200,7 +214,14 @@ METHODS = {
     "geometric_nonseparable": _ours("nonseparable"),
     "flat": lambda nested: nested,        # with face normals (lowpoly_mesh(smooth=False))
 }
+METHODS["offset"] = METHODS["plain"]
+METHODS["offset_geometric"] = METHODS["geometric"]
 DEFAULT_METHODS = ("plain", "normalmap_flat", "chiang", "geometric", "flat")
+OFFSET_METHODS = ("plain", "geometric", "offset", "offset_geometric")
+
+#: The integrator of a method (``path``, with ``scene_dict``'s max_depth, where not named here).
+INTEGRATORS = {"offset": {"type": "mfnormal_path", "max_depth": 6, "terminator_offset": True},
+               "offset_geometric": {"type": "mfnormal_path", "max_depth": 6, "terminator_offset": True}}
 
 MATERIALS = {
     "diffuse": {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.8, 0.8, 0.8]}},
@@ -356,13 +377,18 @@ def render_case(case: Case, methods=DEFAULT_METHODS, res: int = 128, spp: int = 
     cover = (np.linalg.norm(normals, axis=-1) > 0.5) & (np.linalg.norm(mesh_normals(case.level, res), axis=-1) > 0.5)
     out = {"case": case.name, "images": {"truth": truth}, "metrics": {}, "band_pixels": int((band & cover).sum()),
            "cover": cover, "band": band}
+    corr, corr_band = corresponding_truth(case, truth, res)
+    out["corr_band"] = corr_band
     for m in methods:
-        img = render(scene_dict(case, method_shape(case, m, material), res, spp), spp, seed * 1000)
+        img = render(scene_dict(case, method_shape(case, m, material), res, spp, INTEGRATORS.get(m)), spp,
+                     seed * 1000)
         out["images"][m] = img
-        out["metrics"][m] = {"band": _errors(img, truth, band & cover), "disc": _errors(img, truth, cover)}
-        mb, md = out["metrics"][m]["band"], out["metrics"][m]["disc"]
+        out["metrics"][m] = {"band": _errors(img, truth, band & cover), "disc": _errors(img, truth, cover),
+                             "band_corr": _errors(img, corr, corr_band)}
+        mb, md, mc = (out["metrics"][m][k] for k in ("band", "disc", "band_corr"))
         log(f"  {m:24s} band mae {mb['mae']:.4f} block {mb['mae_block']:.4f} rmse {mb['rmse']:.4f} "
-            f"black {mb['black']:.4f} | disc mae {md['mae']:.4f} block {md['mae_block']:.4f} black {md['black']:.4f}")
+            f"black {mb['black']:.4f} | disc mae {md['mae']:.4f} block {md['mae_block']:.4f} black {md['black']:.4f}"
+            f" | corr block {mc['mae_block']:.4f} black {mc['black']:.4f}")
     if with_oracle:
         img = oracle(case, res, spp, seed)
         out["images"]["oracle"] = img
@@ -370,10 +396,38 @@ def render_case(case: Case, methods=DEFAULT_METHODS, res: int = 128, spp: int = 
         mb, md = out["metrics"]["oracle"]["band"], out["metrics"]["oracle"]["disc"]
         log(f"  {'oracle (bound)':24s} band mae {mb['mae']:.4f} block {mb['mae_block']:.4f} rmse {mb['rmse']:.4f} "
             f"| disc mae {md['mae']:.4f} block {md['mae_block']:.4f}")
-    out["floor"] = {"band": _errors(floor_img, truth, band & cover), "disc": _errors(floor_img, truth, cover)}
+    out["floor"] = {"band": _errors(floor_img, truth, band & cover), "disc": _errors(floor_img, truth, cover),
+                    "band_corr": _errors(corresponding_truth(case, floor_img, res)[0], corr, corr_band)}
     log(f"  {'(noise floor)':24s} band mae {out['floor']['band']['mae']:.4f} block {out['floor']['band']['mae_block']:.4f}"
         f" | disc mae {out['floor']['disc']['mae']:.4f} block {out['floor']['disc']['mae_block']:.4f}")
     return out
+
+
+def mesh_points(level: int, res: int):
+    """The icosphere's hit point at each pixel centre seen from +z (H×W×3) and where there is one."""
+    x, y = pixel_centres(res)
+    scene = mi.load_dict({"type": "scene", "mesh": lowpoly_mesh(level, None)})
+    o = mi.Point3f(mi.Float(x.ravel()), mi.Float(y.ravel()), mi.Float(np.full(x.size, 5.0)))
+    si = scene.ray_intersect(mi.Ray3f(o, mi.Vector3f(0.0, 0.0, -1.0)))
+    return (np.array(si.p, np.float64).T.reshape(res, res, 3), np.array(si.is_valid()).reshape(res, res))
+
+
+def corresponding_truth(case: Case, truth: np.ndarray, res: int, band_deg: float = BAND_DEG):
+    """The truth image resampled (bilinearly) at the corresponding point of each mesh pixel, the
+    radial projection q = p/|p| of its hit point p, and the band of q's normal (q facing the
+    camera by more than 0.05, its 1-pixel neighbourhood on the disc)."""
+    from scipy.ndimage import map_coordinates
+    p, valid = mesh_points(case.level, res)
+    q = p / np.maximum(np.linalg.norm(p, axis=-1, keepdims=True), 1e-12)
+    row = (1.0 - q[..., 1] / FRAME) / 2.0 * res - 0.5
+    col = (q[..., 0] / FRAME + 1.0) / 2.0 * res - 0.5
+    out = np.stack([map_coordinates(truth[..., c], [row.ravel(), col.ravel()], order=1, mode="nearest")
+                    .reshape(res, res) for c in range(truth.shape[-1])], -1)
+    x, y = pixel_centres(res)
+    inside = np.hypot(x, y) < 1.0 - 2.0 * FRAME / res      # the truth's pixels well inside the disc
+    rim = map_coordinates(inside.astype(np.float64), [row.ravel(), col.ravel()], order=1).reshape(res, res)
+    ok = valid & (q[..., 2] > 0.05) & (rim > 0.999)
+    return out, ok & band_mask(np.where(ok[..., None], q, 0.0), case.sun(), band_deg)
 
 
 def oracle(case: Case, res: int, spp: int, seed: int = 0) -> np.ndarray:
@@ -387,3 +441,55 @@ def oracle(case: Case, res: int, spp: int, seed: int = 0) -> np.ndarray:
     dark = render(nosun, spp, seed * 1000 + 800)
     lit = (mesh_normals(case.level, res) @ case.sun()) > 0
     return np.where(lit[..., None], truth, dark)
+
+
+# -- The shadow-ray offset, measured ----------------------------------------------------------------
+
+def offset_report(levels=(1, 2), materials=("diffuse", "glossy"), res=128, spp=256, log=print,
+                  methods=OFFSET_METHODS) -> str:
+    """The markdown table of ``methods`` (:data:`OFFSET_METHODS`: interpolated normals and
+    ``geometric``, each without and with ``mfnormal_path``'s terminator offset) on each case:
+    block MAE in the band, pixel-aligned and against the corresponding point, near-black band
+    pixels, disc error."""
+    lines = ["| case | method | band error | band error, corresponding point | black (band) | disc error |",
+             "|---|---|---|---|---|---|"]
+    for level in levels:
+        for material in materials:
+            case = Case(level, material)
+            log(case.name)
+            r = render_case(case, methods, res=res, spp=spp, log=log)
+            for m in methods:
+                mb, mc, md = (r["metrics"][m][k] for k in ("band", "band_corr", "disc"))
+                lines.append(f"| {case.name} | {m} | {mb['mae_block']:.4f} | {mc['mae_block']:.4f} | "
+                             f"{max(mb['black'], mc['black']):.4f} | {md['mae_block']:.4f} |")
+            fb, fc = r["floor"]["band"], r["floor"]["band_corr"]
+            lines.append(f"| {case.name} | (noise floor) | {fb['mae_block']:.4f} | {fc['mae_block']:.4f} | | |")
+    return "\n".join(lines) + "\n"
+
+
+def main(argv=None):
+    """``python -m validation.terminator [--levels 1,2] [--materials diffuse,glossy]
+    [--methods plain,geometric,offset,offset_geometric] [--res 128] [--spp 256] [--out FILE]``"""
+    import argparse
+    ap = argparse.ArgumentParser(description=main.__doc__)
+    ap.add_argument("--levels", default="1,2")
+    ap.add_argument("--materials", default="diffuse,glossy")
+    ap.add_argument("--methods", default=",".join(OFFSET_METHODS))
+    ap.add_argument("--res", type=int, default=128)
+    ap.add_argument("--spp", type=int, default=256)
+    ap.add_argument("--out", default=None, help="write the table to this markdown file")
+    args = ap.parse_args(argv)
+    table = offset_report(tuple(int(x) for x in args.levels.split(",")), tuple(args.materials.split(",")),
+                          args.res, args.spp, methods=tuple(args.methods.split(",")))
+    print(table)
+    if args.out:
+        from pathlib import Path
+        Path(args.out).write_text(f"`python -m validation.terminator --levels {args.levels} --materials "
+                                  f"{args.materials} --methods {args.methods} --res {args.res} --spp {args.spp}`"
+                                  f" (truth at 4× spp; errors: mean |ΔY| / mean Y of the truth over 4×4-pixel "
+                                  f"blocks)\n\n" + table)
+
+
+if __name__ == "__main__":
+    mi.set_variant("llvm_ad_rgb")
+    main()

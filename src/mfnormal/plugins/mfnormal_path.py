@@ -15,6 +15,11 @@ Path tracer calling each BSDF's eval_pdf_sample (:monosp:`mfnormal_path`)
  * - hide_emitters
    - |bool|
    - Hide directly visible emitters. Default: false.
+ * - terminator_offset
+   - |bool|
+   - Start shadow rays and outgoing rays on smooth-shaded meshes from the smooth surface their
+     vertex normals describe (Hanika 2021), which removes the stair-stepped shadow terminator of
+     low-poly meshes; false: from the triangle, as ``path``. Default: true.
 
 Mitsuba 3.9.1's ``path`` calls ``bsdf->eval_pdf_sample(ctx, si, wo, s1, s2)`` at every
 vertex (the NEE toward the light sample ``wo`` and the continuation sample), but its Python
@@ -26,6 +31,20 @@ sampler's numbers: an image of built-in BSDFs equals ``path``'s to float roundin
 BSDF call is a ``dr.dispatch`` over the shapes' BSDFs, so that a Python BSDF's own
 ``eval_pdf_sample`` runs (a built-in's is its C++ method).
 
+**The shadow terminator.** On a mesh with vertex normals (smooth shading) the interpolated normal
+faces the light over part of the triangles that face away from it; a shadow ray from the flat
+triangle toward such a light enters the mesh and is blocked, and the lit region ends in the
+stair-stepped line of the triangle edges. With ``terminator_offset`` (the default) the shadow ray
+starts from the point of the smooth surface that the vertex normals imply (Hanika, "Hacking the
+shadow terminator", Ray Tracing Gems II, 2021; Cycles' geometry offset): the hit point projected
+onto the tangent planes of the triangle's three vertices (outward only) and the projections
+interpolated with its barycentrics. The light sample is drawn from that point, and a BSDF-sampled
+ray that leaves on the interpolated normal's side starts there too, so that light sampling and
+BSDF sampling see the same visibility (MIS combines them); rays toward the other side, flat
+triangles and other shapes are unchanged. With ``terminator_offset`` false the image is
+``path``'s. The offset is not reciprocal: Mitsuba's light tracer (``ptracer``) still sees the
+triangles' terminator, so the two agree only away from it.
+
 Primal rendering only: it does not re-evaluate the BSDF for derivatives as ``path`` does;
 under AD (a ray that carries derivatives) it raises, use ``prb`` there (``mfnormal_prb`` for
 the random walks). Unpolarised variants only.
@@ -35,12 +54,14 @@ the random walks). Unpolarised variants only.
 
         <integrator type="mfnormal_path">
             <integer name="max_depth" value="8"/>
+            <boolean name="terminator_offset" value="true"/>
         </integrator>
 
     .. code-tab:: python
 
         'type': 'mfnormal_path',
-        'max_depth': 8
+        'max_depth': 8,
+        'terminator_offset': True
 """
 
 from __future__ import annotations
@@ -48,6 +69,7 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
+from mfnormal.plugins import terminator
 from mfnormal.plugins.variant_class import variant_subclass
 
 RR_PROB_MAX = 0.95      # path's cap of the Russian roulette survival probability
@@ -79,6 +101,7 @@ class MfnormalPath:
             raise ValueError(f"mfnormal_path: rr_depth must be > 0, got {self.rr_depth}")
         self.max_depth = 0xFFFFFFFF if max_depth == -1 else max_depth    # path's uint32 cast of -1
         self.hide_emitters = bool(props.get("hide_emitters", False))
+        self.terminator_offset = bool(props.get("terminator_offset", True))
         if mi.is_polarized:
             raise ValueError("mfnormal_path: polarised variants are not supported (use 'path')")
 
@@ -108,7 +131,11 @@ class MfnormalPath:
         active_next = (depth + 1 < self.max_depth) & si.is_valid()
         bsdf = si.bsdf(mi.RayDifferential3f(ray))
         active_em = active_next & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
-        ds, em_weight = scene.sample_emitter_direction(si, sampler.next_2d(), True, active_em)
+        if self.terminator_offset:
+            shift = terminator.smooth_shift(si, pi.prim_uv)
+            ds, em_weight = terminator.sample_emitter(scene, si, shift, sampler.next_2d(), active_em)
+        else:
+            ds, em_weight = scene.sample_emitter_direction(si, sampler.next_2d(), True, active_em)
         active_em &= ds.pdf != 0.0
         wo = si.to_local(ds.d)
         sample1 = sampler.next_1d()
@@ -116,14 +143,17 @@ class MfnormalPath:
         value, pdf, bs, weight = _eval_pdf_sample(bsdf, mi.BSDFContext(), si, wo, sample1, sample2)
         mis_em = dr.select(ds.delta, 1.0, mis_weight(ds.pdf, pdf))
         result[active_em] = dr.fma(throughput, value * em_weight * mis_em, result)
-        ray = si.spawn_ray(si.to_world(bs.wo))
+        origin = si
+        if self.terminator_offset:
+            origin = terminator.moved(si, terminator.outward(si, shift, si.to_world(bs.wo)))
+        ray = origin.spawn_ray(si.to_world(bs.wo))
         if dr.grad_enabled(ray):
             raise NotImplementedError("mfnormal_path renders primal images only: use 'prb' for "
                                       "derivatives ('mfnormal_prb' for the random-walk models)")
         throughput = throughput * weight
         eta = eta * bs.eta
         valid_ray |= active & si.is_valid() & ~mi.has_flag(bs.sampled_type, mi.BSDFFlags.Null)
-        prev_si = mi.Interaction3f(si)
+        prev_si = mi.Interaction3f(origin)
         prev_pdf = bs.pdf
         prev_delta = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
         depth[si.is_valid()] += 1
@@ -149,7 +179,8 @@ class MfnormalPath:
         return []
 
     def to_string(self):
-        return f"MfnormalPath[max_depth={self.max_depth}, rr_depth={self.rr_depth}]"
+        return (f"MfnormalPath[max_depth={self.max_depth}, rr_depth={self.rr_depth}, "
+                f"terminator_offset={self.terminator_offset}]")
 
 
 def integrator_class() -> type:

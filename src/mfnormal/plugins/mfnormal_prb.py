@@ -15,6 +15,11 @@ Path replay backpropagation for stochastic BSDFs (:monosp:`mfnormal_prb`)
  * - hide_emitters
    - |bool|
    - Hide directly visible emitters. Default: false.
+ * - terminator_offset
+   - |bool|
+   - Start shadow rays and outgoing rays on smooth-shaded meshes from the smooth surface their
+     vertex normals describe, as ``mfnormal_path`` (Hanika 2021); false: from the triangle, as
+     ``prb``. Default: true.
 
 Mitsuba's ``prb`` (detached path replay: NEE with MIS, emitter hits, Russian roulette, the
 area Jacobian of moving geometry) with one change, for BSDFs whose ``eval`` is a Monte Carlo
@@ -31,6 +36,12 @@ relative derivative of its **weight**: the walks' weight carries an unbiased der
 Every other BSDF (built-in ones, the deterministic models ``faithful`` and ``analytic``) is
 differentiated exactly as ``prb`` does, through ``bsdf.eval`` (tested equal to ``prb``).
 Light from NEE is linear in the eval estimate and needs nothing new.
+
+The shadow terminator of smooth-shaded meshes is handled as in ``mfnormal_path``
+(``terminator_offset``): light samples and rays leaving on the interpolated normal's side start
+from the smooth surface point, whose displacement from the hit point is detached (it moves
+with the triangle; its own dependence on moving vertices and normals is not differentiated).
+With ``terminator_offset`` false the integrator is ``prb`` with the change above.
 
 Limitations: a walk nested inside another BSDF (``twosided``, ``blendbsdf``) is seen as that
 BSDF, i.e. differentiated as ``prb`` does (biased); for the walks the cosine's and the BSDF's
@@ -53,6 +64,7 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
+from mfnormal.plugins import terminator
 from mfnormal.plugins.variant_class import variant_subclass
 
 
@@ -71,59 +83,67 @@ def _indirect_factor(ctx, si, bsdf, wo, sample1, sample2, active):
     return dr.select(stochastic, weight, value)
 
 
-def _surface(pi, ray, pi_prev, ray_prev, depth, primal):
+def _surface(pi, ray, pi_prev, ray_prev, depth, primal, shift_prev=None):
     """The interaction, attached to moving geometry (``prb``): si, with si.wi following the
-    motion of the previous vertex."""
+    motion of the previous vertex (the ray's origin: ``shift_prev`` off it, if given)."""
     with dr.resume_grad(when=not primal):
         si = pi.compute_surface_interaction(ray, ray_flags=mi.RayFlags.All)
         if not primal:
             prev = pi_prev.compute_surface_interaction(ray_prev, ray_flags=mi.RayFlags.Minimal)
+            origin = prev.p if shift_prev is None else prev.p + shift_prev
             here = dr.detach(si)
-            wi = here.to_local(dr.normalize(prev.p - here.p))
+            wi = here.to_local(dr.normalize(origin - here.p))
             si.wi = dr.select(depth >= 1, dr.replace_grad(si.wi, wi), si.wi)
     return si
 
 
-def _next_event(scene, sampler, ctx, si, bsdf, beta, active_em, primal):
+def _next_event(scene, sampler, ctx, si, bsdf, beta, active_em, primal, shift=None):
     """Light sampling with MIS (``prb``): the detached sample, its contribution recomputed
-    differentiably (emitter values, the area Jacobian, BSDF value and pdf)."""
+    differentiably (emitter values, the area Jacobian, BSDF value and pdf); from ``si.p + shift``
+    (:mod:`mfnormal.plugins.terminator`) if given."""
     common = mi.ad.integrators.common
-    ds, em_weight = scene.sample_emitter_direction(si, sampler.next_2d(), True, active_em)
+    if shift is None:
+        ds, em_weight = scene.sample_emitter_direction(si, sampler.next_2d(), True, active_em)
+    else:
+        ds, em_weight = terminator.sample_emitter(scene, si, shift, sampler.next_2d(), active_em)
     active_em &= ds.pdf != 0.0
     with dr.resume_grad(when=not primal):
+        ref = si if shift is None else terminator.moved(si, shift)
         if not primal:
             flags = ds.emitter.flags()
             surface = mi.has_flag(flags, mi.EmitterFlags.Surface)
             infinite = mi.has_flag(flags, mi.EmitterFlags.Infinite)
             textured = active_em & surface & mi.has_flag(flags, mi.EmitterFlags.SpatiallyVarying)
-            ray_em = si.spawn_ray_to(ds.p)
+            ray_em = ref.spawn_ray_to(ds.p)
             ray_em.o = dr.fma(ray_em.d, ray_em.maxt, ray_em.o)
             ray_em.maxt = dr.largest(ray_em.maxt)
-            ds_diff = mi.DirectionSample3f(scene, scene.ray_intersect(ray_em, textured), si)
+            ds_diff = mi.DirectionSample3f(scene, scene.ray_intersect(ray_em, textured), ref)
             ds_diff = dr.select(textured, ds_diff, dr.zeros(mi.DirectionSample3f))
-            ds_diff.d = dr.select(textured, ds_diff.d, dr.normalize(ds.p - si.p))
+            ds_diff.d = dr.select(textured, ds_diff.d, dr.normalize(ds.p - ref.p))
             ds_diff.d = dr.select(~infinite, ds_diff.d, ds.d)
             ds = dr.replace_grad(ds, ds_diff)
-            J = common.solid_angle_to_area_jacobian(si.p, dr.detach(ds.p), dr.detach(ds.n),
+            J = common.solid_angle_to_area_jacobian(ref.p, dr.detach(ds.p), dr.detach(ds.n),
                                                     active_em & surface)
             inv_pdf = dr.select(ds.pdf != 0, dr.rcp(ds.pdf), 0)
-            em_value = scene.eval_emitter_direction(si, ds, active_em)
+            em_value = scene.eval_emitter_direction(ref, ds, active_em)
             em_weight = dr.replace_grad(em_weight, em_value * dr.detach(inv_pdf)) * dr.relative_grad(J)
         value, pdf = bsdf.eval_pdf(ctx, si, si.to_local(ds.d), active_em)
         mis = dr.select(ds.delta, 1, common.mis_weight(ds.pdf, pdf))
         return beta * mis * value * em_weight
 
 
-def _replay(mode, ctx, si, bsdf, ray_next, pi_next, sample1, sample2, L, Le, Lr_dir, dL, active):
+def _replay(mode, ctx, si, bsdf, ray_next, pi_next, sample1, sample2, L, Le, Lr_dir, dL, active,
+            shift=None):
     """The differential phase at one vertex: this vertex's contributions made differentiable,
     the sampled light's through :func:`_indirect_factor`; propagated forward (returns the
-    new δL) or backward."""
+    new δL) or backward. ``shift``: the sampled ray's origin off ``si.p``."""
     si_next = pi_next.compute_surface_interaction(ray_next, ray_flags=mi.RayFlags.Minimal, active=active)
     with dr.resume_grad():
         hit = active & si_next.is_valid()
-        J = mi.ad.integrators.common.solid_angle_to_area_jacobian(si.p, si_next.p, si_next.n, hit)
+        origin = si.p if shift is None else si.p + shift
+        J = mi.ad.integrators.common.solid_angle_to_area_jacobian(origin, si_next.p, si_next.n, hit)
         wo_world = dr.replace_grad(ray_next.d, dr.select(si_next.is_valid(),
-                                                         dr.normalize(si_next.p - si.p), ray_next.d))
+                                                         dr.normalize(si_next.p - origin), ray_next.d))
         factor = _indirect_factor(ctx, si, bsdf, si.to_local(wo_world), sample1, sample2, active)
         Lo = Le + Lr_dir + L * dr.relative_grad(factor) * dr.relative_grad(J)
         if dr.flag(dr.JitFlag.VCallRecord) and not dr.grad_enabled(Lo):
@@ -135,9 +155,31 @@ def _replay(mode, ctx, si, bsdf, ray_next, pi_next, sample1, sample2, L, Le, Lr_
         return dL + dr.forward_to(Lo)
 
 
+def _leave(si, bs, shift):
+    """The BSDF-sampled ray, its origin's shift off ``si.p`` (None without the offset) and the
+    detached origin, the reference of the next vertex's MIS."""
+    d = si.to_world(bs.wo)
+    if shift is None:
+        return si.spawn_ray(d), None, dr.detach(si, True)
+    shift = terminator.outward(si, shift, d)
+    origin = terminator.moved(si, shift)
+    return origin.spawn_ray(d), shift, dr.detach(origin, True)
+
+
 class MfnormalPRB:
     """The integrator's methods; :func:`integrator_class` binds them to the active variant's
     ``RBIntegrator`` (Mitsuba's base of ``prb``: render, render_forward, render_backward)."""
+
+    def __init__(self, props: mi.Properties):
+        type(self).__mro__[1].__init__(self, props)   # the variant's RBIntegrator
+        self.terminator_offset = bool(props.get("terminator_offset", True))
+
+    def _skip_emitters(self, scene, ray, pi, active):
+        """``hide_emitters``: the first hit behind directly visible area emitters."""
+        skip = pi.is_valid() & (pi.shape.emitter() != None) & active  # noqa: E711 (Dr.Jit mask)
+        ray_skip = pi.compute_surface_interaction(ray, mi.RayFlags.Minimal, skip).spawn_ray(ray.d)
+        pi[skip] = self.skip_area_emitters(scene, ray_skip, True, skip)
+        return pi
 
     @dr.syntax
     def sample(self, mode, scene, sampler, ray, δL, state_in, active, **kwargs):
@@ -153,13 +195,12 @@ class MfnormalPRB:
         si_prev = dr.zeros(mi.SurfaceInteraction3f)
         pdf_prev, delta_prev = mi.Float(1.0), mi.Bool(True)
         if dr.hint(self.hide_emitters, mode="scalar"):
-            skip = pi.is_valid() & (pi.shape.emitter() != None) & active  # noqa: E711 (Dr.Jit mask)
-            ray_skip = pi.compute_surface_interaction(ray, mi.RayFlags.Minimal, skip).spawn_ray(ray.d)
-            pi[skip] = self.skip_area_emitters(scene, ray_skip, True, skip)
+            pi = self._skip_emitters(scene, ray, pi, active)
+        offset, shift_prev = self.terminator_offset, mi.Vector3f(0.0)   # the ray's origin off its vertex
 
         while dr.hint(active, max_iterations=self.max_depth, label=f"mfnormal_prb ({mode.name})"):
             active_next = mi.Bool(active)
-            si = _surface(pi, ray, pi_prev, ray_prev, depth, primal)
+            si = _surface(pi, ray, pi_prev, ray_prev, depth, primal, shift_prev if offset else None)
             bsdf = si.bsdf(ray)
             # Emitter hit, MIS-weighted against the previous vertex's light sample
             if dr.hint(self.hide_emitters, mode="scalar"):
@@ -171,15 +212,15 @@ class MfnormalPRB:
             # Light sampling
             active_next &= (depth + 1 < self.max_depth) & si.is_valid()
             active_em = active_next & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
-            Lr_dir = _next_event(scene, sampler, ctx, si, bsdf, β, active_em, primal)
+            shift = terminator.smooth_shift(si, pi.prim_uv) if offset else None
+            Lr_dir = _next_event(scene, sampler, ctx, si, bsdf, β, active_em, primal, shift)
             # Detached BSDF sampling (its sample numbers kept for the replay)
             sample1, sample2 = sampler.next_1d(), sampler.next_2d()
             bs, weight = bsdf.sample(ctx, si, sample1, sample2, active_next)
             L = (L + Le + Lr_dir) if primal else (L - Le - Lr_dir)
-            ray_next = si.spawn_ray(si.to_world(bs.wo))
+            ray_next, shift_next, si_prev = _leave(si, bs, shift)
             η *= bs.eta
             β *= weight
-            si_prev = dr.detach(si, True)
             pdf_prev, delta_prev = bs.pdf, mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
             # Russian roulette (prb's rule)
             β_max = dr.max(mi.unpolarized_spectrum(β))
@@ -192,10 +233,11 @@ class MfnormalPRB:
                                                       active=active_next)
             if dr.hint(not primal, mode="scalar"):
                 δL = _replay(mode, ctx, si, bsdf, ray_next, pi_next, sample1, sample2, L, Le, Lr_dir,
-                             δL, active_next)
+                             δL, active_next, shift_next)
             depth[si.is_valid()] += 1
             active = active_next
             pi_prev, pi, ray_prev, ray = pi, pi_next, ray, ray_next
+            shift_prev = shift_next if offset else shift_prev
 
         return (L if primal else δL, depth != 0, [], L)
 
