@@ -189,10 +189,10 @@ def test_pdf_and_sample_derivatives_match_finite_differences(model, facet):
 # for strength.
 GGX_KINK = {"type": "roughconductor", "distribution": "ggx", "alpha": 0.3}
 RANDOM4 = encode(np.array([sph(26, 1.1), sph(44, 4.0), sph(13, 2.3), sph(37, 5.6)]).reshape(-1, 3))
-# FD steps: the FD at 1e-3 is heavy-tailed like the walks' derivative without defensive decisions (a decision of
-# probability ∝ h flips with weight 1/h); from 5e-3 on its standard error is reliable at 2^14 queries, and at a
-# flat map the central FD moves by O(h) (the kink's one-sided curvatures differ: analytic −5.50e-2,
-# −5.30e-2 at 1e-3, 1e-2), within the 3 % of ``Check.agrees``.
+# FD steps: the FD at 1e-3 is heavy-tailed like the walks' derivative without defensive decisions
+# (a decision of probability ∝ h flips with weight 1/h); from 5e-3 on its standard error is
+# reliable at 2^14 queries, and at a flat map the central FD moves by O(h) (the kink's one-sided
+# curvatures differ: analytic −5.50e-2, −5.30e-2 at 1e-3, 1e-2), within the 3 % of ``Check.agrees``.
 KINK_STEPS = (5e-3, 1e-2)
 # The AD's standard error over that of the FD at h = 1e-2 with the same queries (per-query
 # spread, common random numbers), at most. Measured (2^14 queries, Lambertian facets): 1.1-1.2 at
