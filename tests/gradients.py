@@ -27,13 +27,13 @@ from helpers import floats, make_si, point2, random_hemisphere, tensor, vec3
 
 @dataclass
 class Check:
-    """One derivative: forward AD (mean, its standard error), reverse AD, FD (mean, its
-    standard error), the paired standard error of AD − FD, and the standard error of the FD's
+    """One derivative: forward AD (mean, its standard error), reverse AD (None: not taken), FD
+    (mean, its standard error), the paired standard error of AD − FD, and the standard error of the FD's
     mean over several steps (0 for one step; included in ``se``): its float32 rounding, and
     for a sample's weight also the branches that flip between steps."""
     ad: float
     ad_se: float
-    rev: float
+    rev: float | None
     fd: float
     fd_se: float
     se: float
@@ -44,10 +44,11 @@ class Check:
         rounding of the FD: ~ulp(L)/h; 0 where a tiny derivative must itself be checked), and the
         same for reverse mode, whose value is the forward mean's up to float rounding."""
         tol = n_se * self.se + rel * abs(self.fd) + atol
-        return abs(self.ad - self.fd) <= tol and abs(self.rev - self.fd) <= tol + 1e-6 * abs(self.fd)
+        return abs(self.ad - self.fd) <= tol and (self.rev is None or abs(self.rev - self.fd) <= tol + 1e-6 * abs(self.fd))
 
     def __str__(self):
-        return (f"AD {self.ad:+.5g} ± {self.ad_se:.2g} (rev {self.rev:+.5g}), FD {self.fd:+.5g} "
+        rev = "" if self.rev is None else f" (rev {self.rev:+.5g})"
+        return (f"AD {self.ad:+.5g} ± {self.ad_se:.2g}{rev}, FD {self.fd:+.5g} "
                 f"± {self.fd_se:.2g} (steps ± {self.fd_step_se:.2g}), paired SE {self.se:.2g}")
 
 
@@ -129,20 +130,10 @@ def query_values(bsdf, si, wo, u, what="eval"):
     raise ValueError(what)
 
 
-def check(bsdf, key, si, wo, u, h, what="eval", one_sided=False, steps=(1.0,)):
-    """The :class:`Check` of dL/dθ for the parameter ``key`` at its current value, FD step h
-    (``one_sided``: second-order forward difference (−3L(θ) + 4L(θ+h) − L(θ+2h))/2h, for θ on
-    the boundary of its domain, e.g. strength = 0).
-
-    ``steps``: the FD is the mean of the FDs at the steps h·s, s in ``steps``, and its rounding
-    error the standard error of that mean. The deterministic models need it: their FD's
-    float32 rounding does not average out over the queries, since it enters mostly through
-    values the queries of one texel share (the texel's normal at θ ± h; four texels), and it
-    depends on the CPU (LLVM's target: see :data:`STEPS`)."""
+def forward(bsdf, key, si, wo, u, what="eval"):
+    """Every query's forward-mode derivative dq_k/dθ for the parameter ``key`` (numpy)."""
     params = mi.traverse(bsdf)
     theta = _value(params, key)
-
-    # Forward mode: every query's derivative.
     arr = _with_value(params, key, theta)
     dr.enable_grad(arr)
     params.update()
@@ -155,17 +146,30 @@ def check(bsdf, key, si, wo, u, h, what="eval", one_sided=False, steps=(1.0,)):
     else:
         dr.set_grad(arr, 1.0)
     d_q = np.array(dr.forward_to(q, flags=dr.ADFlag.Default | dr.ADFlag.AllowNoGrad), np.float64)
+    _with_value(params, key, theta)
+    return d_q
 
-    # Reverse mode: the mean's gradient.
+
+def reverse(bsdf, key, si, wo, u, what="eval"):
+    """dL/dθ of the queries' mean L by reverse mode."""
+    params = mi.traverse(bsdf)
+    theta = _value(params, key)
     arr = _with_value(params, key, theta)
     dr.enable_grad(arr)
     params.update()
     loss = dr.mean(query_values(bsdf, si, wo, u, what))
     dr.backward(loss, flags=dr.ADFlag.Default | dr.ADFlag.AllowNoGrad)
     g = np.array(dr.grad(arr), np.float64)
-    rev = float(g[:, key[1], key[2]].sum()) if isinstance(key, tuple) else float(g.ravel()[0])
+    _with_value(params, key, theta)
+    return float(g[:, key[1], key[2]].sum()) if isinstance(key, tuple) else float(g.ravel()[0])
 
-    # Finite differences with the same queries.
+
+def finite_differences(bsdf, key, si, wo, u, h, what="eval", one_sided=False, steps=(1.0,)):
+    """Every query's FD at step h (common random numbers; ``one_sided``, ``steps``: :func:`check`):
+    (their mean over the steps, the standard error of its overall mean over the steps)."""
+    params = mi.traverse(bsdf)
+    theta = _value(params, key)
+
     def at(x):
         _with_value(params, key, x)
         with dr.suspend_grad():
@@ -179,10 +183,30 @@ def check(bsdf, key, si, wo, u, h, what="eval", one_sided=False, steps=(1.0,)):
         else:
             fds.append((at(theta + hs) - at(theta - hs)) / (2 * hs))
     _with_value(params, key, theta)
-    fd_q, step_se = mean_over_steps(fds)
+    return mean_over_steps(fds)
 
+
+def paired(d_q, rev, fd):
+    """The :class:`Check` of per-query derivatives ``d_q`` (reverse mode's ``rev``, or None)
+    against ``fd`` = (per-query FDs, their steps' standard error)."""
+    fd_q, step_se = fd
     n = d_q.size
-    paired = float((d_q - fd_q).std() / np.sqrt(n))
+    se = float((d_q - fd_q).std() / np.sqrt(n))
     return Check(ad=float(d_q.mean()), ad_se=float(d_q.std() / np.sqrt(n)), rev=rev,
                  fd=float(fd_q.mean()), fd_se=float(fd_q.std() / np.sqrt(n)),
-                 se=float(np.hypot(paired, step_se)), fd_step_se=step_se)
+                 se=float(np.hypot(se, step_se)), fd_step_se=step_se)
+
+
+def check(bsdf, key, si, wo, u, h, what="eval", one_sided=False, steps=(1.0,)):
+    """The :class:`Check` of dL/dθ for the parameter ``key`` at its current value, FD step h
+    (``one_sided``: second-order forward difference (−3L(θ) + 4L(θ+h) − L(θ+2h))/2h, for θ on
+    the boundary of its domain, e.g. strength = 0).
+
+    ``steps``: the FD is the mean of the FDs at the steps h·s, s in ``steps``, and its rounding
+    error the standard error of that mean. The deterministic models need it: their FD's
+    float32 rounding does not average out over the queries, since it enters mostly through
+    values the queries of one texel share (the texel's normal at θ ± h; four texels), and it
+    depends on the CPU (LLVM's target: see :data:`STEPS`)."""
+    d_q = forward(bsdf, key, si, wo, u, what)
+    rev = reverse(bsdf, key, si, wo, u, what)
+    return paired(d_q, rev, finite_differences(bsdf, key, si, wo, u, h, what, one_sided, steps))

@@ -22,6 +22,8 @@ from the plugin's parameters.
 
 from __future__ import annotations
 
+import dataclasses
+
 import drjit as dr
 import mitsuba as mi
 
@@ -164,6 +166,10 @@ class Walk:
 
     def eval_pdf(self, ctx, sp, wo, active, want_value=True, want_pdf=True):
         params = self.params
+        if sp.nudged:
+            # Only a flat normal's derivative is taken here: the defensive decisions keep its
+            # variance bounded (WalkParams.defensive); values elsewhere are unchanged.
+            params = dataclasses.replace(params, defensive=walk.DEFENSIVE)
         return (walk.eval(sp, params, wo, active) if want_value else mi.Spectrum(0.0),
                 mis_pdf(sp, params, wo, active) if want_pdf else mi.Float(0.0))
 

@@ -88,6 +88,7 @@ class ShadingPoint:
 
     ARRAYS = ("si", "wi", "wp", "wt", "sin_p", "frame_p", "frame_t", "cot_p")
     indirect = False        # nested-BSDF calls through a callable (:meth:`_nested`), else inlined
+    nudged = False          # a nudged normal's point: evaluated only for a flat normal's derivatives
 
     def __init__(self, nested, ctx, si, wp):
         self.nested = nested

@@ -134,6 +134,7 @@ class ShadingMacro:
         sp = ShadingPoint(nested, ctx, si, wp)
         sp.map_rotation = rotation
         sp.attached = attached
+        sp.nudged = nudge is not None
         sp.macro = None
         return sp
 
