@@ -201,6 +201,8 @@ and without a map it is cheaper than the normal-map path
 
 from __future__ import annotations
 
+import warnings
+
 import drjit as dr
 import mitsuba as mi
 
@@ -213,7 +215,11 @@ from mfnormal.normals.source import MITSUBA_TANGENTS, from_properties
 from mfnormal.normals.strength import STRENGTH_MAX
 from mfnormal.plugins.variant_class import variant_subclass
 
-__all__ = ["NormalMapMicrofacet", "bsdf_class", "MODELS", "DEFAULT_MODEL", "STRENGTH_MAX"]
+__all__ = ["NormalMapMicrofacet", "bsdf_class", "MODELS", "DEFAULT_MODEL", "STRENGTH_MAX", "TransmissionWarning"]
+
+
+class TransmissionWarning(UserWarning):
+    """The nested BSDF transmits; the plugin drops its transmission."""
 
 
 class NormalMapMicrofacet:
@@ -235,11 +241,12 @@ class NormalMapMicrofacet:
         self.m_components = [self.nested.flags(i) & reflect for i in range(self.nested.component_count())]
         self.m_flags = (self.nested.flags() & reflect) | mi.BSDFFlags.FrontSide
         if mi.has_flag(self.nested.flags(), mi.BSDFFlags.Transmission):
-            mi.Log(mi.LogLevel.Warn,
-                   f"normalmap_microfacet: the nested BSDF {str(self.nested).split('[')[0]} transmits light, "
-                   "but the microsurface only reflects: its transmission is dropped (that light is "
-                   "absorbed) and only its reflection is normal-mapped. For a refracting surface use "
-                   "Mitsuba's 'normalmap' BSDF.")
+            # A Python warning: one line (the command line's "mfnormal: warning: ..."), once per
+            # nested BSDF type and process, not Mitsuba's log with its timestamp and colours.
+            warnings.warn(f"normalmap_microfacet: the nested BSDF {self.nested.class_name()} transmits "
+                          "light, but the microsurface only reflects: its transmission is dropped (that "
+                          "light is absorbed) and only its reflection is normal-mapped. For a refracting "
+                          "surface use Mitsuba's 'normalmap' BSDF.", TransmissionWarning, stacklevel=2)
 
     def traverse(self, callback):
         # None of them moves geometry, so none is discontinuous in Mitsuba's sense (visibility).
