@@ -182,12 +182,14 @@ def test_traverse_update_to_a_non_finite_to_uv_is_refused_and_undone():
 def test_non_finite_uv_gives_finite_values_and_ends():
     """A NaN or infinite surface uv (a mesh's texture coordinates) is looked up as uv = 0: before,
     the bitmap read outside its data and the walks' loops never ended. Every model, eval and
-    sample, finite and non-negative."""
+    sample, finite and non-negative; with NaN in ω_i or in the shading frame on some lanes too
+    (the walks' loops end by their bounce cap whatever the numbers)."""
     n = 64
+    k = dr.arange(mi.UInt32, n)
     si = dr.zeros(mi.SurfaceInteraction3f, n)
-    si.uv = mi.Point2f(dr.select(dr.arange(mi.UInt32, n) % 2 == 0, dr.nan, dr.inf), 0.25)
-    si.wi = dr.normalize(mi.Vector3f(0.3, 0.2, 1.0))
-    si.sh_frame = mi.Frame3f(mi.Vector3f(0, 0, 1))
+    si.uv = mi.Point2f(dr.select(k % 2 == 0, dr.nan, dr.inf), 0.25)
+    si.wi = dr.select(k % 8 == 1, mi.Vector3f(dr.nan, 0.2, 1.0), dr.normalize(mi.Vector3f(0.3, 0.2, 1.0)))
+    si.sh_frame = mi.Frame3f(dr.select(k % 8 == 3, mi.Vector3f(dr.nan, 0, 1), mi.Vector3f(0, 0, 1)))
     si.dp_du, si.dp_dv = mi.Vector3f(1, 0, 0), mi.Vector3f(0, 1, 0)
     ctx = mi.BSDFContext()
     for model, tf in MODELS:

@@ -10,7 +10,10 @@ Microfacet-based normal mapping (:monosp:`normalmap_microfacet`)
    - |texture| or |string|
    - Tangent-space normal map, decoded as :math:`n = 2\,\mathrm{rgb} - 1` in the
      base shading frame (like Mitsuba's built-in ``normalmap``). Give a
-     ``bitmap`` texture with ``raw=true``, or a file name (loaded raw).
+     ``bitmap`` texture with ``raw=true``, or a file name (loaded raw). A bitmap
+     needs 3 channels, and its uv transform ``to_uv`` (also a nested texture's)
+     finite values, at load and in ``mi.traverse`` updates (else a one-line
+     ``ValueError``); a NaN or infinite uv is looked up at uv = 0.
  * - heightmap
    - |texture| or |string|
    - Instead of ``normalmap``: a height map (a ``bitmap``, ``raw=true``,
@@ -34,7 +37,8 @@ Microfacet-based normal mapping (:monosp:`normalmap_microfacet`)
      directions stay in ``si.sh_frame`` for the integrator).
  * - (nested bsdf)
    - |bsdf|
-   - The material of the microfacets: any Mitsuba BSDF (its reflection part).
+   - The material of the microfacets: any Mitsuba BSDF (its reflection part; a
+     transmitting one gets a ``TransmissionWarning``, once).
  * - model
    - |string|
    - ``faithful`` (default): the texel as the true geometry around it shows
