@@ -64,6 +64,12 @@ SCENES = {
     "mitsuba_twosided.xml": scene('<bsdf type="twosided"><bsdf type="normalmap">' + texture("normalmap")
                                   + '<bsdf type="diffuse"/></bsdf></bsdf>'),
     "string_map.xml": scene(plugin('<string name="$kind" value="$nm"/>'), kind="normalmap"),
+    # Two shapes whose plugins nest a transmitting principled.
+    "principled.xml": xml_scene("".join(
+        RECTANGLE.replace("BSDF", plugin(texture("normalmap")).replace(
+            '<bsdf type="diffuse"/>', f'<bsdf type="principled"><float name="spec_trans" value="{t}"/></bsdf>'))
+        for t in (0.5, 0.8)), {"nm": "normalmap.png", "model": "faithful", "tf": "specular"}, spp="4",
+        width="16", height="16"),
     "no_integrator.xml": scene(plugin(texture("normalmap"))).replace(
         '<integrator type="path"><integer name="max_depth" value="3"/></integrator>', ""),
 }
@@ -133,6 +139,17 @@ def test_string_form_maps_obey_the_image_limits(worker, scenes, tmp_path, kind, 
     assert proc.returncode == 0, proc.stderr
     img = np.array(mi.Bitmap(str(tmp_path / "out.exr")), dtype=np.float64)
     assert np.all(np.isfinite(img)) and img.min() >= 0 and img.max() <= 1e6 and img.mean() > 0.01
+
+
+def test_transmission_warning_is_one_mfnormal_warning_line(worker, scenes, tmp_path):
+    """Two plugins nesting a ``principled`` that transmits: rendered, and stderr is exactly one
+    line ``mfnormal: warning: ...`` (before: Mitsuba's log, with its timestamp, per plugin)."""
+    proc = render(worker, scenes, tmp_path, "principled.xml")
+    assert proc.returncode == 0, proc.stderr
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("mfnormal: warning: normalmap_microfacet: the nested BSDF "
+                                                   "Principled transmits light"), proc.stderr
+    assert "\x1b" not in proc.stderr
 
 
 def test_scene_without_integrator_is_refused_before_the_render(worker, scenes, tmp_path):
