@@ -154,7 +154,7 @@ def test_transmission_warning_is_one_mfnormal_warning_line(worker, scenes, tmp_p
 
 def test_scene_without_integrator_is_refused_before_the_render(worker, scenes, tmp_path):
     proc = render(worker, scenes, tmp_path, "no_integrator.xml")
-    assert_refused(proc, tmp_path, "no integrator", '<integrator type="path"/>')
+    assert_refused(proc, tmp_path, "no integrator", "<integrator type=\"path\"/>")
 
 
 # -- The Python API -------------------------------------------------------------------------------

@@ -13,8 +13,8 @@ output folder with a temporary file that it removes at once, and writes nothing 
   sampler or ``<integer>`` values);
 - :func:`check_output`: the output name is not a folder, and its folder is (or
   can be created) writable;
-- :func:`check_scene_before_render`: the loaded scene's integrator, sample count,
-  film size and variant;
+- :func:`check_scene_before_render`: the loaded scene's sample count, film size
+  and variant;
 - :class:`Terminated` and :func:`raise_on_sigterm`: SIGTERM as an exception, so
   that temporary files are removed on the way out.
 """
@@ -290,13 +290,10 @@ def check_render_size(width: int, height: int, limits: Limits, source: str) -> N
 
 def check_scene_before_render(mi, scene, spp, limits: Limits, source: str) -> int:
     """The sample count a render of ``scene`` will use (``spp``, else the scene's own),
-    after checking it, the integrator, the film size and the variant; raises :class:`CLIError`."""
+    after checking it, the film size and the variant; raises :class:`CLIError`."""
     sensors = scene.sensors()
     if not sensors:
         raise CLIError(f"{source} has no sensor (camera) to render from")
-    if scene.integrator() is None:
-        raise CLIError(f"{source} has no integrator; add one, e.g. <integrator type=\"path\"/> in the "
-                       "scene (or \"integrator\": {\"type\": \"path\"} in a scene dict)")
     sensor = sensors[0]
     if spp is None:
         spp = check_spp(int(sensor.sampler().sample_count()), f"{source}: the scene's sampler "

@@ -87,8 +87,12 @@ def _evaluates_rgb(tex) -> bool:
 def check_scene(scene, error: type = ValueError, where: str = "") -> None:
     """Raise ``error`` (one line, after ``where: `` when given) for the first normal-mapped
     shape that cannot work: a mesh without UVs, or a normal map that does not have 3 channels;
-    or for a texture whose ``to_uv`` is not finite."""
+    or for a texture whose ``to_uv`` is not finite, or a scene without an integrator (Mitsuba
+    refuses it only when the render starts)."""
     try:
+        if scene.integrator() is None:
+            raise ValueError("the scene has no integrator; add one, e.g. <integrator type=\"path\"/> "
+                             "(in a scene dict \"integrator\": {\"type\": \"path\"})")
         _check_uv_transforms(scene)
         _check_shapes(scene)
     except ValueError as exc:
