@@ -102,7 +102,7 @@ def signals_end_the_process(enabled: bool = True):
     KeyboardInterrupt) would wait for the pass to end, minutes for a large one. During a pass
     nothing of the render is on disk yet (the outputs are written after the last pass), so the
     default action ends the render at once and leaves no file. Only the command line enables
-    it: in a Python session Ctrl-C must not end the interpreter."""
+    it: in an interactive Python Ctrl-C must not end the interpreter."""
     if not enabled or threading.current_thread() is not threading.main_thread():
         yield
         return
