@@ -2,8 +2,10 @@
 
 Each Hypothesis example builds an argument list for ``mfnormal render`` (an XML
 scene with ``$spp``, ``$width``, ``$height``, ``$mb`` (max_bounces),
-``$model``, ``$nm``, ``$strength`` parameters, a glTF model, or a missing or
-odd scene name), ``mfnormal demo`` or ``mfnormal compare --quick``: flags
+``$model``, ``$nm``, ``$strength`` parameters, the same with a uv transform
+``<scale x="$su" y="$sv"/>`` (NaN, ±inf and 1e300 among the values) or with the map given as a
+file name (``<string name="$kind" value="$nm"/>``, a normal or a height map), a glTF model, or a
+missing or odd scene name), ``mfnormal demo`` or ``mfnormal compare --quick``: flags
 (``--spp``, ``--seed``, ``--variant``, ``-o``, ``--limit``, ``--model``,
 ``--width``, ``--methods``) with boundary integers (0, −1, 2^31, 2^32, 2^63),
 junk (``''``, ``1.5``, ``nan``, ``0x10``) and hostile names (a folder, a path
@@ -49,6 +51,16 @@ SCENE = xml_scene('<shape type="rectangle"><transform name="to_world"><rotate x=
                   {"spp": "1", "width": "24", "height": "16", "mb": "64", "model": "separable",
                    "nm": "normalmap.png", "strength": "1"}, spp="$spp", width="$width", height="$height")
 
+# The map with a uv transform ($su, $sv: NaN and ±inf among the drawn values), and the map given
+# as a file name, a normal or a height map (<string name="$kind" value="$nm"/>).
+UV_SCENE = SCENE.replace('<boolean name="raw" value="true"/></texture>',
+                         '<boolean name="raw" value="true"/><transform name="to_uv"><scale x="$su" y="$sv"/>'
+                         '</transform></texture>').replace(
+    '<default name="nm"', '<default name="su" value="1"/>\n    <default name="sv" value="1"/>\n    <default name="nm"')
+STRING_SCENE = SCENE.replace('<texture type="bitmap" name="normalmap"><string name="filename" value="$nm"/>'
+                             '<boolean name="raw" value="true"/></texture>', '<string name="$kind" value="$nm"/>').replace(
+    '<default name="nm"', '<default name="kind" value="normalmap"/>\n    <default name="nm"')
+
 BIG_INTS = ["2147483648", "4294967295", "4294967296", "9223372036854775808", "-2147483649", "1" + "0" * 40]
 SMALL_INTS = ["-5", "-1", "0", "1", "2", "3", "8", "16"]
 JUNK = ["", " ", "1.5", "nan", "inf", "-inf", "0x10", "1e3", "abc", "--", "-", "１", "1_000"]
@@ -58,7 +70,7 @@ VALUES = (SMALL_INTS + BIG_INTS + JUNK
              "<", "&", '"', "'", "]]>", "$spp", "${spp}", "$", "true", "false", "mikktspace", "mitsuba",
              "auto", "a b", "\x7f", "é"])
 XML_KEYS = ["spp", "width", "height", "mb", "model", "nm", "strength", "bogus", "max_depth", "Spp", "sp p", "",
-            "1x", "_", "$spp"]
+            "1x", "_", "$spp", "su", "sv", "kind"]
 GLTF_KEYS = ["width", "height", "spp", "max_depth", "model", "tangents", "normal_maps", "lights", "bogus", "nm"]
 OUTPUTS = ["out/render", "out/", "out", "outdir", "good.xml/x", "/sys/mfnormal_fuzz/x", "out/a.png", "out/a.exr",
            "", ".", "..", "out/é", "out/a b", "out/.hidden", "outdir/", "nested/deeper/render", "o" * 300,
@@ -72,7 +84,8 @@ LIMIT_NAMES = ["render_pixels", "image_pixels", "texture_pixels", "data_bytes", 
 VALID = {"spp": ["1", "2", "4"], "width": ["8", "24", "40", "64"], "height": ["8", "16", "30", "64"],
          "mb": ["1", "3", "64", "1000000", "2147483647"], "model": ["analytic", "separable", "nonseparable"],
          "nm": ["normalmap.png"], "strength": ["0", "0.5", "1", "3", "1e30", "1e6"],
-         "max_depth": ["-1", "1", "2", "5"], "tangents": ["auto", "mikktspace", "mitsuba"],
+         "max_depth": ["-1", "1", "2", "5"], "su": ["1", "2", "-3", "0", "inf", "-inf", "nan", "1e30", "1e300"],
+         "sv": ["1", "0.5", "inf", "nan"], "kind": ["normalmap", "heightmap", "normalmap", "bogus"], "tangents": ["auto", "mikktspace", "mitsuba"],
          "normal_maps": ["true", "false", "0", "yes"], "lights": ["true", "false", "off"]}
 
 
@@ -113,7 +126,8 @@ def common_flags(draw):
 def render_args(draw):
     scene = draw(st.sampled_from(["scene.xml"] * 10 + ["model/model.gltf"] * 6 + ["model.glb", "nothere.xml",
                                                                                    "sub", "", "gray.xml",
-                                                                                   "s" * 300 + ".xml"]))
+                                                                                   "s" * 300 + ".xml"]
+                                 + ["uv.xml"] * 3 + ["string.xml"] * 3))
     args = ["render", scene]
     if draw(st.booleans()):
         args += ["--spp", draw(spp_values())]
@@ -122,6 +136,9 @@ def render_args(draw):
     args += draw(common_flags())
     if "model" in scene:
         args += ["-D", "width=18", "-D", "height=12"]     # (a later -D overrides these)
+    hostile = {"uv.xml": "su", "string.xml": "kind"}.get(scene)
+    if hostile:                                        # its hostile value, most of the time
+        args += ["-D", f"{hostile}={draw(st.sampled_from(VALID[hostile]))}"] if draw(st.integers(0, 3)) else []
     args += draw(defines(GLTF_KEYS if "model" in scene else XML_KEYS))
     if draw(st.integers(0, 2)):
         args += ["-o", draw(st.one_of(st.just("out/render"), st.sampled_from(OUTPUTS)))]
@@ -190,6 +207,8 @@ def make_sandbox(root: Path) -> Path:
     (root / "scene.xml").write_text(SCENE)
     (root / "gray.xml").write_text(SCENE.replace('value="normalmap.png"', 'value="gray.png"'))
     (root / "good.xml").write_text(SCENE)
+    (root / "uv.xml").write_text(UV_SCENE)
+    (root / "string.xml").write_text(STRING_SCENE)
     (root / "outdir").mkdir()
     (root / "sub").mkdir()
     doc, blobs = base_document()

@@ -78,7 +78,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, Phase, given, settings
+from hypothesis import HealthCheck, Phase, example, given, settings
 from hypothesis import strategies as st
 
 from variant import VARIANT  # noqa: E402  (MFNORMAL_VARIANT, tests/variant.py)
@@ -543,6 +543,96 @@ def test_fuzzed_queries_are_finite_valid_and_bounded(model, tangent_facet, kind,
     print(f"\n{model}-{tangent_facet} {kind}: {n} queries; "
           + ", ".join(f"{k} {v:.2f}s" for k, v in timings.items()) + albedo_note)
     assert not failures, f"case {case}:\n" + "\n".join(failures)
+
+
+# -- Texture coordinates: hostile uvs and uv transforms ----------------------------------------------
+
+UV_QUERIES = 1 << 14
+HOSTILE_UV = [NAN, INF, -INF, 3e38, -1e30, DENORMAL, 0.25]
+HEIGHT_TEXELS = np.linspace(0.0, 1.0, 16, dtype=np.float32).reshape(4, 4, 1)
+
+
+@st.composite
+def uv_case(draw):
+    """A map (normal or height), a uv transform (none, finite, or with NaN/±inf in a drawn entry)
+    and the share of queries whose surface uv is one of HOSTILE_UV."""
+    bad = draw(st.sampled_from([NAN, INF, -INF]))
+    finite = draw(st.floats(-1e9, 1e9))
+    return {"map": draw(st.sampled_from(["normalmap", "heightmap"])),
+            "to_uv": draw(st.sampled_from([None, "finite", "scale", "translate", "rotate"])),
+            "bad": bad, "finite": finite, "share": draw(st.sampled_from([1.0, 0.5, 0.05])),
+            "seed": draw(st.integers(0, 2 ** 32 - 1))}
+
+
+def uv_transform(case):
+    """The case's ``to_uv`` (None without one) and whether it holds a non-finite value."""
+    kind, x = case["to_uv"], case["finite"] if case["to_uv"] == "finite" else case["bad"]
+    if kind is None:
+        return None, False
+    if kind in ("finite", "scale"):
+        return mi.ScalarTransform4f().scale([x, 2.0, 1.0]), kind != "finite"
+    if kind == "translate":
+        return mi.ScalarTransform4f().translate([0.5, x, 0.0]), True
+    return mi.ScalarTransform4f().rotate([0, 0, 1], x), True
+
+
+def uv_queries(case, n):
+    """Interactions (flat frame, unit dp_du and dp_dv) with random ω_i and a share of hostile uvs,
+    and random ω_o."""
+    rng = np.random.default_rng(case["seed"])
+    wi, wo = random_directions(rng, n), random_directions(rng, n)
+    wi[:, 2] = np.abs(wi[:, 2])
+    si = helpers.make_si(wi, 1, np.zeros(n, np.int64), np.arange(n))
+    uv = rng.random((n, 2)).astype(np.float32)
+    bad = rng.random((n, 2)) < case["share"]
+    uv[bad] = np.float32(HOSTILE_UV)[rng.integers(0, len(HOSTILE_UV), bad.sum())]
+    si.uv = mi.Point2f(helpers.floats(uv[:, 0]), helpers.floats(uv[:, 1]))
+    si.dp_du, si.dp_dv = mi.Vector3f(1, 0, 0), mi.Vector3f(0, 1, 0)
+    return si, vec3(wo), rng.random((n, 3)).astype(np.float32)
+
+
+# The default run: a deterministic model and a walk (the lookup they share is the fix); the rest slow.
+UV_DEFAULT = {("analytic", "specular"), ("nonseparable", "specular")}
+
+
+@pytest.mark.parametrize("model,tangent_facet", [
+    pytest.param(m, t, id=f"{m}-{t}", marks=() if LONG or (m, t) in UV_DEFAULT else (pytest.mark.slow,))
+    for m, t in MODELS])
+@settings(max_examples=int(os.environ.get("MFNORMAL_FUZZ_EXAMPLES", 20 if LONG else 2)), derandomize=not LONG,
+          database=None, deadline=None, phases=(Phase.explicit, Phase.generate), print_blob=LONG)
+@given(case=uv_case())
+@example(case={"map": "heightmap", "to_uv": "scale", "bad": INF, "finite": 1.0, "share": 1.0, "seed": 1})
+@example(case={"map": "normalmap", "to_uv": "finite", "bad": NAN, "finite": 3.0, "share": 0.5, "seed": 2})
+@example(case={"map": "heightmap", "to_uv": None, "bad": NAN, "finite": 1.0, "share": 0.5, "seed": 3})
+def test_fuzzed_uvs_and_uv_transforms_are_refused_or_finite(model, tangent_facet, case):
+    """A map's ``to_uv`` with NaN or ±inf in any entry (scale, translate, rotate) is refused at
+    load in one line that names it; otherwise queries whose surface uv is NaN, ±inf, huge or
+    denormal return finite, non-negative values within HANG_S (they are looked up at uv = 0;
+    before, Mitsuba's bitmap read outside its data and the walks' loops never ended)."""
+    texels = HEIGHT_TEXELS if case["map"] == "heightmap" else SPECIAL_TEXELS[:16].reshape(4, 4, 3)
+    texture = {"type": "bitmap", "raw": True, "bitmap": mi.Bitmap(np.ascontiguousarray(texels, np.float32))}
+    transform, refused = uv_transform(case)
+    if transform is not None:
+        texture["to_uv"] = transform
+    spec = {"type": "normalmap_microfacet", "model": model, "tangent_facet": tangent_facet,
+            case["map"]: texture, "bsdf": {"type": "roughconductor", "alpha": 0.3}}
+    if refused:
+        with pytest.raises(RuntimeError) as info:
+            mi.load_dict(spec)
+        last = str(info.value).strip().splitlines()[-1]
+        assert last.startswith(f"ValueError: normalmap_microfacet: the {case['map']} texture's to_uv holds NaN"), last
+        return
+    bsdf = mi.load_dict(spec)
+    si, wo, u = uv_queries(case, UV_QUERIES)
+    ctx = mi.BSDFContext()
+
+    def run():
+        value, pdf = bsdf.eval_pdf(ctx, si, wo)
+        bs, weight = bsdf.sample(ctx, si, helpers.floats(u[:, 0]), helpers.point2(u[:, 1:]))
+        return [np3(value, UV_QUERIES), np1(pdf, UV_QUERIES), np3(weight, UV_QUERIES), np1(bs.pdf, UV_QUERIES)]
+
+    for name, x in zip(("eval", "pdf", "sample weight", "sample pdf"), timed("uv queries", run, {})):
+        assert np.all(np.isfinite(x) & (x >= 0)), f"{name} not finite and >= 0 for case {case}"
 
 
 # -- Regressions: the inputs the fuzzer found -------------------------------------------------------

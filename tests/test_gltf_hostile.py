@@ -305,6 +305,14 @@ def nan_matrix(doc, blobs, folder):
     return "raw"
 
 
+@case("node_matrix_1e300", ["nodes[1]", "float range"])
+def huge_matrix(doc, blobs, folder):
+    """A finite matrix whose products overflow: one line, without numpy's overflow warnings."""
+    for key in ("translation", "rotation", "scale"):
+        doc["nodes"][1].pop(key)
+    doc["nodes"][1]["matrix"] = [1e300, 0, 0, 0, 0, 1e300, 0, 0, 0, 0, 1e300, 0, 0, 0, 0, 1]
+
+
 @case("json_not_an_object", ["not a valid glTF 2.0 file", "not an object"])
 def json_not_an_object(doc, blobs, folder):
     (folder / "model.gltf").write_text("[1, 2, 3]")

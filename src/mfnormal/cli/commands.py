@@ -223,7 +223,8 @@ def cmd_render(args) -> int:
     where = "on this machine"
     try:
         if target is None:
-            img = render_scene(scene, spp, passes=args.chunks, seed=args.seed, progress=Progress().update)
+            img = render_scene(scene, spp, passes=args.chunks, seed=args.seed, progress=Progress().update,
+                               killable=True)
         else:
             img, where = _render_on_cluster(args, target, scene, spp, params, limits)
     except CLIError:
@@ -287,9 +288,9 @@ def cmd_demo(args) -> int:
     t1 = time.perf_counter()
     try:
         if spp * w * h <= MAX_PASS_LANES:   # one pass with the demo's own seed
-            rgb = average_passes(scene, [(spp, args.seed)]).astype(np.float32)[..., :3]
+            rgb = average_passes(scene, [(spp, args.seed)], killable=True).astype(np.float32)[..., :3]
         else:
-            rgb = render_scene(scene, spp, seed=args.seed, progress=Progress().update)
+            rgb = render_scene(scene, spp, seed=args.seed, progress=Progress().update, killable=True)
     except Exception as exc:
         raise CLIError(f"render failed: {one_line(exc)}") from None
     t2 = time.perf_counter()
@@ -529,7 +530,8 @@ def run_command(prog: str, command) -> int:
     """Run ``command()`` with the command line's error path: a :class:`CLIError` (or a
     missing libLLVM, or a path the system refuses) is one line ``PROG: error: ...`` and
     exit 2; Ctrl-C exits 130 and
-    SIGTERM 143 (temporary files removed); warnings are one line each; anything else
+    SIGTERM 143 (temporary files removed; during a render pass both end the process at once,
+    :func:`mfnormal.cli.rendering.signals_end_the_process`); warnings are one line each; anything else
     is one line and exit 1 (``MFNORMAL_DEBUG=1`` re-raises it with its traceback)."""
     raise_on_sigterm()
     with warnings.catch_warnings():

@@ -18,12 +18,16 @@ Two schedules use it:
 
 from __future__ import annotations
 
+import signal
+import threading
+from contextlib import contextmanager
+
 import numpy as np
 
 import mitsuba as mi
 
 __all__ = ["MAX_PASS_LANES", "pass_count", "pass_spp", "pass_seed", "schedule", "weighted_mean",
-           "average_passes", "render_scene", "film_image", "render_rgb"]
+           "average_passes", "render_scene", "film_image", "render_rgb", "signals_end_the_process"]
 
 #: A render pass traces at most this many paths at once (pixels × samples per pass),
 #: which bounds its memory; more samples take more passes.
@@ -87,24 +91,54 @@ def weighted_mean(renders, count: int | None = None, progress=None) -> np.ndarra
     return acc / total
 
 
-def average_passes(scene, passes, count: int | None = None, progress=None) -> np.ndarray:
+@contextmanager
+def signals_end_the_process(enabled: bool = True):
+    """SIGTERM and SIGINT with their default action (the process ends at once) while the block
+    runs, the handlers before it restored after it; a no-op unless ``enabled`` and in the main
+    thread.
+
+    A render pass runs in native code (Dr.Jit's kernels), where Python's signal handlers cannot
+    run: the command line's handlers (:func:`mfnormal.io.inputs.raise_on_sigterm`, Ctrl-C's
+    KeyboardInterrupt) would wait for the pass to end, minutes for a large one. During a pass
+    nothing of the render is on disk yet (the outputs are written after the last pass), so the
+    default action ends the render at once and leaves no file. Only the command line enables
+    it: in an interactive Python Ctrl-C must not end the interpreter."""
+    if not enabled or threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    names = [n for n in ("SIGTERM", "SIGINT") if hasattr(signal, n)]
+    saved = {n: signal.signal(getattr(signal, n), signal.SIG_DFL) for n in names}
+    try:
+        yield
+    finally:
+        for n, handler in saved.items():
+            signal.signal(getattr(signal, n), handler)
+
+
+def _render(scene, spp: int, seed: int, killable: bool) -> np.ndarray:
+    with signals_end_the_process(killable):
+        return np.array(mi.render(scene, spp=spp, seed=seed))
+
+
+def average_passes(scene, passes, count: int | None = None, progress=None, killable: bool = False) -> np.ndarray:
     """The mean of the renders ``(spp, seed)`` in ``passes`` weighted by their spp:
     every channel of the film (H × W × C, float64). ``progress(done, count)`` is called
-    after each pass."""
-    renders = ((spp, np.array(mi.render(scene, spp=spp, seed=seed))) for spp, seed in passes)
+    after each pass. ``killable`` (the command line): SIGTERM and SIGINT end the process at once
+    during a pass (:func:`signals_end_the_process`)."""
+    renders = ((spp, _render(scene, spp, seed, killable)) for spp, seed in passes)
     return weighted_mean(renders, count, progress)
 
 
 def render_scene(scene, spp: int | None = None, passes: int | None = None, seed: int = 0,
-                 progress=None) -> np.ndarray:
+                 progress=None, killable: bool = False) -> np.ndarray:
     """The command line's render of ``scene`` at ``spp`` (default: its sampler's), in
     :func:`pass_count` passes; returns the film's channels (H × W × C, float32: RGB, Y,
-    or with AOVs)."""
+    or with AOVs). ``killable``: as :func:`average_passes`'s."""
     sensor = scene.sensors()[0]
     total = int(spp or sensor.sampler().sample_count())
     pixels = int(np.prod([int(v) for v in sensor.film().crop_size()]))
     passes = schedule(total, pixels, passes, seed)
-    return film_image(average_passes(scene, passes, len(passes), progress))
+    return film_image(average_passes(scene, passes, len(passes), progress, killable))
 
 
 def film_image(mean: np.ndarray) -> np.ndarray:

@@ -445,15 +445,19 @@ def _to_world(m, positions, normals, tangents, faces, where="a node"):
     if not np.all(np.isfinite(m)):
         raise GLTFError(f"{where}: its world transform is not finite (its matrix or scale, times "
                         "its parents', overflows)")
-    det = np.linalg.det(lin)
-    cof = _cofactor(lin) * (np.sign(det) if det != 0 else 1.0)
+    with np.errstate(over="ignore", invalid="ignore"):
+        world = positions @ lin.T + m[:3, 3]
+        det = np.linalg.det(lin)
+        cof = _cofactor(lin) * (np.sign(det) if det != 0 else 1.0)
+    if not (np.all(np.isfinite(world)) and np.all(np.abs(world) <= np.finfo(np.float32).max)):
+        raise GLTFError(f"{where}: its world transform takes the vertices past the float range")
     if not np.any(np.abs(cof) > 1e-300):
         _warn(f"{where}: its transform has a zero scale, so its mesh has no area; not rendered")
         return None
-    with np.errstate(over="ignore", invalid="ignore"):
-        positions = positions @ lin.T + m[:3, 3]
-    if not np.all(np.isfinite(positions)):
-        raise GLTFError(f"{where}: its world transform takes the vertices past the float range")
+    positions = world
+    if not (np.isfinite(det) and np.all(np.isfinite(cof))):
+        cof = _cofactor(lin / np.max(np.abs(lin)))    # normals need only its direction
+        det = np.linalg.det(lin / np.max(np.abs(lin)))
     normals = normals @ cof.T                     # ∝ the inverse transpose, applied to rows
     length = np.linalg.norm(normals, axis=1, keepdims=True)
     normals = normals / np.maximum(length, 1e-300)

@@ -226,7 +226,8 @@ def check_xml_scene(path, params: dict, limits: Limits = DEFAULT_LIMITS) -> None
     - every ``<integer>`` value is a 32-bit integer: Mitsuba stores integer properties in
       64 bits, but most plugins (samplers, integrators, this package's BSDF) use 32 bits,
       and a larger value fails deep inside a kernel;
-    - every image a ``<texture>`` or ``<emitter>`` names (``filename``) declares at most
+    - every image a ``<texture>`` or ``<emitter>`` names (``filename``), or a ``<bsdf>`` as its
+      map (``<string name="normalmap">``, ``heightmap``), declares at most
       ``limits.image_pixels`` pixels in its header, and all of them together at most
       ``limits.texture_pixels``, as for a glTF model (:mod:`mfnormal.io.image_headers`).
     - every file it names (``<include>``, ``filename``, the plugin's ``normalmap`` and
@@ -254,13 +255,20 @@ def check_xml_scene(path, params: dict, limits: Limits = DEFAULT_LIMITS) -> None
                 _check_xml_integer(el, file, values, params)
             elif el.tag == "include" and el.get("filename"):
                 visit(file.parent / substitute(el.get("filename"), values), depth + 1, values)
-            elif el.tag in ("texture", "emitter"):
+            elif el.tag in ("texture", "emitter", "bsdf"):
                 for prop in el.findall("string"):
-                    if prop.get("name") == "filename" and prop.get("value") is not None:
+                    named = substitute(prop.get("name", ""), values) in _IMAGE_NAMES[el.tag]
+                    if named and prop.get("value") is not None:
                         image = file.parent / substitute(prop.get("value"), values)
                         pixels += _check_xml_image(image, file, limits, pixels)
 
     visit(Path(path), 0, dict(params))
+
+
+#: The ``<string>`` properties that name an image file, by element: a texture's or an emitter's
+#: ``filename``, and a BSDF's map given as a file name (``normalmap_microfacet``'s ``normalmap``
+#: and ``heightmap``).
+_IMAGE_NAMES = {"texture": ("filename",), "emitter": ("filename",), "bsdf": ("normalmap", "heightmap")}
 
 
 def _check_xml_integer(el: ET.Element, file: Path, values: dict, params: dict) -> None:

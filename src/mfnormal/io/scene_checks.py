@@ -3,7 +3,10 @@
 Normal mapping needs two things from a shape that Mitsuba does not verify when it
 loads a scene: texture coordinates (a mesh without UVs gets ``uv = 0`` and a
 degenerate tangent frame everywhere) and a normal map with three channels (a
-one-channel map fails deep inside the JIT at render time).
+one-channel map fails deep inside the JIT at render time), wherever the normal-mapped
+BSDF sits (nested in ``twosided``, ``blendbsdf``, ``mask``). And no texture of the scene
+may have a uv transform (``to_uv``) that holds NaN or infinity: Mitsuba's bitmap then reads
+outside its data (a crash in ``bumpmap``'s gradient, garbage elsewhere).
 """
 
 from __future__ import annotations
@@ -11,6 +14,7 @@ from __future__ import annotations
 import re
 
 import mitsuba as mi
+import numpy as np
 
 __all__ = ["is_normal_mapped", "normal_mapped_shapes", "check_scene"]
 
@@ -21,8 +25,13 @@ def _is_plugin(bsdf) -> bool:
 
 
 def is_normal_mapped(bsdf) -> bool:
-    """Whether ``bsdf`` is ``normalmap_microfacet`` or Mitsuba's ``normalmap``."""
-    return bsdf is not None and (_is_plugin(bsdf) or bsdf.class_name() == "NormalMap")
+    """Whether ``bsdf`` is ``normalmap_microfacet`` or Mitsuba's ``normalmap``, or nests one (a
+    ``normalmap`` or ``heightmap`` texture among its parameters, as in ``twosided``)."""
+    if bsdf is None:
+        return False
+    if _is_plugin(bsdf) or bsdf.class_name() == "NormalMap":
+        return True
+    return any({"normalmap", "heightmap"} & set(key.split(".")[:-1]) for key in mi.traverse(bsdf).keys())
 
 
 def normal_mapped_shapes(scene) -> list:
@@ -46,17 +55,21 @@ def _normalmap_texture(bsdf):
     return None
 
 
-def _channels(bsdf):
-    """(channel count, texture name) of the normal map's bitmap, or (None, None)."""
-    tex = _normalmap_texture(bsdf)
-    params = mi.traverse(tex if tex is not None else bsdf)
-    key = "data" if tex is not None else "normalmap.data"
-    if key not in params.keys():
-        return None, None          # not a bitmap (e.g. a procedural texture)
-    shape = params[key].shape
-    text = str(tex if tex is not None else bsdf)
-    match = re.search(r'name = "([^"]*)"', text)
-    return (shape[-1] if len(shape) == 3 else 1), (match.group(1) if match else "")
+def _map_channels(bsdf):
+    """(channel count, texture name) of the first normal map bitmap in ``bsdf`` (itself or nested
+    at any depth: ``normalmap.data`` among its parameters) that does not have 3 channels, or
+    (None, None)."""
+    params = mi.traverse(bsdf)
+    for key in params.keys():
+        if not (key == "normalmap.data" or key.endswith(".normalmap.data")):
+            continue
+        shape = params[key].shape
+        channels = shape[-1] if len(shape) == 3 else 1
+        if channels != 3:
+            names = re.findall(r'name = "([^"]*)"', str(bsdf))
+            files = [n for n in names if "." in n]
+            return channels, (files[0] if len(files) == 1 else "")
+    return None, None
 
 
 def _evaluates_rgb(tex) -> bool:
@@ -73,11 +86,30 @@ def _evaluates_rgb(tex) -> bool:
 
 def check_scene(scene, error: type = ValueError, where: str = "") -> None:
     """Raise ``error`` (one line, after ``where: `` when given) for the first normal-mapped
-    shape that cannot work: a mesh without UVs, or a normal map that does not have 3 channels."""
+    shape that cannot work: a mesh without UVs, or a normal map that does not have 3 channels;
+    or for a texture whose ``to_uv`` is not finite, or a scene without an integrator (Mitsuba
+    refuses it only when the render starts)."""
     try:
+        if scene.integrator() is None:
+            raise ValueError("the scene has no integrator; add one, e.g. <integrator type=\"path\"/> "
+                             "(in a scene dict \"integrator\": {\"type\": \"path\"})")
+        _check_uv_transforms(scene)
         _check_shapes(scene)
     except ValueError as exc:
         raise error(f"{where}: {exc}" if where else str(exc)) from None
+
+
+def _check_uv_transforms(scene) -> None:
+    from mfnormal.normals.uv import uv_transforms
+
+    owners = [(shape, f"of shape {_shape_name(shape)}") for shape in scene.shapes()]
+    for owner, where in owners + [(scene, "of the scene")]:
+        for key, m in uv_transforms(mi.traverse(owner)).items():
+            if not np.all(np.isfinite(m)):
+                texture = key[:-len(".to_uv")].rsplit(".", 1)[-1]
+                raise ValueError(f"the texture '{texture}' {where} has a uv transform (to_uv) that "
+                                 "holds NaN or infinity; give its <transform name=\"to_uv\"> finite "
+                                 "scale, translate and rotate values")
 
 
 def _check_shapes(scene) -> None:
@@ -87,7 +119,7 @@ def _check_shapes(scene) -> None:
         if shape.is_mesh() and not shape.has_vertex_texcoords():
             raise ValueError(f"shape {_shape_name(shape)} has no texture coordinates (UVs), "
                              f"which its {kind} BSDF needs for the normal map and tangent frame")
-        channels, name = _channels(bsdf)
+        channels, name = _map_channels(bsdf)
         if channels is None and not _evaluates_rgb(_normalmap_texture(bsdf)):
             tex = _normalmap_texture(bsdf)
             raise ValueError(f"the normal map of shape {_shape_name(shape)} is a "

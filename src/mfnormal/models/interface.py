@@ -55,8 +55,11 @@ def checked_walk_values(max_bounces, rr_depth, mis_boost_max) -> tuple:
     return max_bounces, rr_depth, mis_boost_max
 
 
-def _scalar(x):
-    """The value of a width-1 Dr.Jit array (or a Python number) as a Python number."""
+def _scalar(x, key: str = "the value"):
+    """The value of a width-1 Dr.Jit array (or a Python number) as a Python number; ValueError
+    for a wider array (a kernel input of one value per plugin)."""
+    if dr.is_array_v(x) and dr.width(x) != 1:
+        _fail(f"{key} must be one number, got an array of width {dr.width(x)}")
     return dr.slice(x, 0) if dr.is_array_v(x) else x
 
 
@@ -155,7 +158,7 @@ class Walk:
         if not any(k in WALK_KEYS for k in keys):
             return
         try:
-            self.ok = checked_walk_values(*(_scalar(getattr(self, k)) for k in WALK_KEYS))
+            self.ok = checked_walk_values(*(_scalar(getattr(self, k), k) for k in WALK_KEYS))
         finally:
             for key, value in zip(WALK_KEYS, self.ok):
                 mi.set_property(getattr(self, key), type(getattr(self, key))(value))

@@ -28,6 +28,7 @@ from mfnormal.models.microsurface import upper_unit
 from mfnormal.models.shading import from_tangent_frame, tangent_rotation
 from mfnormal.normals.strength import fail
 from mfnormal.normals.tangents import VertexTangents
+from mfnormal.normals.uv import check_uv_transforms, finite_uv
 
 
 def unit_normal(n):
@@ -109,6 +110,7 @@ class HeightMap:
         if not (abs(height_scale) < float("inf")):
             fail(f"height_scale must be a finite number, got {height_scale}")
         self.texture, self.height_scale, self.strength, self.tangents = texture, height_scale, strength, tangents
+        self._uv_checked = check_uv_transforms(texture, "heightmap")     # before any lookup (eval_1_grad)
         si = dr.zeros(mi.SurfaceInteraction3f)
         try:
             texture.eval_1_grad(si)
@@ -119,7 +121,7 @@ class HeightMap:
     def facet_normal(self, si, active, nudge=None):
         """(ω_p in si.sh_frame, the map frame's tangent_rotation or None, False: a height map's
         derivatives are its normal's own, no nudges)."""
-        grad = mi.Vector2f(self.texture.eval_1_grad(si, active)) * (self.height_scale * self.strength.value)
+        grad = mi.Vector2f(self.texture.eval_1_grad(finite_uv(si), active)) * (self.height_scale * self.strength.value)
         wp = height_normal(grad, si.sh_frame, si.dp_du, si.dp_dv)
         rotation = None
         if self.tangents is not None:
@@ -146,7 +148,8 @@ class HeightMap:
         return principal_slopes(height_map_normals(self.texture, scale, res)), None
 
     def parameters_changed(self, keys):
-        pass
+        if not keys or any(k.startswith("heightmap") for k in keys):
+            self._uv_checked = check_uv_transforms(self.texture, "heightmap", self._uv_checked)
 
     def describe(self) -> str:
         return f"  heightmap={self.texture}, height_scale={self.height_scale},\n"

@@ -14,13 +14,17 @@ from nudged normals (``nudge``, docs/model.md §9).
 
 from __future__ import annotations
 
+import re
+
 import drjit as dr
 import mitsuba as mi
 import numpy as np
 
 from mfnormal.models.microsurface import SIN_P_EPS, decode_normal
 from mfnormal.models.shading import from_tangent_frame, tangent_rotation
+from mfnormal.normals.strength import fail
 from mfnormal.normals.tangents import VertexTangents
+from mfnormal.normals.uv import check_uv_transforms, finite_uv
 
 CONVENTIONS = ("opengl", "directx")
 # Derivatives at a flat normal (docs/model.md §9): the tilt of the nudged normals whose
@@ -30,12 +34,33 @@ STRENGTH_NUDGE = 1e-3
 NUDGES = ((0, 1.0), (0, -1.0), (1, 1.0), (1, -1.0))   # (axis, sign): ±x, ±y of the map's frame
 
 
+def channels_message(texture, what: str = "") -> str | None:
+    """Why a bitmap ``texture`` cannot be a tangent-space normal map (its channel count is not 3;
+    ``what``: how to name it, default its file name), or None."""
+    params = mi.traverse(texture)
+    if "data" not in params.keys():
+        return None                # not a bitmap (a procedural texture: its eval_3 is checked where used)
+    shape = params["data"].shape
+    channels = shape[-1] if len(shape) == 3 else 1
+    if channels == 3:
+        return None
+    if not what:
+        name = re.search(r'name = "([^"]*)"', str(texture))
+        what = f"'{name.group(1)}'" if name and name.group(1) else "(a bitmap)"
+    return (f"normal map {what} has {channels} channel{'s' if channels != 1 else ''}; "
+            "a tangent-space normal map needs 3 (RGB)")
+
+
 class NormalMap:
     """ω_p from a tangent-space normal map texture, with ``strength`` (a
     :class:`~mfnormal.normals.Strength`) and the channel convention."""
 
     def __init__(self, texture, strength, directx: bool, tangents: VertexTangents | None):
         self.texture, self.strength, self.directx, self.tangents = texture, strength, directx, tangents
+        self._uv_checked = check_uv_transforms(texture, "normalmap")
+        message = channels_message(texture)
+        if message:
+            fail(message)
         self.hoist_uv_transform()
 
     def facet_normal(self, si, active, nudge=None):
@@ -95,6 +120,7 @@ class NormalMap:
         translation first, then the x and the y column). A texture whose ``to_uv`` changed since
         (set on the texture itself, e.g. one that two plugins share, where this plugin was not
         told) is evaluated as it is."""
+        si = finite_uv(si)
         if self.uv is None:
             return self.texture.eval_3(si, active)
         current = self._uv_params["to_uv"]
@@ -105,6 +131,7 @@ class NormalMap:
         u, v = si.uv.x, si.uv.y
         si_uv = mi.SurfaceInteraction3f(si)
         si_uv.uv = mi.Point2f(dr.fma(m01, v, dr.fma(m00, u, m02)), dr.fma(m11, v, dr.fma(m10, u, m12)))
+        si_uv = finite_uv(si_uv)                    # a transform that overflows
         self._uv_params["to_uv"] = type(current)()
         try:
             return self.texture.eval_3(si_uv, active)
@@ -165,6 +192,7 @@ class NormalMap:
 
     def parameters_changed(self, keys):
         if not keys or any(k.startswith("normalmap") for k in keys):
+            self._uv_checked = check_uv_transforms(self.texture, "normalmap", self._uv_checked)
             self.hoist_uv_transform()
 
     def describe(self) -> str:

@@ -40,6 +40,10 @@ def _textures(props):
     """(nested BSDF, normal map, height map) among the plugin's objects and strings."""
     nested = normalmap = heightmap = None
     for name, obj in props.objects():
+        if isinstance(obj, mi.BSDF) and name in ("normalmap", "heightmap"):
+            fail(f"'{name}' is a BSDF ({obj.class_name()}); it must be a texture: a raw bitmap "
+                 f"(<texture name=\"{name}\" type=\"bitmap\"> with <boolean name=\"raw\" "
+                 "value=\"true\"/>) or a file name")
         if isinstance(obj, mi.BSDF):
             if nested is not None:
                 fail("expects exactly one nested BSDF, got several")
@@ -60,6 +64,9 @@ def _textures(props):
 def from_properties(props):
     """(nested BSDF, source, macro normal, strength) of a ``normalmap_microfacet``'s properties,
     each checked (ValueError with a one-line message naming the fix)."""
+    if mi.is_polarized:
+        fail(f"does not support polarized variants ({mi.variant()}); use an rgb, mono or spectral "
+             "one (e.g. llvm_ad_rgb)")
     nested, normalmap, heightmap = _textures(props)
     macro = props.get("macro_normal", "shading")
     if macro not in MACRO_NORMALS:

@@ -18,6 +18,8 @@ def checked_strength(values) -> list:
     import numpy as np
 
     values = np.array(values, dtype=np.float64).ravel().tolist()
+    if len(values) > 1:
+        fail(f"strength must be one number, got {len(values)} (an array of width {len(values)})")
     bad = [v for v in values if not (0.0 <= v < float("inf"))]
     if bad or not values:
         fail(f"strength must be a finite number >= 0, got {bad[0] if bad else 'no value'}")

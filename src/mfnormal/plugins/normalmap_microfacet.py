@@ -10,7 +10,10 @@ Microfacet-based normal mapping (:monosp:`normalmap_microfacet`)
    - |texture| or |string|
    - Tangent-space normal map, decoded as :math:`n = 2\,\mathrm{rgb} - 1` in the
      base shading frame (like Mitsuba's built-in ``normalmap``). Give a
-     ``bitmap`` texture with ``raw=true``, or a file name (loaded raw).
+     ``bitmap`` texture with ``raw=true``, or a file name (loaded raw). A bitmap
+     needs 3 channels, and its uv transform ``to_uv`` (also a nested texture's)
+     finite values, at load and in ``mi.traverse`` updates (else a one-line
+     ``ValueError``); a NaN or infinite uv is looked up at uv = 0.
  * - heightmap
    - |texture| or |string|
    - Instead of ``normalmap``: a height map (a ``bitmap``, ``raw=true``,
@@ -34,7 +37,8 @@ Microfacet-based normal mapping (:monosp:`normalmap_microfacet`)
      directions stay in ``si.sh_frame`` for the integrator).
  * - (nested bsdf)
    - |bsdf|
-   - The material of the microfacets: any Mitsuba BSDF (its reflection part).
+   - The material of the microfacets: any Mitsuba BSDF (its reflection part; a
+     transmitting one gets a ``TransmissionWarning``, once).
  * - model
    - |string|
    - ``faithful`` (default): the texel as the true geometry around it shows
@@ -201,6 +205,8 @@ and without a map it is cheaper than the normal-map path
 
 from __future__ import annotations
 
+import warnings
+
 import drjit as dr
 import mitsuba as mi
 
@@ -213,7 +219,11 @@ from mfnormal.normals.source import MITSUBA_TANGENTS, from_properties
 from mfnormal.normals.strength import STRENGTH_MAX
 from mfnormal.plugins.variant_class import variant_subclass
 
-__all__ = ["NormalMapMicrofacet", "bsdf_class", "MODELS", "DEFAULT_MODEL", "STRENGTH_MAX"]
+__all__ = ["NormalMapMicrofacet", "bsdf_class", "MODELS", "DEFAULT_MODEL", "STRENGTH_MAX", "TransmissionWarning"]
+
+
+class TransmissionWarning(UserWarning):
+    """The nested BSDF transmits; the plugin drops its transmission."""
 
 
 class NormalMapMicrofacet:
@@ -235,11 +245,12 @@ class NormalMapMicrofacet:
         self.m_components = [self.nested.flags(i) & reflect for i in range(self.nested.component_count())]
         self.m_flags = (self.nested.flags() & reflect) | mi.BSDFFlags.FrontSide
         if mi.has_flag(self.nested.flags(), mi.BSDFFlags.Transmission):
-            mi.Log(mi.LogLevel.Warn,
-                   f"normalmap_microfacet: the nested BSDF {str(self.nested).split('[')[0]} transmits light, "
-                   "but the microsurface only reflects: its transmission is dropped (that light is "
-                   "absorbed) and only its reflection is normal-mapped. For a refracting surface use "
-                   "Mitsuba's 'normalmap' BSDF.")
+            # A Python warning: one line (the command line's "mfnormal: warning: ..."), once per
+            # nested BSDF type and process, not Mitsuba's log with its timestamp and colours.
+            warnings.warn(f"normalmap_microfacet: the nested BSDF {self.nested.class_name()} transmits "
+                          "light, but the microsurface only reflects: its transmission is dropped (that "
+                          "light is absorbed) and only its reflection is normal-mapped. For a refracting "
+                          "surface use Mitsuba's 'normalmap' BSDF.", TransmissionWarning, stacklevel=2)
 
     def traverse(self, callback):
         # None of them moves geometry, so none is discontinuous in Mitsuba's sense (visibility).
