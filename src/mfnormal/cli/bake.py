@@ -54,7 +54,7 @@ def _check_bake(args) -> Path:
     return output
 
 
-def _unwrapped(low_mesh, path: str):
+def _unwrapped(low_mesh, path: str, size: int, padding: int):
     """The low-poly with xatlas UVs, also written to ``path`` (PLY, atomically)."""
     import mitsuba as mi
     from mfnormal.io.gltf import mitsuba_mesh
@@ -64,7 +64,7 @@ def _unwrapped(low_mesh, path: str):
     if normals is None:
         raise CLIError("the low-poly mesh has no vertex normals (it is flat-shaded); give it smooth "
                        "vertex normals")
-    p, n, uv, f = unwrap(positions, normals, faces)
+    p, n, uv, f = unwrap(positions, normals, faces, size, padding)
     mesh = mitsuba_mesh("low", mi.load_dict({"type": "diffuse"}), p, n, uv, None, f)
     atomic_write(path, lambda p: mesh.write_ply(str(p)))
     return mesh
@@ -82,7 +82,7 @@ def cmd_bake(args) -> int:
     started = time.time()
     try:
         high, low = load_mesh(args.high, "high-poly mesh"), load_mesh(args.low, "low-poly mesh")
-        low = _unwrapped(low, args.unwrap) if args.unwrap else low
+        low = _unwrapped(low, args.unwrap, args.size, args.padding) if args.unwrap else low
         check_low_poly(low)
         baked = bake(high, low, args.size, args.cage, args.tangents, args.padding, args.high_normals)
     except BakeError as exc:

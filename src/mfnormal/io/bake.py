@@ -14,7 +14,7 @@ For each texel of the map, :func:`bake`
    frame ``si.sh_frame`` (S = ∂p/∂u made orthogonal to N, T = N×S) that Mitsuba's
    ``normalmap`` and ``normalmap_microfacet``'s default ``tangents="mitsuba"`` use;
 3. finds the high-poly surface nearest to p on the segment p ± cage·N with Mitsuba's ray
-   tracer (a scene holding only the high-poly mesh; a ray from each end of the segment);
+   tracer (a scene holding only the high-poly mesh; a ray from p each way along N);
 4. writes the high-poly's normal there (its shading normal, or ``high_normals="geometric"``)
    in the texel's frame, (x, y, z) = (⟨n, T⟩, ⟨n, B⟩, ⟨n, N⟩).
 
@@ -44,6 +44,8 @@ HIGH_NORMALS = ("shading", "geometric")
 SIZE_RANGE = (8, 8192)
 #: The default cage distance as a fraction of the low-poly's bounding-box diagonal.
 CAGE_FRACTION = 0.05
+#: The rays along ±N start this fraction of the cage behind the low-poly's surface point.
+RAY_START = 1e-3
 #: Texel candidates tested per rasteriser chunk (memory: ~100 bytes each).
 CHUNK = 1 << 22
 
@@ -100,16 +102,23 @@ def mesh_arrays(mesh):
     return positions, normals, uvs, faces
 
 
-def unwrap(positions, normals, faces):
+def unwrap(positions, normals, faces, size: int | None = None, padding: int = 4):
     """xatlas UVs for a mesh without them: (positions, normals, uvs, faces) with vertices split
-    along the UV seams. Needs the optional ``xatlas`` package (``pip install 'mfnormal[assets]'``)."""
+    along the UV seams; ``size`` (the map's texels across) with ``padding`` texels between the
+    charts. Needs the optional ``xatlas`` package (``pip install 'mfnormal[assets]'``)."""
     try:
         import xatlas
     except ImportError:
         raise BakeError("unwrapping needs the xatlas package: pip install 'mfnormal[assets]' "
                         "(or give a low-poly mesh with UVs)") from None
-    vmapping, new_faces, uvs = xatlas.parametrize(np.asarray(positions, np.float32),
-                                                  np.asarray(faces, np.uint32))
+    atlas = xatlas.Atlas()
+    atlas.add_mesh(np.asarray(positions, np.float32), np.asarray(faces, np.uint32))
+    pack = xatlas.PackOptions()
+    pack.padding = int(padding)
+    if size is not None:
+        pack.resolution = int(size)
+    atlas.generate(pack_options=pack)
+    vmapping, new_faces, uvs = atlas[0]
     return (positions[vmapping], normals[vmapping], uvs.astype(np.float64),
             new_faces.astype(np.int64))
 
@@ -256,19 +265,21 @@ def _trace(scene, origins, directions, maxt: float, geometric: bool):
 
 
 def high_normals_at(high_mesh, p, n, cage: float, geometric: bool = False):
-    """The high-poly's unit normal at the surface point closest to ``p`` on the line through it
-    along ``n``, within ``cage`` on either side, (K, 3), and whether there is one, (K,).
+    """The high-poly's unit normal at the surface point nearest to ``p`` on the segment
+    p ± cage·``n``, (K, 3), and whether there is one, (K,).
 
-    Two rays cross the segment p ± cage·n, one from each end; each meets the high-poly's first
-    surface from its side, and the one nearer to p wins (no ray starts on a surface)."""
+    Two rays leave p, one along +n and one along −n, each from RAY_START·cage behind p (so that
+    a surface through p itself is met, not skipped) up to cage beyond it; each meets the first
+    surface on its side, and the one nearer to p wins."""
     import mitsuba as mi
 
     scene = mi.load_dict({"type": "scene", "high": high_mesh})
-    t_down, n_down, hit_down = _trace(scene, p + cage * n, -n, 2.0 * cage, geometric)
-    t_up, n_up, hit_up = _trace(scene, p - cage * n, n, 2.0 * cage, geometric)
-    use_down = hit_down & (~hit_up | (np.abs(t_down - cage) <= np.abs(t_up - cage)))
-    normal = np.where(use_down[:, None], n_down, n_up)
-    return _unit(normal), hit_down | hit_up
+    eps = RAY_START * cage
+    t_up, n_up, hit_up = _trace(scene, p - eps * n, n, cage + eps, geometric)
+    t_down, n_down, hit_down = _trace(scene, p + eps * n, -n, cage + eps, geometric)
+    use_up = hit_up & (~hit_down | (np.abs(t_up - eps) <= np.abs(t_down - eps)))
+    normal = np.where(use_up[:, None], n_up, n_down)
+    return _unit(normal), hit_up | hit_down
 
 
 # -- Padding and encoding ------------------------------------------------------------------------
