@@ -205,3 +205,17 @@ def test_bake_command_writes_the_map(worker, meshes):
     assert data.shape == (32, 32, 3) and data.dtype == np.uint8
     tilt = np.degrees(np.arccos(np.clip((data[..., 2] / 255.0) * 2 - 1, -1, 1)))
     assert 10.0 < np.percentile(tilt, 90) < 30.0
+
+
+def test_bake_command_unwraps_a_mesh_without_uvs(worker, meshes):
+    """``--unwrap`` gives the UV-less low-poly xatlas UVs, writes it as PLY (with UVs, the same
+    triangles) and bakes onto it."""
+    pytest.importorskip("xatlas")
+    result = worker.run(["bake", "high.ply", "nouv.ply", "-o", "unwrapped.png", "--size", "32",
+                         "--unwrap", "unwrapped.ply"], cwd=meshes)
+    assert result.rc == 0 and result.exception is None, result.describe()
+    mesh = mi.load_dict({"type": "ply", "filename": str(meshes / "unwrapped.ply")})
+    assert mesh.has_vertex_texcoords() and mesh.face_count() == len(uv_sphere(6, 12)[3])
+    uvs = B.mesh_arrays(mesh)[2]
+    assert uvs.min() >= 0.0 and uvs.max() <= 1.0
+    assert np.array(mi.Bitmap(str(meshes / "unwrapped.png"))).shape == (32, 32, 3)
