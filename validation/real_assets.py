@@ -76,6 +76,7 @@ LIMB_HALF = 0.16            # the limb view's half width (the object's diagonal 
 BLOCK = 4                   # the bias part: relMSE of BLOCK × BLOCK pixel means
 MASK_SUB = 3                # sub-pixel rays per axis for the object mask
 MAX_DEPTH = 8
+SHEET_MAX_THUMB = 64        # contact-sheet thumbnails: the render shrunk by a whole factor to at most this
 
 
 @dataclass(frozen=True)
@@ -146,38 +147,34 @@ def prepare(asset: str, faces: int, map_size: int, log=print) -> dict:
     out = {"asset": asset, "high": high, "low": low, "high_faces": len(hf), "low_faces": len(low[3]),
            "maps": {}, "tilt": {}, "rebake": {}}
     for frame in B.TANGENT_FRAMES:
-        low_mesh = _mesh("low", *_low_args(low, frame))
-        baked = B.bake(high, low_mesh, map_size, frame=frame)
+        mesh = low_mesh(low, frame)
+        baked = B.bake(high, mesh, map_size, frame=frame)
         path = folder / f"{asset}_{faces}_{map_size}_{frame}.png"
         B.write_map(path, baked.normals)
         tilt = np.degrees(np.arccos(np.clip(baked.normals[..., 2][baked.covered], -1, 1)))
         out["maps"][frame] = path
         out["tilt"][frame] = {"median": float(np.median(tilt)), "p99": float(np.percentile(tilt, 99)),
                               "missed": baked.missed, "covered": int(baked.covered.sum())}
-        out["rebake"][frame] = rebake_error(low_mesh, map_size, frame)
+        out["rebake"][frame] = rebake_error(mesh, map_size, frame)
     log(f"{asset}: {len(hf)} → {out['low_faces']} triangles, maps {map_size}², tilt median "
         f"{out['tilt']['mikktspace']['median']:.1f}°, p99 {out['tilt']['mikktspace']['p99']:.1f}°, "
         f"re-bake {out['rebake']['mikktspace']:.2f} steps ({time.time() - t0:.1f} s)")
     return out
 
 
-def _low_args(low, frame):
-    """(positions, faces, normals, uvs, tangents) of the low-poly for :func:`_mesh`: with
-    MikkTSpace vertex tangents (vertices split) for ``mikktspace``."""
+def low_mesh(low, frame: str, bsdf: dict | None = None):
+    """The low-poly as a Mitsuba mesh with ``bsdf``: with MikkTSpace vertex tangents (vertices
+    split, :func:`mfnormal.io.bake.tangent_mesh`) for ``mikktspace``."""
     positions, normals, uvs, faces = low
-    if frame != "mikktspace":
-        return positions, faces, normals, uvs, None
-    from mfnormal.normals.mikktspace import mikktspace, split_vertices
-
-    corner = mikktspace(positions, normals, uvs, faces, flip_v=True)
-    split, v = split_vertices(p=positions[faces], n=normals[faces], uv=uvs[faces], t=corner)
-    return v["p"], split, v["n"], v["uv"], v["t"]
+    if frame == "mikktspace":
+        return B.tangent_mesh("low", positions, normals, uvs, faces, mi.load_dict(bsdf or {"type": "diffuse"}))
+    return _mesh("low", positions, faces, normals, uvs, None, bsdf)
 
 
-def rebake_error(low_mesh, size: int, frame: str) -> float:
+def rebake_error(mesh, size: int, frame: str) -> float:
     """The verification by re-bake: the low-poly baked onto itself; the largest deviation of a
     covered texel from the flat (0.5, 0.5, 1), in 8-bit steps."""
-    baked = B.bake(low_mesh, low_mesh, size, frame=frame)
+    baked = B.bake(mesh, mesh, size, frame=frame)
     rgb = B.encode_map(baked.normals).astype(float)[baked.covered & baked.hit]
     return float(np.max(np.abs(rgb - [127.5, 127.5, 255.0]))) if len(rgb) else float("nan")
 
@@ -280,7 +277,7 @@ def render_cell(cell: Cell, prepared: dict, methods, frame: str, res: int, spp: 
     target, half = camera(hp, cell.view)
     prepared["high"].set_bsdf(mi.load_dict(nested))
     truth_scene = scene(prepared["high"], cell, target, half, res, spp)
-    low_plain = scene(_mesh("low", *_low_args(prepared["low"], "mitsuba")), cell, target, half, res, spp)
+    low_plain = scene(low_mesh(prepared["low"], "mitsuba"), cell, target, half, res, spp)
     mask = object_mask([truth_scene, low_plain], res)
     t0 = time.time()
     truth = H.render(truth_scene, spp * ref_factor, seed * 1000 + 100)
@@ -293,7 +290,7 @@ def render_cell(cell: Cell, prepared: dict, methods, frame: str, res: int, spp: 
         low_frame = frame if m.key not in ("nomap", "classic", "classic_fixed") else "mitsuba"
         bsdf = method_bsdf(m, nested, prepared["maps"], frame)
         try:
-            s = scene(_mesh("low", *_low_args(prepared["low"], low_frame), bsdf=bsdf), cell, target, half,
+            s = scene(low_mesh(prepared["low"], low_frame, bsdf), cell, target, half,
                       res, spp)
         except Exception as exc:   # a candidate model that does not load: report it, go on
             out["errors"][m.key] = f"{type(exc).__name__}: {str(exc).strip().splitlines()[-1][:300]}"
@@ -429,7 +426,7 @@ def main(argv=None):
     for i, r in enumerate(results):
         r["index"] = i + 1
     TG.contact_sheet(results, keys, labels, args.out / f"{stem}.png",
-                     size=min(opts["res"], 128),
+                     size=opts["res"] // math.ceil(opts["res"] / SHEET_MAX_THUMB),
                      title="truth (high-poly), then the low-poly with each method; one exposure per row")
     print(f"wrote {args.out / stem}.{{md,json,png}} in {(time.time() - t_start) / 60:.1f} min")
     return report
