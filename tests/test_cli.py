@@ -33,7 +33,7 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from cli_checks import assert_one_line_error  # noqa: E402
+from cli_checks import assert_error_line, assert_one_line_error  # noqa: E402
 from gltf_models import base_document, write_gltf  # noqa: E402
 from helpers import write_maps, xml_plugin, xml_scene  # noqa: E402
 
@@ -202,18 +202,6 @@ def png_header(width, height):
 
     ihdr = b"IHDR" + struct.pack(">IIBBBBB", width, height, 8, 2, 0, 0, 0)
     return b"\x89PNG\r\n\x1a\n" + struct.pack(">I", 13) + ihdr + struct.pack(">I", zlib.crc32(ihdr))
-
-
-def assert_error_line(result, *needles):
-    """A worker Result: exit 2 and exactly one line 'mfnormal: error: ...' with the needles."""
-    assert result.exception is None and result.died is None and not result.timed_out, result.describe()
-    err = result.stderr.strip()
-    assert result.rc == 2, result.describe()
-    lines = err.splitlines()
-    assert len(lines) == 1 and lines[0].startswith("mfnormal: error: "), err
-    for needle in needles:
-        assert needle in lines[0], f"{needle!r} not in {lines[0]!r}"
-    return lines[0]
 
 
 def assert_rendered(result, out):

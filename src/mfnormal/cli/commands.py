@@ -7,6 +7,8 @@
                                            (also mfnormal-demo)
     mfnormal compare SCENE [SCENE ...] [-o DIR] [--spp N] [--ref-spp N] [--quick] [--cluster ...]
     (each also takes --limit NAME=N: the caps of mfnormal.io.inputs.Limits)
+    mfnormal bake HIGH.ply|obj LOW.ply|obj -o MAP.png [--size N] [--cage D] [--tangents F] ...
+                                           (mfnormal.cli.bake)
 
 Every error is one line on stderr and exit code 2, reported before the render
 starts wherever it can be known then (:mod:`mfnormal.io.inputs`); outputs are
@@ -517,7 +519,10 @@ def build_parser() -> argparse.ArgumentParser:
     """The ``mfnormal`` parser; ``parser.commands`` holds each subcommand's own parser."""
     parser = _Parser(prog="mfnormal", description=__doc__.split("\n\n")[0])
     sub = parser.add_subparsers(dest="command", required=True)
-    parser.commands = {"render": _add_render(sub), "demo": _add_demo(sub), "compare": _add_compare(sub)}
+    from mfnormal.cli.bake import add_bake
+
+    parser.commands = {"render": _add_render(sub), "demo": _add_demo(sub), "compare": _add_compare(sub),
+                       "bake": add_bake(sub)}
     return parser
 
 

@@ -47,7 +47,8 @@ from mfnormal.io.messages import one_line
 from mfnormal.normals.mikktspace import mikktspace, split_vertices
 from mfnormal.io.inputs import DEFAULT_LIMITS, Limits
 
-__all__ = ["load_gltf", "GLTF_SUFFIXES", "TANGENT_MODES", "MACRO_NORMALS", "GLTFError", "is_smooth_shaded"]
+__all__ = ["load_gltf", "GLTF_SUFFIXES", "TANGENT_MODES", "MACRO_NORMALS", "GLTFError", "is_smooth_shaded",
+           "mitsuba_mesh"]
 
 GLTF_SUFFIXES = (".gltf", ".glb")
 TANGENT_MODES = ("auto", "mikktspace", "mitsuba")
@@ -408,7 +409,9 @@ def is_smooth_shaded(positions, normals, faces, min_deg: float = SMOOTH_MIN_DEG)
     return bool(np.any(np.abs(cos) < np.cos(np.radians(min_deg))))
 
 
-def _mitsuba_mesh(name, bsdf, positions, normals, uvs, tangents, faces):
+def mitsuba_mesh(name, bsdf, positions, normals, uvs, tangents, faces):
+    """A Mitsuba mesh of these vertex arrays with ``bsdf`` (loaded); ``uvs`` and ``tangents``
+    (V, 4: T and its sign, as attributes ``vertex_tangent`` and ``vertex_tangent_sign``) may be None."""
     import mitsuba as mi
 
     props = mi.Properties()
@@ -614,7 +617,7 @@ def _meshes(f: _File, materials: _Materials, nodes, tangents: str, macro_normal:
             if key not in bsdfs:
                 bsdfs[key] = mi.load_dict(materials.bsdf(prim.material, uvs is not None, tan is not None, smooth))
             name = f"{mesh.name or f'mesh{node.mesh}'}/{k}"
-            shapes[f"mesh_{len(shapes)}"] = _mitsuba_mesh(name, bsdfs[key], positions, normals, uvs,
+            shapes[f"mesh_{len(shapes)}"] = mitsuba_mesh(name, bsdfs[key], positions, normals, uvs,
                                                           tan, faces)
             lo = np.minimum(lo, positions.min(axis=0))
             hi = np.maximum(hi, positions.max(axis=0))

@@ -1,0 +1,436 @@
+"""Normal-mapping methods on real assets, against the high-poly mesh the map was baked from.
+
+    nice .venv/bin/python validation/real_assets.py [--quick] [--out validation/results/real_assets]
+        [--assets bunny,dragon,rock] [--materials aluminium,plastic,gold,diffuse]
+        [--lightings sky_sun,grazing_sun] [--views frontal,limb] [--methods nomap,classic,...]
+        [--faces 1000] [--map-size 1024] [--frame mikktspace|mitsuba] [--res 128] [--spp 64]
+        [--ref-factor 4] [--variant llvm_ad_rgb]
+
+Each asset (:mod:`validation.assets`: fetched at run time into a cache, never committed) is
+decimated to ``--faces`` triangles (``fast-simplification``), given smooth vertex normals and
+unwrapped with xatlas; its tangent-space normal map is baked from the high-poly with
+:func:`mfnormal.io.bake.bake` (``--map-size``²) and verified by a re-bake: baking the low-poly onto
+itself must give the flat map. Then for every cell (asset × material × lighting × view) the
+high-poly with the material (the truth) and the low-poly with the material wrapped by each
+method around the map are rendered and compared over the object.
+
+Frames: Mitsuba's ``normalmap`` decodes in Mitsuba's per-triangle shading frame, so the classic
+methods always get a map baked in that frame (``--frame`` does not change them); the
+``normalmap_microfacet`` methods get a MikkTSpace map decoded with ``tangents="vertex_tangent"``
+(``--frame mikktspace``, default: the frame real bakers use) or the classic methods' map
+(``--frame mitsuba``: the very same map for every method).
+
+Metrics, over the pixels whose 3 × 3 sub-pixel rays all hit both the high- and the low-poly
+(the silhouettes' difference is geometry no map can change): relMSE after a metered exposure
+(the truth's mean luminance over the object → 0.5, as :func:`validation.heightfield.metrics`);
+its **bias part**, relMSE of 4 × 4-pixel block means (1/16 of the noise); near-black pixels
+(luminance < 5 % of the truth's median); energy (mean luminance / the truth's); the **noise
+floor**: the truth rendered again at the methods' spp and scored like a method. Writes
+``real_assets.md``, ``real_assets.json`` and the contact sheet ``real_assets.png`` to ``--out``
+(``--quick``: ``real_assets_quick.*``: one small asset, two cells, 32² px).
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import json
+import math
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))   # the validation package (harnesses) of this checkout
+
+import mfnormal  # noqa: E402  (first: selects a working libLLVM)
+
+import mitsuba as mi  # noqa: E402
+import numpy as np  # noqa: E402
+
+from validation import heightfield as H  # noqa: E402
+from validation import true_geometry as TG  # noqa: E402
+from validation.assets import ASSETS, cache_dir, load_asset  # noqa: E402
+from mfnormal.io import bake as B  # noqa: E402
+from mfnormal.io.images import atomic_write  # noqa: E402
+from mfnormal.report.methods import PLUGIN  # noqa: E402
+from mfnormal.report.metrics import luminance, near_black_fraction, rel_mse  # noqa: E402
+
+OUT = ROOT / "validation" / "results" / "real_assets"
+FULL = dict(assets=["bunny", "dragon", "rock"], materials=["aluminium", "plastic", "gold", "diffuse"],
+            lightings=["sky_sun", "grazing_sun"], views=["frontal", "limb"], res=128, spp=64,
+            ref_factor=4, faces=1000, map_size=1024)
+QUICK = dict(assets=["bunny_small"], materials=["aluminium"], lightings=["sky_sun"],
+             views=["frontal", "limb"], res=32, spp=4, ref_factor=4, faces=300, map_size=256)
+METHODS = ("nomap", "classic", "classic_fixed", "faithful", "analytic", "separable_specular",
+           "separable_same", "nonseparable_specular", "nonseparable_same")
+QUICK_METHODS = ("nomap", "classic", "faithful")
+
+#: Lightings of an object seen from −y: a sun 45° up from the front right with the sky, and a
+#: sun 10° up from +x (skimming the faces the camera sees) with the sky at 0.1.
+LIGHTINGS = {"sky_sun": H.Lighting("sky_sun", 45.0, -50.0, 3.0, 1.0),
+             "grazing_sun": H.Lighting("grazing_sun", 10.0, 0.0, 3.0, 0.1)}
+CAMERA_ELEVATION = 15.0     # degrees above the horizon, on the −y side
+LIMB_HALF = 0.16            # the limb view's half width (the object's diagonal is 2)
+BLOCK = 4                   # the bias part: relMSE of BLOCK × BLOCK pixel means
+MASK_SUB = 3                # sub-pixel rays per axis for the object mask
+MAX_DEPTH = 8
+SHEET_MAX_THUMB = 64        # contact-sheet thumbnails: the render shrunk by a whole factor to at most this
+
+
+@dataclass(frozen=True)
+class Cell:
+    asset: str
+    material: str
+    lighting: str
+    view: str
+
+    @property
+    def name(self) -> str:
+        return "/".join((self.asset, self.material, self.lighting, self.view))
+
+    @property
+    def spp_factor(self) -> int:
+        """4 for glossy materials (GGX α ≤ 0.05), as the periodic harness."""
+        return 4 if float(H.MATERIALS[self.material].get("alpha", 1.0)) <= 0.05 else 1
+
+
+def parse_args(argv=None):
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--out", type=Path, default=OUT)
+    p.add_argument("--quick", action="store_true", help="one small asset, two cells, 32² px")
+    for name in ("assets", "materials", "lightings", "views"):
+        p.add_argument(f"--{name}", type=lambda s: s.split(","), default=None,
+                       help=f"comma-separated subset (default: {','.join(FULL[name])})")
+    p.add_argument("--methods", type=lambda s: s.split(","), default=None,
+                   help="method keys of validation.heightfield.METHODS or plugin:MODEL specs")
+    for name, kind in (("res", int), ("spp", int), ("ref_factor", int), ("faces", int), ("map_size", int)):
+        p.add_argument("--" + name.replace("_", "-"), type=kind, default=None)
+    p.add_argument("--frame", choices=B.TANGENT_FRAMES, default="mikktspace")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--variant", default="llvm_ad_rgb")
+    return p.parse_args(argv)
+
+
+# ---------------------------------------------------------------------------
+# The low-poly and its maps
+# ---------------------------------------------------------------------------
+
+def _mesh(name, positions, faces, normals=None, uvs=None, tangents=None, bsdf=None):
+    """A Mitsuba mesh; without ``normals`` Mitsuba's smooth vertex normals are computed."""
+    from mfnormal.io.gltf import mitsuba_mesh
+
+    bsdf = mi.load_dict(bsdf or {"type": "diffuse"})
+    mesh = mitsuba_mesh(name, bsdf, positions, normals if normals is not None else positions, uvs,
+                        tangents, faces)
+    if normals is None:
+        mesh.recompute_vertex_normals()
+    return mesh
+
+
+def prepare(asset: str, faces: int, map_size: int, log=print) -> dict:
+    """The high-poly, the decimated, unwrapped low-poly and its two maps (Mitsuba's frame and
+    MikkTSpace), with the re-bake check; maps written to the cache."""
+    import fast_simplification
+
+    t0 = time.time()
+    hp, hf = load_asset(asset)
+    high = _mesh("high", hp, hf)
+    lp, lf = fast_simplification.simplify(hp.astype(np.float32), hf.astype(np.int32),
+                                          target_reduction=1.0 - faces / len(hf))
+    low_n = B.mesh_arrays(_mesh("low", lp.astype(np.float64), lf.astype(np.int64)))[1]
+    low = B.unwrap(lp.astype(np.float64), low_n, lf.astype(np.int64), map_size)
+    folder = cache_dir() / "prepared"
+    folder.mkdir(parents=True, exist_ok=True)
+    out = {"asset": asset, "high": high, "low": low, "high_faces": len(hf), "low_faces": len(low[3]),
+           "maps": {}, "tilt": {}, "rebake": {}}
+    for frame in B.TANGENT_FRAMES:
+        mesh = low_mesh(low, frame)
+        baked = B.bake(high, mesh, map_size, frame=frame)
+        path = folder / f"{asset}_{faces}_{map_size}_{frame}.png"
+        B.write_map(path, baked.normals)
+        tilt = np.degrees(np.arccos(np.clip(baked.normals[..., 2][baked.covered], -1, 1)))
+        out["maps"][frame] = path
+        out["tilt"][frame] = {"median": float(np.median(tilt)), "p99": float(np.percentile(tilt, 99)),
+                              "missed": baked.missed, "covered": int(baked.covered.sum())}
+        out["rebake"][frame] = rebake_error(mesh, map_size, frame)
+    log(f"{asset}: {len(hf)} → {out['low_faces']} triangles, maps {map_size}², tilt median "
+        f"{out['tilt']['mikktspace']['median']:.1f}°, p99 {out['tilt']['mikktspace']['p99']:.1f}°, "
+        f"re-bake {out['rebake']['mikktspace']:.2f} steps ({time.time() - t0:.1f} s)")
+    return out
+
+
+def low_mesh(low, frame: str, bsdf: dict | None = None):
+    """The low-poly as a Mitsuba mesh with ``bsdf``: with MikkTSpace vertex tangents (vertices
+    split, :func:`mfnormal.io.bake.tangent_mesh`) for ``mikktspace``."""
+    positions, normals, uvs, faces = low
+    if frame == "mikktspace":
+        return B.tangent_mesh("low", positions, normals, uvs, faces, mi.load_dict(bsdf or {"type": "diffuse"}))
+    return _mesh("low", positions, faces, normals, uvs, None, bsdf)
+
+
+def rebake_error(mesh, size: int, frame: str) -> float:
+    """The verification by re-bake: the low-poly baked onto itself; the largest deviation of a
+    covered texel from the flat (0.5, 0.5, 1), in 8-bit steps."""
+    baked = B.bake(mesh, mesh, size, frame=frame)
+    rgb = B.encode_map(baked.normals).astype(float)[baked.covered & baked.hit]
+    return float(np.max(np.abs(rgb - [127.5, 127.5, 255.0]))) if len(rgb) else float("nan")
+
+
+# ---------------------------------------------------------------------------
+# Scenes
+# ---------------------------------------------------------------------------
+
+def camera(positions, view: str):
+    """(target, half width) of the orthographic camera: the whole object (``frontal``) or a
+    window of LIMB_HALF on its silhouette towards +x at mid height (``limb``)."""
+    d = H._direction(90.0 - CAMERA_ELEVATION, H.CAMERA_AZIMUTH)
+    up = np.array([0.0, 0.0, 1.0])
+    right = np.cross(-d, up)
+    right /= np.linalg.norm(right)
+    cam_up = np.cross(right, -d)
+    x, y = positions @ right, positions @ cam_up
+    if view == "frontal":
+        cx, cy = 0.5 * (x.max() + x.min()), 0.5 * (y.max() + y.min())
+        half = 0.52 * max(x.max() - x.min(), y.max() - y.min())
+        return cx * right + cy * cam_up, half
+    mid = 0.5 * (y.max() + y.min())
+    band = np.abs(y - mid) < 0.1 * (y.max() - y.min())
+    edge = x[band].max()
+    return (edge - 0.6 * LIMB_HALF) * right + mid * cam_up, LIMB_HALF
+
+
+def sensor(target, half, res: int, spp: int) -> dict:
+    d = H._direction(90.0 - CAMERA_ELEVATION, H.CAMERA_AZIMUTH)
+    to_world = mi.ScalarTransform4f().look_at(origin=(target + 10.0 * d).tolist(), target=target.tolist(),
+                                              up=[0.0, 0.0, 1.0])
+    return {"type": "orthographic", "to_world": to_world @ mi.ScalarTransform4f().scale([half, half, 1.0]),
+            "near_clip": 1.0, "far_clip": 100.0,
+            "sampler": {"type": "multijitter", "sample_count": int(spp)},
+            "film": {"type": "hdrfilm", "width": int(res), "height": int(res), "pixel_format": "rgb",
+                     "rfilter": {"type": "box"}}}
+
+
+def scene(shape, cell: Cell, target, half, res, spp):
+    return mi.load_dict({"type": "scene", "integrator": {"type": "path", "max_depth": MAX_DEPTH},
+                         "sensor": sensor(target, half, res, spp), "object": shape,
+                         **H._emitters(LIGHTINGS[cell.lighting])})
+
+
+def object_mask(scenes, res: int) -> np.ndarray:
+    """Pixels whose MASK_SUB² sub-pixel camera rays hit the object in every scene of ``scenes``."""
+    import drjit as dr
+
+    k = (np.arange(MASK_SUB) + 0.5) / MASK_SUB
+    iy, ix, sy, sx = np.meshgrid(np.arange(res), np.arange(res), k, k, indexing="ij")
+    pos = mi.Point2f(mi.Float(((ix + sx) / res).ravel()), mi.Float(((iy + sy) / res).ravel()))
+    mask = np.ones(res * res * MASK_SUB ** 2, bool)
+    for s in scenes:
+        ray, _ = s.sensors()[0].sample_ray(0.0, 0.5, pos, mi.Point2f(0.5, 0.5))
+        hit = s.ray_intersect_preliminary(ray).is_valid()
+        dr.eval(hit)
+        mask &= np.array(hit, bool)
+    return mask.reshape(res, res, -1).all(axis=-1)
+
+
+def method_bsdf(method, nested: dict, maps: dict, frame: str) -> dict:
+    """``method`` around ``nested``: the classic methods with the Mitsuba-frame map; the plugin's
+    with the ``frame`` map (MikkTSpace: decoded with ``tangents="vertex_tangent"``)."""
+    texture = {"type": "bitmap", "filename": str(maps["mitsuba"]), "raw": True}
+    bsdf = method.bsdf(nested, texture)
+    if frame == "mikktspace" and bsdf.get("type") == PLUGIN:
+        bsdf = {**bsdf, "normalmap": {**texture, "filename": str(maps["mikktspace"])},
+                "tangents": "vertex_tangent"}
+    return bsdf
+
+
+# ---------------------------------------------------------------------------
+# Metrics and one cell
+# ---------------------------------------------------------------------------
+
+def _blocks(img, b):
+    h, w = (s - s % b for s in img.shape[:2])
+    return img[:h, :w].reshape(h // b, b, w // b, b, -1).mean(axis=(1, 3))
+
+
+def object_metrics(img, truth, mask) -> dict:
+    """relMSE, its bias part (BLOCK² block means over blocks wholly on the object), near-black
+    pixels and energy, over ``mask``."""
+    y_truth = luminance(truth)[mask]
+    k = H.EXPOSURE_MEAN / max(float(y_truth.mean()), 1e-12)
+    block_mask = _blocks(mask[..., None].astype(float), BLOCK)[..., 0] == 1.0
+    return {"rel_mse": rel_mse(img * k, truth * k, mask),
+            "bias": rel_mse(_blocks(img * k, BLOCK), _blocks(truth * k, BLOCK), block_mask),
+            "near_black": near_black_fraction(img, mask, H.BLACK_FRACTION * float(np.median(y_truth))),
+            "energy": float(luminance(img)[mask].mean() / max(float(y_truth.mean()), 1e-12))}
+
+
+def render_cell(cell: Cell, prepared: dict, methods, frame: str, res: int, spp: int, ref_factor: int,
+                run_seed: int = 0, log=print) -> dict:
+    """Render the truth (at ref_factor × spp, and at spp for the noise floor) and every method."""
+    seed = H.cell_seed(cell, run_seed)
+    spp *= cell.spp_factor
+    nested = H.MATERIALS[cell.material]
+    hp = B.mesh_arrays(prepared["high"])[0]
+    target, half = camera(hp, cell.view)
+    prepared["high"].set_bsdf(mi.load_dict(nested))
+    truth_scene = scene(prepared["high"], cell, target, half, res, spp)
+    low_plain = scene(low_mesh(prepared["low"], "mitsuba"), cell, target, half, res, spp)
+    mask = object_mask([truth_scene, low_plain], res)
+    t0 = time.time()
+    truth = H.render(truth_scene, spp * ref_factor, seed * 1000 + 100)
+    floor_img = H.render(truth_scene, spp, seed * 1000 + 500)
+    out = {"cell": cell.name, "truth": truth, "images": {"truth": floor_img}, "metrics": {},
+           "floor": object_metrics(floor_img, truth, mask), "times": {"truth": time.time() - t0},
+           "spp": spp, "ref_spp": spp * ref_factor, "mask_px": int(mask.sum()), "errors": {}}
+    for m in methods:
+        t0 = time.time()
+        low_frame = frame if m.key not in ("nomap", "classic", "classic_fixed") else "mitsuba"
+        bsdf = method_bsdf(m, nested, prepared["maps"], frame)
+        try:
+            s = scene(low_mesh(prepared["low"], low_frame, bsdf), cell, target, half,
+                      res, spp)
+        except Exception as exc:   # a candidate model that does not load: report it, go on
+            out["errors"][m.key] = f"{type(exc).__name__}: {str(exc).strip().splitlines()[-1][:300]}"
+            continue
+        img = H.render(s, spp, seed * 1000)
+        out["images"][m.key] = img
+        out["metrics"][m.key] = object_metrics(img, truth, mask)
+        out["times"][m.key] = time.time() - t0
+    log(f"{cell.name}: floor {out['floor']['rel_mse']:.3g}, "
+        + ", ".join(f"{k} {v['rel_mse']:.3g}" for k, v in out["metrics"].items()))
+    return out
+
+
+# ---------------------------------------------------------------------------
+# Summary, report
+# ---------------------------------------------------------------------------
+
+CLASSIC = ("classic", "classic_fixed")
+
+
+def summarise(results, keys) -> dict:
+    """Per group (all cells, each asset, each material): per method the geometric-mean relMSE
+    and bias part, the mean near-black fraction, and the cells where it is ≤ the better classic
+    method within twice the noise floor."""
+    groups = {"all cells": lambda c: True}
+    for part, index in (("asset", 0), ("material", 1), ("lighting", 2), ("view", 3)):
+        for value in dict.fromkeys(r["cell"].split("/")[index] for r in results):
+            groups[f"{part} {value}"] = lambda c, i=index, v=value: c.split("/")[i] == v
+    out = {}
+    for name, pred in groups.items():
+        rs = [r for r in results if pred(r["cell"])]
+        row = {"cells": len(rs), "floor": TG.geomean([r["floor"]["rel_mse"] for r in rs]), "methods": {}}
+        for k in keys:
+            have = [r for r in rs if k in r["metrics"]]
+            if not have:
+                continue
+            wins = sum(1 for r in have if all(c in r["metrics"] for c in CLASSIC) and
+                       r["metrics"][k]["rel_mse"] <= min(r["metrics"][c]["rel_mse"] for c in CLASSIC)
+                       + 2 * r["floor"]["rel_mse"])
+            row["methods"][k] = {"rel_mse": TG.geomean([r["metrics"][k]["rel_mse"] for r in have]),
+                                 "bias": TG.geomean([r["metrics"][k]["bias"] for r in have]),
+                                 "near_black": float(np.mean([r["metrics"][k]["near_black"] for r in have])),
+                                 "energy": TG.geomean([r["metrics"][k]["energy"] for r in have]),
+                                 "le_classic": wins, "cells": len(have)}
+        out[name] = row
+    return out
+
+
+def markdown(report, keys, labels) -> str:
+    s = report["settings"]
+    L = [f"# Normal-mapping methods on real assets{' (quick run)' if s['quick'] else ''}", "",
+         f"Generated by `{s['command']}` in {s['elapsed_s'] / 60:.1f} min ({len(report['cells'])} cells; "
+         f"Mitsuba {mi.__version__}, `{s['variant']}`); {s['res']}² px, methods at {s['spp']} spp "
+         f"(×4 for gold), truth at {s['ref_factor']}× that; the plugin's maps in the {s['frame']} frame, "
+         "the classic methods' in Mitsuba's. The method (`validation/real_assets.py`) and the assets' "
+         "licenses: [the harness's documentation](../../../docs/validation.md), `ASSETS.md` here.", "",
+         "| asset | high-poly | low-poly | map | tilt median / p99 | missed texels | re-bake (8-bit steps) |",
+         "|---|---|---|---|---|---|---|"]
+    for a in report["assets"]:
+        t = a["tilt"]["mikktspace"]
+        L.append(f"| {a['asset']} | {a['high_faces']} | {a['low_faces']} | {s['map_size']}² | "
+                 f"{t['median']:.1f}° / {t['p99']:.1f}° | {t['missed']} of {t['covered']} | "
+                 f"{a['rebake']['mikktspace']:.1f} / {a['rebake']['mitsuba']:.1f} (MikkTSpace / Mitsuba) |")
+    L += ["", "## Summary", "", "Geometric means of relMSE and its bias part (4 × 4-pixel block means); "
+          "near-black: mean fraction of object pixels; `≤classic`: cells where the method's relMSE ≤ "
+          "the better of classic and classic_fixed plus twice the noise floor.", ""]
+    for name, row in report["summary"].items():
+        L += [f"### {name} ({row['cells']} cells; noise floor {TG.fmt(row['floor'])})", "",
+              "| method | relMSE | bias part | near-black | energy | ≤classic |", "|---|---|---|---|---|---|"]
+        for k in keys:
+            m = row["methods"].get(k)
+            if m:
+                L.append(f"| {labels[k]} | {TG.fmt(m['rel_mse'])} | {TG.fmt(m['bias'])} | "
+                         f"{m['near_black'] * 100:.2f} % | {TG.fmt(m['energy'], 3)} | {m['le_classic']}/{m['cells']} |")
+        L.append("")
+    L += ["## relMSE per cell", "", "| cell | floor | " + " | ".join(labels[k] for k in keys) + " |",
+          "|---|---|" + "---|" * len(keys)]
+    for r in report["cells"]:
+        L.append(f"| {r['cell']} | {TG.fmt(r['floor']['rel_mse'])} | " + " | ".join(
+            TG.fmt(r["metrics"][k]["rel_mse"]) if k in r["metrics"] else "–" for k in keys) + " |")
+    return "\n".join(L) + "\n"
+
+
+def assets_markdown() -> str:
+    """ASSETS.md: where each asset comes from and its license (:data:`validation.assets.ASSETS`)."""
+    L = ["# The real assets of `validation/real_assets.py`", "",
+         "Fetched at run time, unmodified, with the registries' own clients into the cache "
+         "(`$MFNORMAL_ASSET_CACHE`, default `~/.cache/mfnormal/assets`) and checked against the "
+         "SHA-256 in `validation/assets.py`; never committed. The maps baked from them stay in the cache.",
+         "", "| key | asset | source | license |", "|---|---|---|---|"]
+    L += [f"| {a.key} | {a.title} | {a.source} | {a.license} |" for a in ASSETS.values()]
+    return "\n".join(L) + "\n"
+
+
+def _options(args):
+    base = QUICK if args.quick else FULL
+    opts = {k: getattr(args, k) if getattr(args, k, None) is not None else base[k] for k in base}
+    for name, table in (("assets", ASSETS), ("materials", H.MATERIALS), ("lightings", LIGHTINGS),
+                        ("views", ("frontal", "limb"))):
+        unknown = [v for v in opts[name] if v not in table]
+        if unknown:
+            sys.exit(f"unknown {name}: {', '.join(unknown)}; use {', '.join(table)}")
+    return opts
+
+
+def main(argv=None):
+    args = parse_args(argv)
+    opts = _options(args)
+    mi.set_variant(args.variant)
+    mfnormal.register()
+    methods = [H.method_from_spec(k) for k in (args.methods or (QUICK_METHODS if args.quick else METHODS))]
+    keys = [m.key for m in methods]
+    labels = {m.key: m.label for m in methods}
+    t_start = time.time()
+    prepared = {a: prepare(a, opts["faces"], opts["map_size"]) for a in opts["assets"]}
+    cells = [Cell(*c) for c in itertools.product(opts["assets"], opts["materials"], opts["lightings"],
+                                                 opts["views"])]
+    results = [render_cell(c, prepared[c.asset], methods, args.frame, opts["res"], opts["spp"],
+                           opts["ref_factor"], args.seed) for c in cells]
+    stem = "real_assets_quick" if args.quick else "real_assets"
+    command = "nice .venv/bin/python validation/real_assets.py" + "".join(f" {a}" for a in (argv or sys.argv[1:]))
+    report = {"settings": {**opts, "quick": args.quick, "frame": args.frame, "variant": args.variant,
+                           "command": command, "elapsed_s": time.time() - t_start, "methods": keys},
+              "assets": [{k: v for k, v in p.items() if k not in ("high", "low", "maps")}
+                         for p in prepared.values()],
+              "cells": [{k: v for k, v in r.items() if k not in ("truth", "images")} for r in results],
+              "summary": summarise(results, keys)}
+    args.out.mkdir(parents=True, exist_ok=True)
+    md = markdown(report, keys, labels)
+    atomic_write(args.out / "ASSETS.md", lambda p: Path(p).write_text(assets_markdown()))
+    atomic_write(args.out / f"{stem}.md", lambda p: Path(p).write_text(md))
+    atomic_write(args.out / f"{stem}.json", lambda p: Path(p).write_text(json.dumps(report, indent=1, default=float)))
+    for i, r in enumerate(results):
+        r["index"] = i + 1
+    TG.contact_sheet(results, keys, labels, args.out / f"{stem}.png",
+                     size=opts["res"] // math.ceil(opts["res"] / SHEET_MAX_THUMB),
+                     title="truth (high-poly), then the low-poly with each method; one exposure per row")
+    print(f"wrote {args.out / stem}.{{md,json,png}} in {(time.time() - t_start) / 60:.1f} min")
+    return report
+
+
+if __name__ == "__main__":
+    main()
