@@ -517,6 +517,7 @@ def _report_numbers(path: Path) -> str:
     return re.sub(r"\d+\.\d s\b", "<time>", tables)
 
 
+@pytest.mark.slow
 def test_compare_on_a_local_cluster_gives_the_same_report(tmp_path, capsys):
     scene = _scene(tmp_path)
     args = ["compare", str(scene), "--quick", "--methods", "flat,classic,faithful,analytic"]

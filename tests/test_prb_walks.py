@@ -172,7 +172,7 @@ def builtin_bsdf():
 
 @pytest.mark.parametrize("bsdf, key", [
     pytest.param(mapped("faithful"), "normalmap.data", id="faithful-texel"),
-    pytest.param(mapped("analytic"), "strength", id="analytic-strength"),
+    pytest.param(mapped("analytic"), "strength", id="analytic-strength", marks=pytest.mark.slow),
     pytest.param(builtin_bsdf(), "diffuse_reflectance.value", id="roughplastic-reflectance")])
 def test_mfnormal_prb_equals_prb_for_deterministic_bsdfs(bsdf, key):
     """Where ``eval`` is deterministic ``mfnormal_prb`` is Mitsuba's ``prb``: same primal image,

@@ -46,9 +46,9 @@ def test_the_default_has_no_black_pixels_on_the_grazing_egg_crate():
 
 @pytest.mark.parametrize("c", [
     H.Cell("bumps", "mild", "diffuse", "sky_sun", "frontal", "magnified"),
-    H.Cell("eggcrate", "mild", "diffuse", "sky_sun", "frontal", "magnified"),
+    pytest.param(H.Cell("eggcrate", "mild", "diffuse", "sky_sun", "frontal", "magnified"), marks=pytest.mark.slow),
     H.Cell("eggcrate", "mild", "aluminium", "sky_sun", "grazing", "magnified"),
-    H.Cell("bumps", "mild", "aluminium", "sky_sun", "grazing", "magnified"),
+    pytest.param(H.Cell("bumps", "mild", "aluminium", "sky_sun", "grazing", "magnified"), marks=pytest.mark.slow),
 ], ids=lambda c: c.name)
 def test_on_mild_maps_the_default_is_as_close_to_the_truth_as_classic_normal_mapping(c):
     """relMSE to the true geometry ≤ the better of Mitsuba's normalmap with its fixes on and
