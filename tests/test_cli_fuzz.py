@@ -40,7 +40,7 @@ from fuzzing import Stats, fuzz_test, input_count, render_or_one_line_error
 from gltf_models import base_document, glb_bytes, write_gltf
 from helpers import write_maps, xml_plugin, xml_scene
 
-CI_INPUTS, LONG_INPUTS = 400, 1000
+CI_INPUTS, LONG_INPUTS = 400, 10_000
 INPUTS = input_count(CI_INPUTS, LONG_INPUTS)
 TIMEOUT = 120.0
 FORCED = ["--limit", "render_pixels=4096"]

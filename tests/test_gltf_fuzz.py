@@ -56,7 +56,7 @@ from fuzzing import Stats, fuzz_test, input_count, render_or_one_line_error
 from gltf_models import base_document, glb_bytes
 from mfnormal.io.images import png_bytes
 
-CI_INPUTS, LONG_INPUTS = 800, 3000
+CI_INPUTS, LONG_INPUTS = 800, 10_000
 INPUTS = input_count(CI_INPUTS, LONG_INPUTS)
 TIMEOUT = 60.0
 # Small caps: a mutation that asks for more is refused quickly (and the caps are exercised).
