@@ -14,7 +14,6 @@ from __future__ import annotations
 import re
 
 import mitsuba as mi
-import numpy as np
 
 __all__ = ["is_normal_mapped", "normal_mapped_shapes", "check_scene"]
 
@@ -100,19 +99,20 @@ def check_scene(scene, error: type = ValueError, where: str = "") -> None:
 
 
 def _check_uv_transforms(scene) -> None:
-    from mfnormal.normals.uv import uv_transforms
+    from mfnormal.normals.uv import non_finite_uv_transforms, uv_transforms
 
     owners = [(shape, f"of shape {_shape_name(shape)}") for shape in scene.shapes()]
     for owner, where in owners + [(scene, "of the scene")]:
-        for key, m in uv_transforms(mi.traverse(owner)).items():
-            if not np.all(np.isfinite(m)):
-                texture = key[:-len(".to_uv")].rsplit(".", 1)[-1]
-                raise ValueError(f"the texture '{texture}' {where} has a uv transform (to_uv) that "
-                                 "holds NaN or infinity; give its <transform name=\"to_uv\"> finite "
-                                 "scale, translate and rotate values")
+        for key in non_finite_uv_transforms(uv_transforms(mi.traverse(owner))):
+            texture = key[:-len(".to_uv")].rsplit(".", 1)[-1]
+            raise ValueError(f"the texture '{texture}' {where} has a uv transform (to_uv) that "
+                             "holds NaN or infinity; give its <transform name=\"to_uv\"> finite "
+                             "scale, translate and rotate values")
 
 
 def _check_shapes(scene) -> None:
+    from mfnormal.normals.normal_map import channel_count_message
+
     for shape in normal_mapped_shapes(scene):
         bsdf = shape.bsdf()
         kind = "normalmap_microfacet" if _is_plugin(bsdf) else "normalmap"
@@ -127,5 +127,4 @@ def _check_shapes(scene) -> None:
                              "a tangent-space normal map needs an RGB texture such as a bitmap")
         if channels is not None and channels != 3:
             what = f"'{name}'" if name else "of shape " + _shape_name(shape)
-            raise ValueError(f"normal map {what} has {channels} channel{'s' if channels != 1 else ''}; "
-                             "a tangent-space normal map needs 3 (RGB)")
+            raise ValueError(channel_count_message(what, channels))

@@ -47,6 +47,11 @@ def channels_message(texture, what: str = "") -> str | None:
     if not what:
         name = re.search(r'name = "([^"]*)"', str(texture))
         what = f"'{name.group(1)}'" if name and name.group(1) else "(a bitmap)"
+    return channel_count_message(what, channels)
+
+
+def channel_count_message(what: str, channels: int) -> str:
+    """The one-line refusal of a normal map ``what`` that has ``channels`` channels, not 3."""
     return (f"normal map {what} has {channels} channel{'s' if channels != 1 else ''}; "
             "a tangent-space normal map needs 3 (RGB)")
 

@@ -17,7 +17,7 @@ import numpy as np
 
 from mfnormal.normals.strength import fail
 
-__all__ = ["uv_transforms", "check_uv_transforms", "finite_uv"]
+__all__ = ["uv_transforms", "non_finite_uv_transforms", "check_uv_transforms", "finite_uv"]
 
 
 def uv_transforms(params) -> dict:
@@ -30,15 +30,18 @@ def uv_transforms(params) -> dict:
     return out
 
 
+def non_finite_uv_transforms(transforms: dict) -> list:
+    """The keys of :func:`uv_transforms`' matrices that hold NaN or ±inf."""
+    return [key for key, m in transforms.items() if not np.all(np.isfinite(m))]
+
+
 def check_uv_transforms(texture, name: str, restore: dict | None = None) -> dict:
     """The ``to_uv`` matrices of ``texture`` (the plugin's ``name``: 'normalmap', 'heightmap'),
     each finite, else ValueError (one line). ``restore``: the matrices checked before, written
     back into the texture before raising (a refused ``mi.traverse`` update leaves nothing changed)."""
     params = mi.traverse(texture)
     found = uv_transforms(params)
-    for key, m in found.items():
-        if np.all(np.isfinite(m)):
-            continue
+    for key in non_finite_uv_transforms(found):
         if restore:
             for k, old in restore.items():
                 params[k] = mi.ScalarTransform3f(old.tolist())
