@@ -118,20 +118,22 @@ class MfnormalPath:
             pi[skip] = self.skip_area_emitters(scene, si.spawn_ray(ray.d), True, skip)
         state = (ray, pi, mi.Spectrum(1.0), mi.Spectrum(0.0), mi.Float(1.0), mi.UInt32(0), valid_ray,
                  dr.zeros(mi.Interaction3f), mi.Float(1.0), mi.Bool(True), active, sampler)
-        out = dr.while_loop(state, lambda *s: s[10], lambda *s: self._vertex(scene, *s),
+        offset = self.terminator_offset and terminator.applies(scene)
+        out = dr.while_loop(state, lambda *s: s[10], lambda *s: self._vertex(scene, offset, *s),
                             label="mfnormal_path")
         result, valid_ray = out[3], out[6]
         return dr.select(valid_ray, result, 0.0), valid_ray, []
 
-    def _vertex(self, scene, ray, pi, throughput, result, eta, depth, valid_ray, prev_si, prev_pdf,
+    def _vertex(self, scene, offset, ray, pi, throughput, result, eta, depth, valid_ray, prev_si, prev_pdf,
                 prev_delta, active, sampler):
-        """One iteration of the path loop: emission hit, NEE, BSDF sample, Russian roulette."""
+        """One iteration of the path loop: emission hit, NEE, BSDF sample, Russian roulette
+        (``offset``: rays start on the smooth surface, :mod:`mfnormal.plugins.terminator`)."""
         si = pi.compute_surface_interaction(ray, mi.RayFlags.All)
         result = self._emission(scene, si, prev_si, prev_pdf, prev_delta, throughput, result)
         active_next = (depth + 1 < self.max_depth) & si.is_valid()
         bsdf = si.bsdf(mi.RayDifferential3f(ray))
         active_em = active_next & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
-        if self.terminator_offset:
+        if offset:
             shift = terminator.smooth_shift(si, pi.prim_uv)
             ds, em_weight = terminator.sample_emitter(scene, si, shift, sampler.next_2d(), active_em)
         else:
@@ -144,7 +146,7 @@ class MfnormalPath:
         mis_em = dr.select(ds.delta, 1.0, mis_weight(ds.pdf, pdf))
         result[active_em] = dr.fma(throughput, value * em_weight * mis_em, result)
         origin = si
-        if self.terminator_offset:
+        if offset:
             origin = terminator.moved(si, terminator.outward(si, shift, si.to_world(bs.wo)))
         ray = origin.spawn_ray(si.to_world(bs.wo))
         if dr.grad_enabled(ray):

@@ -196,7 +196,8 @@ class MfnormalPRB:
         pdf_prev, delta_prev = mi.Float(1.0), mi.Bool(True)
         if dr.hint(self.hide_emitters, mode="scalar"):
             pi = self._skip_emitters(scene, ray, pi, active)
-        offset, shift_prev = self.terminator_offset, mi.Vector3f(0.0)   # the ray's origin off its vertex
+        offset = self.terminator_offset and terminator.applies(scene)
+        shift_prev = mi.Vector3f(0.0)   # the ray's origin off its vertex
 
         while dr.hint(active, max_iterations=self.max_depth, label=f"mfnormal_prb ({mode.name})"):
             active_next = mi.Bool(active)

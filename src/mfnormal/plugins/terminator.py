@@ -16,6 +16,12 @@ import drjit as dr
 import mitsuba as mi
 
 
+def applies(scene) -> bool:
+    """Whether ``scene`` has a shape the offset can move (a mesh with vertex normals): elsewhere
+    every shift is 0 and the integrators skip its per-vertex lookup."""
+    return any(shape.is_mesh() and shape.has_vertex_normals() for shape in scene.shapes())
+
+
 def smooth_shift(si, prim_uv, active=True):
     """The detached displacement from ``si.p`` to the smooth surface point (0 where ``si`` is not
     on a mesh with vertex normals, where the point is not on the outer side of the interpolated
