@@ -130,13 +130,19 @@ def query_values(bsdf, si, wo, u, what="eval"):
     raise ValueError(what)
 
 
-def forward(bsdf, key, si, wo, u, what="eval"):
-    """Every query's forward-mode derivative dq_k/dθ for the parameter ``key`` (numpy)."""
+def _attached(bsdf, key):
+    """(the BSDF's parameters, θ's value, the array that holds θ, with derivatives enabled)."""
     params = mi.traverse(bsdf)
     theta = _value(params, key)
     arr = _with_value(params, key, theta)
     dr.enable_grad(arr)
     params.update()
+    return params, theta, arr
+
+
+def forward(bsdf, key, si, wo, u, what="eval"):
+    """Every query's forward-mode derivative dq_k/dθ for the parameter ``key`` (numpy)."""
+    params, theta, arr = _attached(bsdf, key)
     q = query_values(bsdf, si, wo, u, what)
     if isinstance(key, tuple):
         _, index, channel = key
@@ -152,11 +158,7 @@ def forward(bsdf, key, si, wo, u, what="eval"):
 
 def reverse(bsdf, key, si, wo, u, what="eval"):
     """dL/dθ of the queries' mean L by reverse mode."""
-    params = mi.traverse(bsdf)
-    theta = _value(params, key)
-    arr = _with_value(params, key, theta)
-    dr.enable_grad(arr)
-    params.update()
+    params, theta, arr = _attached(bsdf, key)
     loss = dr.mean(query_values(bsdf, si, wo, u, what))
     dr.backward(loss, flags=dr.ADFlag.Default | dr.ADFlag.AllowNoGrad)
     g = np.array(dr.grad(arr), np.float64)

@@ -9,17 +9,11 @@ Path replay backpropagation for stochastic BSDFs (:monosp:`mfnormal_prb`)
  * - max_depth
    - |int|
    - Longest path depth (-1: unbounded; 2: direct light only). Default: 6, as ``prb``.
- * - rr_depth
-   - |int|
-   - Depth from which Russian roulette may stop a path. Default: 5, as ``prb``.
- * - hide_emitters
-   - |bool|
-   - Hide directly visible emitters. Default: false.
- * - terminator_offset
-   - |bool|
-   - Start shadow rays and outgoing rays on smooth-shaded meshes from the smooth surface their
-     vertex normals describe, as ``mfnormal_path`` (Hanika 2021); false: from the triangle, as
-     ``prb``. Default: true.
+ * - rr_depth, hide_emitters, terminator_offset
+   - |int|, |bool|, |bool|
+   - As for :ref:`mfnormal_path <integrator-mfnormal_path>` (defaults 5, false, true): Russian
+     roulette from ``rr_depth`` on, as ``prb``; with ``terminator_offset`` false, shadow rays and
+     outgoing rays start from the triangle, as ``prb``.
 
 Mitsuba's ``prb`` (detached path replay: NEE with MIS, emitter hits, Russian roulette, the
 area Jacobian of moving geometry) with one change, for BSDFs whose ``eval`` is a Monte Carlo
