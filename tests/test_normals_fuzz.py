@@ -264,8 +264,15 @@ def test_fuzzed_normal_sources_are_finite_valid_and_bounded(model, facet, config
                   "sampled direction not unit length")
             check(~live | (np.sum(s_wo * macro, 1) > -1e-6), "sampled direction below the macro plane")
         check(~live | (s_pdf > 0), "sample with weight > 0 has pdf 0")
-        # Not trivially dead (a lobe of α ≤ 1e-3 is non-zero on too few random ω_o to count).
-        assert live.mean() > 0.05, (spec["bsdf"], live.mean())
+        # Not trivially dead. A white diffuse facet's sample always leaves with weight > 0: most
+        # queries from above the macro plane are live (94.6-99.4 % measured). A lossy nested BSDF
+        # on a map whose slopes all lie near the 88.9° clamp can leave few alive, as each bounce's
+        # nested sample may fail (6 % from above with the separable walk, roughplastic,
+        # height_scale 1e6), but never none.
+        with np.errstate(invalid="ignore"):
+            up = np.sum(wi * macro, 1) > 0
+        assert live[up].mean() > 0.5 if kind == 0 else live.any(), (spec["bsdf"], live[up].mean())
+        # (A lobe of α ≤ 1e-3 is non-zero on too few random ω_o to count.)
         assert np.any(value > 0) or spec["bsdf"].get("alpha", 1.0) < 0.01, spec["bsdf"]
         if kind == 0:
             y = s_w[furnace, 0].reshape(GROUPS, GROUP_M)

@@ -140,7 +140,10 @@ Contracts (each one is tested):
   tracing matches path tracing;
 - normals that are NaN, infinite, zero, or point below the horizon never
   produce NaN: they decode to the flat normal, or are clamped to
-  :math:`\cos\theta_p \ge 0.02`. A flat map reproduces the nested BSDF.
+  :math:`\cos\theta_p \ge 0.02`. A flat map reproduces the nested BSDF;
+- a direction within :math:`10^{-12}` of the macro plane (:math:`|\cos\theta| < 10^{-12}`)
+  lies on it: ``eval`` and ``pdf`` are 0 there for every model (below that, float32
+  products of two such cosines underflow, and the pdf could be 0 where ``eval`` was not).
 
 For the random-walk models ``eval`` is an unbiased stochastic estimate
 (next-event estimation along a walk whose random numbers are a hash of the
@@ -213,6 +216,7 @@ import mitsuba as mi
 from mfnormal.models import interface
 from mfnormal.models.interface import DEFAULT_MODEL, MODELS
 from mfnormal.models.microsurface import negate, replace_grad
+from mfnormal.models.shading import off_horizon
 from mfnormal.normals.macro import macro_of
 from mfnormal.normals.normal_map import NUDGES, NormalMap
 from mfnormal.normals.source import MITSUBA_TANGENTS, from_properties
@@ -312,9 +316,9 @@ class NormalMapMicrofacet:
         change's adjoint factor (normals/macro.py)."""
         macro = macro_of(sp)
         if macro is None:
-            return self.model.eval_pdf(ctx, sp, wo, mi.Bool(active), want_value, want_pdf)
+            return self.model.eval_pdf(ctx, sp, off_horizon(wo), mi.Bool(active), want_value, want_pdf)
         wo_m = macro.to_macro(wo)
-        value, pdf = self.model.eval_pdf(ctx, sp, wo_m, mi.Bool(active), want_value, want_pdf)
+        value, pdf = self.model.eval_pdf(ctx, sp, off_horizon(wo_m), mi.Bool(active), want_value, want_pdf)
         k = macro.adjoint(ctx, sp, wo, wo_m) if want_value else None
         return (value if k is None else value * k), pdf
 
@@ -372,7 +376,7 @@ class NormalMapMicrofacet:
             return value, pdf, bs, weight
         macro = macro_of(sp)
         active = mi.Bool(active)
-        wo_m = wo if macro is None else macro.to_macro(wo)
+        wo_m = off_horizon(wo if macro is None else macro.to_macro(wo))
         value, pdf, (bs, weight) = self.model.eval_pdf_sample(ctx, sp, wo_m, sample1, sample2, active)
         if macro is not None:
             k = macro.adjoint(ctx, sp, wo, wo_m)
