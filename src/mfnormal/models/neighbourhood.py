@@ -173,12 +173,31 @@ TABLE_G = 40        # G1(ω_i)^⅓, G1 = 1/(1 + Λ(ω_i)), from 0 to 1 (B change
 _QUAD = 48          # quadrature: _QUAD² stratified cosine-weighted directions on the facet
 
 
-def _quadrature():
-    """Stratified cosine-weighted directions around +z (deterministic)."""
+def _facet_quadrature(c: float, s: float):
+    """(directions, weights) on a facet with cosθ_p = c, sinθ_p = s, in its frame (x up-slope,
+    z = ω_p): Σ w·F ≈ (1/π)∫ F⟨ω,ω_p⟩ dω over the facet's directions above the macro plane.
+
+    _QUAD stratified cosine-weighted rings r = sinθ; each ring's azimuths ψ fill only the arc
+    above the macro plane (ω_z = r·cosψ·s + cosθ·c > 0: |ψ| < ψ_max(r)), _QUAD midpoints, each
+    weighing ψ_max/π over the _QUAD² points. A fixed grid cut by that plane (a discontinuity
+    between its points) overstated B at the clamp by 0.0064: a white facet then reflected
+    1.0065 of the light at θ_p = 88.85° and ω_i 1e-4 above the horizon."""
     u = (np.arange(_QUAD) + 0.5) / _QUAD
-    u1, u2 = np.meshgrid(u, u, indexing="ij")
-    r, phi = np.sqrt(u1.ravel()), 2.0 * np.pi * u2.ravel()
-    return np.stack([r * np.cos(phi), r * np.sin(phi), np.sqrt(np.maximum(1.0 - r * r, 0.0))], -1)
+    r = np.sqrt(u)
+    z = np.sqrt(np.maximum(1.0 - r * r, 0.0))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        a = np.where(r * s > 0.0, -z * c / np.maximum(r * s, 1e-300), -np.inf)
+    psi_max = np.where(a <= -1.0, np.pi, np.arccos(np.clip(a, -1.0, 1.0)))
+    # Full rings: midpoints (periodic, spectrally accurate); cut rings: Gauss-Legendre nodes,
+    # which crowd toward the arc's ends, where S falls to 0 within a thin layer above the plane.
+    x, w = np.polynomial.legendre.leggauss(_QUAD)
+    full = psi_max >= np.pi
+    psi = np.where(full[:, None], np.pi * (2.0 * u[None, :] - 1.0), psi_max[:, None] * x[None, :])
+    w_psi = np.where(full[:, None], 1.0 / _QUAD, 0.5 * w[None, :] * (psi_max / np.pi)[:, None])
+    rr = np.repeat(r, _QUAD)
+    local = np.stack([rr * np.cos(psi.ravel()), rr * np.sin(psi.ravel()), np.repeat(z, _QUAD)], -1)
+    weights = w_psi.ravel() / _QUAD
+    return local, weights
 
 
 @functools.lru_cache(maxsize=8)
@@ -190,13 +209,13 @@ def blocked_table(sigma1: float, sigma2: float, cos_min: float, derivatives: boo
     With ``derivatives``: (B, ∂B/∂σ1, ∂B/∂σ2) at fixed G1(ω_i) (its own σ-dependence is the
     lookup's), by the same quadrature: ∂S/∂Λ(ω) = −(1 + Λ_i)/(1 + Λ_i + Λ(ω))². Cached (scenes
     that share a map rebuild the same tables after each update): treat the arrays as read-only."""
-    local = _quadrature()
     g = np.linspace(0.0, 1.0, TABLE_G) ** 3
     lam_i = np.where(g > 0, 1.0 / np.maximum(g, 1e-30) - 1.0, 1e30)[:, None]
     table = np.zeros((TABLE_COS, TABLE_PHI, TABLE_G))
     d1, d2 = np.zeros_like(table), np.zeros_like(table)
     for i, theta in enumerate(np.linspace(0.0, math.acos(cos_min), TABLE_COS)):
         c, s = math.cos(theta), math.sin(theta)
+        local, weights = _facet_quadrature(c, s)
         for j, phi in enumerate(np.linspace(0.0, 0.5 * math.pi, TABLE_PHI)):
             # The facet's frame: n = ω_p, t1 = the up-slope direction in its plane, t2 = n × t1.
             wp = np.array([s * math.cos(phi), s * math.sin(phi), c])
@@ -207,11 +226,11 @@ def blocked_table(sigma1: float, sigma2: float, cos_min: float, derivatives: boo
             lam_d = lam_d[None, :]
             up = d[None, :, 2] > 0
             seen = np.where(up, (1.0 + lam_i) / (1.0 + lam_i + lam_d), 0.0)
-            table[i, j] = 1.0 - seen.mean(axis=1)
+            table[i, j] = 1.0 - seen @ weights
             if derivatives:
                 d_seen = np.where(up, (1.0 + lam_i) / (1.0 + lam_i + lam_d) ** 2, 0.0)   # −∂S/∂Λ
-                d1[i, j] = (d_seen * dl1[None, :]).mean(axis=1)
-                d2[i, j] = (d_seen * dl2[None, :]).mean(axis=1)
+                d1[i, j] = (d_seen * dl1[None, :]) @ weights
+                d2[i, j] = (d_seen * dl2[None, :]) @ weights
     out = (np.clip(table, 0.0, 1.0).astype(np.float32), d1.astype(np.float32), d2.astype(np.float32))
     for a in out:
         a.setflags(write=False)
