@@ -97,6 +97,7 @@ def test_the_dielectric_summary_and_report_count_what_they_say():
     d = s["all cells"]["methods"]["default"]
     assert d["rel_mse"] == pytest.approx(0.2) and d["bias"] == pytest.approx(0.05)
     assert (d["le_classic"], d["lt_nomap"]) == (1, 1) and s["all cells"]["refused"]["analytic"] == 2
+    assert s["from inside"]["methods"]["default"]["le_classic"] == 0 and s["from inside"]["cells"] == 1
     assert "analytic" not in s["all cells"]["methods"]
     settings = {"command": "python -m validation.dielectric --quick", "elapsed_s": 6.0, "cells": 2,
                 "res": 16, "spp": 4, "ref_factor": 4, "methods": keys, "stem": "dielectric_quick"}
@@ -105,7 +106,7 @@ def test_the_dielectric_summary_and_report_count_what_they_say():
                                       "floor": {"rel_mse": 0.019}, "same_seed": 1e-5}]},
                     {"default": "default"}, quick=True)
     assert "python -m validation.dielectric --quick" in md
-    assert "| default | 0.2 | 0.05 | 0.5 | 25.00 % | 1/2 | 1/2 |" in md
+    assert "| default | 0.2 | 0.05 | 0.5 (0.5–0.5) | 25.00 % | 1/2 | 1/2 |" in md
     assert "| analytic | refused in 2 of 2 cells |" in md and "refused: ValueError: refuses transmission" in md
     assert "| water | oblique40 | 0.02 | 0.019 | 1.001 | 1.00e-05 |" in md
     assert "(dielectric_quick.png)" in md

@@ -181,14 +181,15 @@ def _best_classic(r):
 
 
 def summarise(results, keys) -> dict:
-    """Per group: the floor's and each method's geometric means of relMSE, bias part and energy
-    ratio, mean near-black share, and the cells where the method is ≤ the better classic
-    and < the un-mapped plane."""
+    """Per group: the floor's and each method's geometric means of relMSE and its bias part, the
+    mean and range of the energy ratio (a method can render nothing: 0 has no geometric mean),
+    the mean near-black share, and the cells where the method is ≤ the better classic and < the
+    un-mapped plane."""
     out = {}
     for gname, pred in groups([r["cell"] for r in results]).items():
         rs = [r for r in results if pred(r["cell"])]
         row = {"cells": len(rs), "floor_rel_mse": TG.geomean([r["floor"]["rel_mse"] for r in rs]),
-               "methods": {}, "refused": {}}
+               "floor_bias": TG.geomean([r["floor"]["bias"] for r in rs]), "methods": {}, "refused": {}}
         for k in keys:
             have = [r for r in rs if k in r["metrics"]]
             row["refused"][k] = sum(1 for r in rs if k in r["errors"])
@@ -198,7 +199,8 @@ def summarise(results, keys) -> dict:
             row["methods"][k] = {
                 "cells": len(have), "rel_mse": TG.geomean([x["rel_mse"] for x in m]),
                 "bias": TG.geomean([x["bias"] for x in m]),
-                "energy": TG.geomean([x["energy"] for x in m]),
+                "energy": float(np.mean([x["energy"] for x in m])),
+                "energy_range": [min(x["energy"] for x in m), max(x["energy"] for x in m)],
                 "near_black_new": float(np.mean([x["near_black_new"] for x in m])),
                 "le_classic": sum(1 for r in have if _best_classic(r) is not None
                                   and r["metrics"][k]["rel_mse"] <= _best_classic(r)),
@@ -238,7 +240,8 @@ def _setup(settings) -> list:
         "(the error that is not pixel noise); energy = mean luminance / the truth's; near-black = the "
         "share of pixels whose luminance is below 5 % of the truth's median where the truth's is not; "
         "noise floor = the truth rendered again at the methods' spp with another seed, scored like a "
-        "method. Geometric means over cells; `≤ classic`: cells where the method's relMSE ≤ the better of "
+        "method. Summaries: geometric means of relMSE and bias part over the cells, the mean (and range) "
+        "of the energy ratio, the mean near-black share; `≤ classic`: cells where the method's relMSE ≤ the better of "
         "Mitsuba's `normalmap` with fixes off and on; `< no map`: cells where it is below the un-mapped "
         "plane's.", ""]
 
@@ -265,13 +268,15 @@ def _summary_section(summary, keys, labels) -> list:
         L += [f"### {gname} ({row['cells']} cells)", ""]
 
         def line(k, m, row=row):
+            lo, hi = m["energy_range"]
             return (f"| {labels.get(k, k)} | {TG.fmt(m['rel_mse'])} | {TG.fmt(m['bias'])} | "
-                    f"{TG.fmt(m['energy'], 3)} | {_pct(m['near_black_new'])} | {m['le_classic']}/{m['cells']} | "
-                    f"{m['lt_nomap']}/{m['cells']} |")
+                    f"{TG.fmt(m['energy'], 3)} ({TG.fmt(lo, 2)}–{TG.fmt(hi, 2)}) | {_pct(m['near_black_new'])} | "
+                    f"{m['le_classic']}/{m['cells']} | {m['lt_nomap']}/{m['cells']} |")
         refused = {k: f"| {labels.get(k, k)} | refused in {n} of {row['cells']} cells | | | | | |"
                    for k, n in row["refused"].items() if n == row["cells"]}
-        TG.method_table(L, "| method | relMSE | bias part | energy | near-black | ≤ classic | < no map |",
-                        f"| *noise floor* | {TG.fmt(row['floor_rel_mse'])} | | 1 | | | |", keys,
+        TG.method_table(L, "| method | relMSE | bias part | energy (range) | near-black | ≤ classic | < no map |",
+                        f"| *noise floor* | {TG.fmt(row['floor_rel_mse'])} | {TG.fmt(row['floor_bias'])} | 1 | "
+                        "| | |", keys,
                         row["methods"], line, refused)
     return L
 
