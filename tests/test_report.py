@@ -277,3 +277,34 @@ def test_domes_normal_map_bulges_out_in_the_opengl_convention():
     # texels to its lower right (image down = -y) lean right (+x) and down (-y).
     corner = n[3:10, 3:10]
     assert np.all(corner[..., 0] > 0) and np.all(corner[..., 1] < 0)
+
+
+# ---------------------------------------------------------------------------
+# The bundled water scene (d)
+# ---------------------------------------------------------------------------
+
+def test_ripples_normal_map_tiles_and_hits_its_max_tilt():
+    n = assets.make_ripples_normalmap(size=128, max_tilt_deg=25.0)
+    assert np.allclose(np.linalg.norm(n, axis=-1), 1.0, atol=1e-5)
+    tilt = np.degrees(np.arccos(n[..., 2]))
+    assert 24.0 < tilt.max() <= 25.0 + 1e-3 and np.median(tilt) > 5.0
+    # Integer wave numbers: the last column continues into the first (a seamless tile).
+    step = np.abs(n[:, 0] - n[:, -1]).max()
+    assert step < 3 * np.abs(np.diff(n, axis=1)).max()
+
+
+def test_compare_renders_the_water_scene_with_every_method(tmp_path):
+    """``mfnormal compare water --quick``: the report and a finite render per method, the floor
+    seen through the water (the flat surface's render is not dark)."""
+    env = dict(os.environ, PYTHONPATH=str(ROOT / "src"))
+    proc = subprocess.run([sys.executable, "-m", "mfnormal", "compare", "water", "--quick",
+                           "-o", str(tmp_path)], env=env, capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    text = (tmp_path / "report.html").read_text(encoding="utf-8")
+    assert "id='scene-water'" in text
+    for method in METHODS:
+        img = np.array(mi.Bitmap(str(tmp_path / "water" / f"{method.key}.exr")))
+        assert img.shape[1] == compare.QUICK.width and np.isfinite(img).all() and (img >= 0).all()
+        assert f"img-water-{method.key}" in text
+    flat = np.array(mi.Bitmap(str(tmp_path / "water" / "flat_ref.exr")))
+    assert flat.mean() > 0.05
