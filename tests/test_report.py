@@ -280,7 +280,7 @@ def test_domes_normal_map_bulges_out_in_the_opengl_convention():
 
 
 # ---------------------------------------------------------------------------
-# The bundled water scene (d)
+# The bundled dielectric scenes: water (d) and glass (e)
 # ---------------------------------------------------------------------------
 
 def test_ripples_normal_map_tiles_and_hits_its_max_tilt():
@@ -293,18 +293,19 @@ def test_ripples_normal_map_tiles_and_hits_its_max_tilt():
     assert step < 3 * np.abs(np.diff(n, axis=1)).max()
 
 
-def test_compare_renders_the_water_scene_with_every_method(tmp_path):
-    """``mfnormal compare water --quick``: the report and a finite render per method, the floor
-    seen through the water (the flat surface's render is not dark)."""
+@pytest.mark.parametrize("scene", ["water", pytest.param("glass", marks=pytest.mark.slow)])
+def test_compare_renders_the_dielectric_scenes_with_every_method(tmp_path, scene):
+    """``mfnormal compare water --quick`` (and ``glass``): the report and a finite, non-negative
+    render per method; the floor is seen through the un-mapped surface (its render is not dark)."""
     env = dict(os.environ, PYTHONPATH=str(ROOT / "src"))
-    proc = subprocess.run([sys.executable, "-m", "mfnormal", "compare", "water", "--quick",
+    proc = subprocess.run([sys.executable, "-m", "mfnormal", "compare", scene, "--quick",
                            "-o", str(tmp_path)], env=env, capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stdout + proc.stderr
     text = (tmp_path / "report.html").read_text(encoding="utf-8")
-    assert "id='scene-water'" in text
+    assert f"id='scene-{scene}'" in text
     for method in METHODS:
-        img = np.array(mi.Bitmap(str(tmp_path / "water" / f"{method.key}.exr")))
+        img = np.array(mi.Bitmap(str(tmp_path / scene / f"{method.key}.exr")))
         assert img.shape[1] == compare.QUICK.width and np.isfinite(img).all() and (img >= 0).all()
-        assert f"img-water-{method.key}" in text
-    flat = np.array(mi.Bitmap(str(tmp_path / "water" / "flat_ref.exr")))
+        assert f"img-{scene}-{method.key}" in text
+    flat = np.array(mi.Bitmap(str(tmp_path / scene / "flat_ref.exr")))
     assert flat.mean() > 0.05

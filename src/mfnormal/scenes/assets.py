@@ -1,6 +1,6 @@
 """The bundled scenes and their procedural assets (nothing is downloaded).
 
-:data:`BUNDLED` names the four scenes ``mfnormal compare`` knows: each is an XML
+:data:`BUNDLED` names the five scenes ``mfnormal compare`` knows: each is an XML
 file in ``scenes/``, a function that writes its assets into a folder and one that
 turns their paths into the scene's ``$`` parameters.
 
@@ -17,7 +17,9 @@ turns their paths into the scene's ``$`` parameters.
 - (c) ``eggcrate`` (:data:`EGGCRATE_XML`): glossy metal at grazing view;
   :func:`make_eggcrate_normalmap`;
 - (d) ``water`` (:data:`WATER_XML`): a rippled water surface (``dielectric``, ior 1.33) over
-  a checkerboard floor: :func:`make_ripples_normalmap`, a periodic sum of waves.
+  a checkerboard floor: :func:`make_ripples_normalmap`, a periodic sum of waves;
+- (e) ``glass`` (:data:`GLASS_XML`): a sphere of hammered glass (``dielectric``, ior 1.5, the
+  dome map of scene (b) with rims at 35°) on the same floor.
 
 Every scene is lit by the sky of :mod:`mfnormal.scenes.sky` (:data:`mfnormal.scenes.sky.DEMO` with
 a sun). Normal maps are written as 8-bit PNGs (:func:`encode_normalmap`), OpenGL
@@ -40,7 +42,7 @@ __all__ = ["BUNDLED", "Bundled", "DEMO_XML", "MODEL_XML", "EGGCRATE_XML", "encod
            "make_domes_normalmap", "make_roughness_map", "generate_model_assets",
            "model_parameters", "make_eggcrate_normalmap", "generate_eggcrate_assets",
            "file_parameters", "map_and_sky_parameters", "WATER_XML", "make_ripples_normalmap",
-           "generate_water_assets"]
+           "generate_water_assets", "GLASS_XML", "generate_glass_assets"]
 
 SCENES = Path(__file__).resolve().parent
 #: Scene (a): the demo (single source of truth).
@@ -51,11 +53,14 @@ MODEL_XML = SCENES / "model.xml"
 EGGCRATE_XML = SCENES / "eggcrate.xml"
 #: Scene (d): water over a floor.
 WATER_XML = SCENES / "water.xml"
+#: Scene (e): a hammered glass sphere.
+GLASS_XML = SCENES / "glass.xml"
 
 TILES_NAME = "normalmap.png"
 MESH_NAME = "knot.ply"
 EGGCRATE_NAME = "eggcrate.png"
 RIPPLES_NAME = "ripples.png"
+HAMMERED_NAME = "hammered.png"
 DOMES_NAME = "domes.png"
 ROUGHNESS_NAME = "roughness.exr"
 ENVMAP_NAME = "envmap.exr"
@@ -412,6 +417,16 @@ def generate_water_assets(assets_dir) -> dict:
     return paths
 
 
+def generate_glass_assets(assets_dir) -> dict:
+    """Write the textures of scene (e) into ``assets_dir``: the hammered-glass dome map (rims at
+    35°) and the sky without a sun (see :func:`generate_water_assets`)."""
+    assets_dir = Path(assets_dir)
+    paths = {"normalmap": assets_dir / HAMMERED_NAME, "envmap": assets_dir / ENVMAP_NAME}
+    _write_png(paths["normalmap"], make_domes_normalmap(rim_tilt_deg=35.0))
+    _write_exr(paths["envmap"], sky.envmap(256, 128, sky.DEMO))
+    return paths
+
+
 # ---------------------------------------------------------------------------
 # The bundled scenes
 # ---------------------------------------------------------------------------
@@ -427,7 +442,7 @@ class Bundled:
 
 
 def map_and_sky_parameters(assets: dict) -> dict:
-    """The ``$normalmap`` and ``$envmap`` of scenes (a), (c) and (d) for generated ``assets``."""
+    """The ``$normalmap`` and ``$envmap`` of scenes (a), (c), (d) and (e) for generated ``assets``."""
     return file_parameters(assets, ("normalmap", "envmap"))
 
 
@@ -439,5 +454,7 @@ BUNDLED = {b.name: b for b in (
     Bundled("eggcrate", EGGCRATE_XML, "(c) egg crate: glossy metal at 78° from the vertical",
             generate_eggcrate_assets, map_and_sky_parameters),
     Bundled("water", WATER_XML, "(d) water: rippled water over a tiled floor", generate_water_assets,
+            map_and_sky_parameters),
+    Bundled("glass", GLASS_XML, "(e) glass: a hammered glass sphere on a tiled floor", generate_glass_assets,
             map_and_sky_parameters),
 )}
