@@ -72,22 +72,28 @@ QUICK = dict(materials=["water", "rough_glass"], steepness=["mild", "steep"], vi
              res=32, spp=16, ref_factor=4)
 
 
-def parse_args(argv=None):
-    p = argparse.ArgumentParser(prog="python -m validation.dielectric",
-                                description=__doc__.split("\n\n")[0],
-                                formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__)
+def harness_parser(module: str, doc: str, quick: str) -> argparse.ArgumentParser:
+    """The options this harness and :mod:`validation.furnace_glass` share: --out, --quick (``quick``:
+    its help), --methods, --seed; the module's docstring ``doc`` is the help's text."""
+    p = argparse.ArgumentParser(prog=f"python -m {module}", description=doc.split("\n\n")[0],
+                                formatter_class=argparse.RawDescriptionHelpFormatter, epilog=doc)
     p.add_argument("--out", type=Path, default=ROOT / "validation" / "results")
-    p.add_argument("--quick", action="store_true", help="4 cells at 32² px, 16 spp (under a minute)")
-    for name in ("materials", "steepness", "views"):
-        p.add_argument(f"--{name}", type=lambda s: s.split(","), default=None,
-                       help=f"comma-separated subset (default: {','.join(FULL[name])})")
+    p.add_argument("--quick", action="store_true", help=quick)
     p.add_argument("--methods", type=lambda s: s.split(","), default=list(DEFAULT_METHODS),
                    help="validation.heightfield method keys or plugin:MODEL[:FACET][,k=v] ('plugin:': "
                         "the plugin's default model)")
+    p.add_argument("--seed", type=int, default=0)
+    return p
+
+
+def parse_args(argv=None):
+    p = harness_parser("validation.dielectric", __doc__, "4 cells at 32² px, 16 spp (under a minute)")
+    for name in ("materials", "steepness", "views"):
+        p.add_argument(f"--{name}", type=lambda s: s.split(","), default=None,
+                       help=f"comma-separated subset (default: {','.join(FULL[name])})")
     p.add_argument("--res", type=int, default=None)
     p.add_argument("--spp", type=int, default=None, help="per method render")
     p.add_argument("--ref-factor", type=int, default=None, help="truth reference spp = this × spp")
-    p.add_argument("--seed", type=int, default=0)
     return p.parse_args(argv)
 
 
@@ -338,33 +344,49 @@ def run(args) -> dict:
         print(f"[{i + 1}] {c.name}: {time.time() - t0:.1f} s", flush=True)
     report = {"flat_checks": checks, "cells": [TG.strip_images(r) for r in results],
               "summary": summarise(results, keys)}
-    cmd = "nice .venv/bin/python -m validation.dielectric" + (" " + " ".join(args.argv) if args.argv else "")
-    report["settings"] = {"command": cmd, "elapsed_s": time.time() - t_start, "cells": len(results),
+    report["settings"] = {"command": command("validation.dielectric", args.argv), "elapsed_s": time.time() - t_start, "cells": len(results),
                           "res": res, "spp": spp, "ref_factor": rf, "seed": args.seed, "methods": keys,
                           "stem": stem, "method_about": {m.key: m.about for m in methods}}
     write(report, results, labels, args.out, stem, args.quick)
     return report
 
 
+def thumb_size(res: int) -> int:
+    """Contact-sheet thumbnails: ``res`` px renders shrunk by an integer factor to ≥ 48 px, small
+    ones enlarged by an integer factor to ≤ 64 px."""
+    return res // max(1, res // 48) if res >= 48 else res * max(1, 64 // res)
+
+
 def write(report, results, labels, out: Path, stem: str, quick: bool):
     """``stem``.md, .json and .png (the contact sheet of ``results``) in ``out``."""
-    out.mkdir(parents=True, exist_ok=True)
-    md = markdown(report, labels, quick)
-    atomic_write(out / f"{stem}.md", lambda p: Path(p).write_text(md))
-    atomic_write(out / f"{stem}.json", lambda p: Path(p).write_text(json.dumps(report, indent=1, default=float)))
+    write_text_files(out, stem, markdown(report, labels, quick), report)
     for i, r in enumerate(results):
         r["index"] = i + 1
     if results:
         res = report["settings"]["res"]
         TG.contact_sheet(results, report["settings"]["methods"], labels, out / f"{stem}.png",
-                         size=res * max(1, 64 // res), title="truth, then each method; one exposure per row")
+                         size=thumb_size(res), title="truth, then each method; one exposure per row")
     print(f"wrote {out / stem}.{{md,json,png}}")
 
 
-def main(argv=None):
-    args = parse_args(argv)
+def command(module: str, argv) -> str:
+    """The command line that reproduces a run of ``module`` with ``argv``."""
+    return f"nice .venv/bin/python -m {module}" + (" " + " ".join(argv) if argv else "")
+
+
+def write_text_files(out: Path, stem: str, md: str, report: dict):
+    """``stem``.md (``md``) and ``stem``.json (``report``) in ``out``, atomically."""
+    out.mkdir(parents=True, exist_ok=True)
+    atomic_write(out / f"{stem}.md", lambda p: Path(p).write_text(md))
+    atomic_write(out / f"{stem}.json", lambda p: Path(p).write_text(json.dumps(report, indent=1, default=float)))
+
+
+def main(argv=None, parse=None, runner=None):
+    """Parse ``argv`` with ``parse`` (default :func:`parse_args`) and run ``runner`` (default
+    :func:`run`) on it, the arguments kept as ``args.argv`` for the report's command line."""
+    args = (parse or parse_args)(argv)
     args.argv = list(sys.argv[1:] if argv is None else argv)
-    run(args)
+    (runner or run)(args)
 
 
 if __name__ == "__main__":

@@ -22,8 +22,6 @@ Writes ``furnace_glass.md``, ``.json`` and ``.png`` (one row per material and ti
 
 from __future__ import annotations
 
-import argparse
-import json
 import sys
 import time
 from pathlib import Path
@@ -41,8 +39,8 @@ mfnormal.register()
 
 from validation import heightfield as H  # noqa: E402
 from validation import true_geometry as TG  # noqa: E402
-from validation.dielectric import DEFAULT_METHODS, method  # noqa: E402
-from mfnormal.io.images import atomic_write  # noqa: E402
+from validation.dielectric import (command, harness_parser, main as dielectric_main, method,  # noqa: E402
+                                   thumb_size, write_text_files)
 
 MAX_DEPTH = 64
 #: The sphere's uv carries this many periods of the map (u around the equator, v pole to pole).
@@ -61,18 +59,12 @@ OFF = (0.05, 0.10)
 
 
 def parse_args(argv=None):
-    p = argparse.ArgumentParser(prog="python -m validation.furnace_glass",
-                                description=__doc__.split("\n\n")[0],
-                                formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__)
-    p.add_argument("--out", type=Path, default=ROOT / "validation" / "results")
-    p.add_argument("--quick", action="store_true", help="32² px, 64 spp (a few seconds)")
+    p = harness_parser("validation.furnace_glass", __doc__, "32² px, 64 spp (a few seconds)")
     p.add_argument("--tilts", type=lambda s: [float(t) for t in s.split(",")], default=[20.0, 50.0],
                    help="max tilts of the egg-crate map, degrees")
     p.add_argument("--materials", type=lambda s: s.split(","), default=list(GLASS))
-    p.add_argument("--methods", type=lambda s: s.split(","), default=list(DEFAULT_METHODS))
     p.add_argument("--res", type=int, default=None, help="default 64 (quick: 32)")
     p.add_argument("--spp", type=int, default=None, help="per method render, default 256 (quick: 64)")
-    p.add_argument("--seed", type=int, default=0)
     return p.parse_args(argv)
 
 
@@ -203,26 +195,21 @@ def run(args) -> dict:
             rows.append(measure(material, tilt, methods, res, spp, 1000 * args.seed + round(tilt)))
             print(f"{rows[-1]['cell']}: " + ", ".join(f"{k} {m['mean']:.3f}" for k, m in rows[-1]["metrics"].items()),
                   flush=True)
-    cmd = "nice .venv/bin/python -m validation.furnace_glass" + (" " + " ".join(args.argv) if args.argv else "")
+    cmd = command("validation.furnace_glass", args.argv)
     report = {"rows": [{k: v for k, v in r.items() if k not in ("truth", "images", "index")} for r in rows],
               "settings": {"command": cmd, "elapsed_s": time.time() - t_start, "res": res, "spp": spp,
                            "seed": args.seed, "methods": keys, "stem": stem}}
-    args.out.mkdir(parents=True, exist_ok=True)
-    md = markdown(report, labels, args.quick)
-    atomic_write(args.out / f"{stem}.md", lambda p: Path(p).write_text(md))
-    atomic_write(args.out / f"{stem}.json", lambda p: Path(p).write_text(json.dumps(report, indent=1, default=float)))
+    write_text_files(args.out, stem, markdown(report, labels, args.quick), report)
     for r in rows:
         r["index"] = r["cell"]
-    TG.contact_sheet(rows, keys, labels, args.out / f"{stem}.png", size=res * max(1, 64 // res),
+    TG.contact_sheet(rows, keys, labels, args.out / f"{stem}.png", size=thumb_size(res),
                      title="reference, then each method; exposure: the reference's mean")
     print(f"wrote {args.out / stem}.{{md,json,png}}")
     return report
 
 
 def main(argv=None):
-    args = parse_args(argv)
-    args.argv = list(sys.argv[1:] if argv is None else argv)
-    run(args)
+    dielectric_main(argv, parse_args, run)
 
 
 if __name__ == "__main__":
