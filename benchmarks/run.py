@@ -22,7 +22,7 @@ One run measures, side by side, every method on every scene and nested BSDF:
 Profiles: ``full`` (192×144, 16 spp, every metric), ``production`` (1280×720 on the
 demo and the torus knot with the scenes' own materials: render time and compile only;
 sized to about 15 minutes on 2 idle cores, see PRODUCTION), ``water`` (the water scene,
-render time, about a minute) and ``quick`` (a smoke test).
+render time, under a minute) and ``quick`` (a smoke test).
 The default, ``--profile all``, runs ``full``, ``production`` and ``water``, and the reverse-mode
 benchmark ``benchmarks/backward.py`` (its table is copied into RESULTS.md).
 
@@ -183,7 +183,7 @@ QUICK = Profile("quick", ("plane", "control"), ("diffuse",), METHOD_KEYS, width=
                 compile_warm_reps=1, compile_runs=2, compile_scenes=("plane",), vertex_size=(32, 24))
 # The water scene with its own dielectric: the default model against the built-in wrapping the same
 # dielectric, render time at equal spp only (the other methods absorb the transmitted light).
-WATER = Profile("water", ("water",), (NATIVE,), ("builtin", "faithful"), width=192, height=128, spp=16,
+WATER = Profile("water", ("water",), (NATIVE,), ("builtin", "faithful"), width=384, height=256, spp=32,
                 reps=6, ref_spp=0, ref_pass=1, noise_seeds=0, queries=0, tput_reps=0, stub_reps=1,
                 compile_warm_reps=0, metrics=("render",))
 PROFILES = {"full": (FULL,), "production": (PRODUCTION,), "water": (WATER,), "all": (FULL, PRODUCTION, WATER)}
