@@ -132,3 +132,20 @@ def test_the_harness_commands_document_themselves(capsys):
         assert exit_.value.code == 0
         out = capsys.readouterr().out
         assert "--quick" in out and "--methods" in out and module.__doc__.split("\n\n")[0] in out
+
+
+def test_the_cells_views_and_floor_are_where_the_names_say():
+    """From inside, the camera is below the surface looking up and sees the same footprint as
+    from above at the same angle; a floor cell has its checkerboard floor below the surface and
+    its name says so, and a cell without a floor keeps the name (and seed) it always had."""
+    inside, above = D.cell("water", "mild", "inside40"), D.cell("water", "mild", "oblique40")
+    assert H.footprint(H.VIEWS["inside40"]) == pytest.approx(H.footprint(H.VIEWS["oblique40"]))
+    scene = inside.truth_scene(res=8, spp=1)
+    origin = np.array(scene["sensor"]["to_world"].matrix)[:3, 3]
+    assert origin[2] < inside.hf().height_range[0] and "floor" not in scene
+    floor = above.plane_scene(D.method("nomap"), res=8, spp=1)["floor"]
+    z = np.array(mi.traverse(floor)["vertex_positions"]).reshape(-1, 3)[:, 2]
+    assert np.allclose(z, above.hf().mean_height - D.FLOOR_DEPTH)
+    assert above.name.endswith("/floor0.25") and "floor" not in inside.name
+    plain = H.Cell("eggcrate", "mild", "diffuse", "sky_sun", "frontal", "magnified")
+    assert plain.name == "eggcrate/mild/diffuse/sky_sun/frontal/magnified"

@@ -329,6 +329,10 @@ def run(args) -> dict:
     """Render the flat checks and the cells; write the report files. Returns the report data."""
     base = QUICK if args.quick else FULL
     opts = {k: getattr(args, k) if getattr(args, k, None) is not None else base[k] for k in base}
+    for name, known in (("materials", MATERIALS), ("steepness", STEEPNESS), ("views", VIEWS)):
+        unknown = [v for v in opts[name] if v not in known]
+        if unknown:
+            sys.exit(f"unknown {name}: {', '.join(unknown)}; use {', '.join(known)}")
     methods = [method(s) for s in args.methods]
     keys = [m.key for m in methods]
     labels = {"truth": "truth", **{m.key: m.label for m in methods}}
