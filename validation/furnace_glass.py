@@ -64,7 +64,7 @@ def parse_args(argv=None):
                    help="max tilts of the egg-crate map, degrees")
     p.add_argument("--materials", type=lambda s: s.split(","), default=list(GLASS))
     p.add_argument("--res", type=int, default=None, help="default 64 (quick: 32)")
-    p.add_argument("--spp", type=int, default=None, help="per method render, default 256 (quick: 64)")
+    p.add_argument("--spp", type=int, default=None, help="per method render, default 1024 (quick: 64)")
     return p.parse_args(argv)
 
 
@@ -183,7 +183,7 @@ def markdown(report: dict, labels: dict, quick: bool = False) -> str:
 
 def run(args) -> dict:
     res = args.res or (32 if args.quick else 64)
-    spp = args.spp or (64 if args.quick else 256)
+    spp = args.spp or (64 if args.quick else 1024)
     methods = [method(s) for s in args.methods]
     keys = [m.key for m in methods]
     labels = {"truth": "reference", **{m.key: m.label for m in methods}}
