@@ -57,21 +57,27 @@ def test_the_smooth_glass_sphere_without_a_map_is_white_in_the_furnace():
     assert F.furnace_metrics(F.render_sphere(classic, res, 16, seed=1)[0], 1.0, mask)["mean"] < 0.7
 
 
-@pytest.mark.parametrize("material, steepness, view", [
-    ("water", "steep", "inside40"),
-    pytest.param("rough_glass", "mild", "oblique40", marks=pytest.mark.slow),
+@pytest.mark.parametrize("material, steepness, view, delta_paths", [
+    ("water", "steep", "inside40", True),
+    pytest.param("rough_glass", "mild", "oblique40", False, marks=pytest.mark.slow),
 ])
-def test_every_method_renders_a_dielectric_cell_or_is_recorded_as_refused(material, steepness, view):
+def test_every_method_renders_a_dielectric_cell_or_is_recorded_as_refused(material, steepness, view,
+                                                                          delta_paths):
     """Every method of the default list renders finite, non-negative values (before the harness
     sets NaN/Inf to 0) and is scored, or its load error is recorded as a refusal; a model the
-    plugin does not have is such a refusal, and the report says so."""
+    plugin does not have is such a refusal. Smooth water seen from inside has only delta paths,
+    each ending in the sky (through the surface) or in its ground (by reflection), both far above
+    the near-black threshold: there no pixel of the un-mapped plane is near-black (over a floor, at
+    4 spp, a few are by chance: the dark checks)."""
     methods = [D.method(s) for s in D.DEFAULT_METHODS] + [D.method("plugin:no_such_model")]
     r = D.measure_cell(D.cell(material, steepness, view), methods, res=16, spp=4, ref_factor=2, seed=5)
     assert set(r["errors"]) == {"no_such_model"} and r["errors"]["no_such_model"]
     for m in methods[:-1]:
         assert r["invalid"][m.key] == {"nonfinite": 0, "negative": 0}, m.key
         assert np.isfinite(list(r["metrics"][m.key].values())).all(), m.key
-    assert r["floor"]["energy"] > 0 and r["metrics"]["nomap"]["near_black_new"] == 0.0
+    assert r["floor"]["energy"] > 0
+    if delta_paths:
+        assert r["metrics"]["nomap"]["near_black_new"] == 0.0
 
 
 def _result(name, rel, errors=None):
