@@ -355,6 +355,13 @@ def run(args) -> dict:
     return report
 
 
+def short_name(cell_name: str) -> str:
+    """A cell's name without what every dielectric cell shares (the egg crate, the sky, the
+    magnification): ``20deg / water / oblique40 / floor0.25``."""
+    shared = {"eggcrate", "sky", "magnified"}
+    return " / ".join(p for p in cell_name.split("/") if p not in shared)
+
+
 def thumb_size(res: int) -> int:
     """Contact-sheet thumbnails: ``res`` px renders shrunk by an integer factor to ≥ 48 px, small
     ones enlarged by an integer factor to ≤ 64 px."""
@@ -366,6 +373,7 @@ def write(report, results, labels, out: Path, stem: str, quick: bool):
     write_text_files(out, stem, markdown(report, labels, quick), report)
     for i, r in enumerate(results):
         r["index"] = i + 1
+        r["label"] = short_name(r["cell"])
     if results:
         res = report["settings"]["res"]
         TG.contact_sheet(results, report["settings"]["methods"], labels, out / f"{stem}.png",
