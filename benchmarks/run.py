@@ -1,7 +1,7 @@
 #!/usr/bin/env python
 r"""Benchmark ``normalmap_microfacet`` against Mitsuba's built-in ``normalmap``.
 
-    python benchmarks/run.py [--quick] [--profile full|production|all] [--variant V] [--out benchmarks]
+    python benchmarks/run.py [--quick] [--profile full|production|water|all] [--variant V] [--out benchmarks]
 
 One run measures, side by side, every method on every scene and nested BSDF:
 
@@ -14,12 +14,16 @@ One run measures, side by side, every method on every scene and nested BSDF:
   replaced by the one under test;
   (d) ``control``: scene (c) with a constant normal map (every texel 40° from the
   macro normal): the constant-map control, where every method renders the same smooth content;
-- nested BSDFs: diffuse, roughconductor GGX α = 0.05 and 0.3, roughplastic.
+- nested BSDFs: diffuse, roughconductor GGX α = 0.05 and 0.3, roughplastic;
+- ``water`` (its own profile): the bundled water scene (:mod:`mfnormal.scenes.assets`, a smooth
+  dielectric surface with a ripple map over a floor), its own dielectric, the default model
+  against the built-in wrapping the same dielectric: render time only.
 
 Profiles: ``full`` (192×144, 16 spp, every metric), ``production`` (1280×720 on the
 demo and the torus knot with the scenes' own materials: render time and compile only;
-sized to about 15 minutes on 2 idle cores, see PRODUCTION) and ``quick`` (a smoke test).
-The default, ``--profile all``, runs ``full`` and ``production``, and the reverse-mode
+sized to about 15 minutes on 2 idle cores, see PRODUCTION), ``water`` (the water scene,
+render time, under a minute) and ``quick`` (a smoke test).
+The default, ``--profile all``, runs ``full``, ``production`` and ``water``, and the reverse-mode
 benchmark ``benchmarks/backward.py`` (its table is copied into RESULTS.md).
 
 Metrics:
@@ -107,10 +111,12 @@ NATIVE = "native"
 NESTED_CLASS = {"diffuse": "diffuse", "ggx_0.05": "conductor", "ggx_0.3": "conductor",
                 "roughplastic": "conductor", NATIVE: None}
 
-SCENES = ("demo", "model", "plane", "control")
+FULL_SCENES = ("demo", "model", "plane", "control")
+SCENES = FULL_SCENES + ("water",)
 SCENE_TITLES = {"demo": "(a) demo: sphere + ground", "model": "(b) torus knot, 20k triangles",
                 "plane": "(c) plane at grazing view",
-                "control": "(d) scene (c) with a constant normal map (40°): the constant-map control"}
+                "control": "(d) scene (c) with a constant normal map (40°): the constant-map control",
+                "water": "the bundled water scene: a smooth dielectric with a ripple map over a floor"}
 # The constant-map control's normal: θ, φ (degrees) in the map's tangent frame (φ = 0: across the view).
 CONTROL_NORMAL = (40.0, 0.0)
 
@@ -160,7 +166,7 @@ class Profile:
     integrator: str = "path"
 
 
-FULL = Profile("full", SCENES, tuple(NESTED), METHOD_KEYS, width=192, height=144, spp=16, reps=5,
+FULL = Profile("full", FULL_SCENES, tuple(NESTED), METHOD_KEYS, width=192, height=144, spp=16, reps=5,
                ref_spp=256, ref_pass=32, noise_seeds=6, queries=1 << 20, tput_reps=5, stub_reps=3,
                compile_warm_reps=2, compile_runs=3)
 # 1280×720 with the scenes' own materials. Sized from single renders (llvm_ad_rgb, 2 cores shared
@@ -175,7 +181,12 @@ PRODUCTION = Profile("production", ("demo", "model"), (NATIVE,), METHOD_KEYS, wi
 QUICK = Profile("quick", ("plane", "control"), ("diffuse",), METHOD_KEYS, width=32, height=24, spp=2, reps=2,
                 ref_spp=16, ref_pass=16, noise_seeds=1, queries=1 << 12, tput_reps=2, stub_reps=1,
                 compile_warm_reps=1, compile_runs=2, compile_scenes=("plane",), vertex_size=(32, 24))
-PROFILES = {"full": (FULL,), "production": (PRODUCTION,), "all": (FULL, PRODUCTION)}
+# The water scene with its own dielectric: the default model against the built-in wrapping the same
+# dielectric, render time at equal spp only (the other methods absorb the transmitted light).
+WATER = Profile("water", ("water",), (NATIVE,), ("builtin", "faithful"), width=384, height=256, spp=32,
+                reps=6, ref_spp=0, ref_pass=1, noise_seeds=0, queries=0, tput_reps=0, stub_reps=1,
+                compile_warm_reps=0, metrics=("render",))
+PROFILES = {"full": (FULL,), "production": (PRODUCTION,), "water": (WATER,), "all": (FULL, PRODUCTION, WATER)}
 
 
 def log(msg: str):
@@ -255,6 +266,9 @@ def prepare_assets(root: Path, scenes) -> dict:
     if "control" in scenes:
         path = write_constant_normalmap(root / "control" / "constant.png", *CONTROL_NORMAL)
         out["control"] = {"normalmap": str(path), "envmap": str(demo_assets["envmap"])}
+    if "water" in scenes:
+        a = bundled.generate_water_assets(root / "water")
+        out["water"] = {"xml": str(bundled.WATER_XML), "params": bundled.map_and_sky_parameters(a)}
     if "model" in scenes:
         try:
             a = bundled.generate_model_assets(root / "model")
@@ -318,8 +332,8 @@ def scene_dict(name: str, assets: dict, method: str, nested: str, width: int, he
     if name == "demo":
         base = demo.demo_scene(model="analytic", spp=spp, resolution=(width, height),
                                assets_dir=assets["demo"]["dir"], max_depth=MAX_DEPTH)
-    elif name == "model":
-        a = assets["model"]
+    elif name in ("model", "water"):
+        a = assets[name]
         if "error" in a:
             raise RuntimeError(a["error"])
         base = xml_to_dict(a["xml"], **a["params"], spp=spp, width=width, height=height,
@@ -718,7 +732,7 @@ def render_time(scene, nested, assets, prof, scenes) -> list:
                        "ratio_max": max(ratios), "target": None, "pass": None})
         log(f"  time   {scene:7s} {nested:12s} builtin under {prof.integrator} / under path: {median(ratios):5.2f}")
     for row in timing:
-        if row["pass"] is not False or prof.name == "production":
+        if row["pass"] is not False or nested == NATIVE:
             continue
         stubbed = load_scene(scene, assets, row["method"], nested, W, H, spp, probe="stub",
                              integrator=method_integrator(prof, row["method"]))
@@ -1035,7 +1049,7 @@ def cell_table(results: dict, prof: dict) -> list:
          "render (without warm renders: the kernel history's codegen + backend time), the median of "
          f"{prof.get('compile_runs', 1)} such run(s) in fresh processes. RSS: peak resident memory of "
          "that subprocess (VmHWM), and in brackets its growth over the loaded scene (the render's own memory)."
-         + (" `native`: the scenes' own materials." if name == "production" else ""), "",
+         + (" `native`: the scenes' own materials." if NATIVE in prof["nested"] else ""), "",
          "| scene | nested | method | time s | time ratio | | spp @ equal time | relMSE | "
          "relMSE ratio (full sky) | relMSE ratio (without sun disc) | | compile s | compile ratio | | "
          "peak RSS MB |",
@@ -1197,8 +1211,8 @@ def parse_args(argv):
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--quick", action="store_true", help="tiny smoke run (about 2 min), numbers meaningless")
     ap.add_argument("--profile", choices=sorted(PROFILES), default="all",
-                    help="full (192×144, every metric), production (1280×720: time and compile), or all "
-                         "(both, and benchmarks/backward.py; the default)")
+                    help="full (192×144, every metric), production (1280×720: time and compile), water "
+                         "(the water scene: time), or all (the three, and benchmarks/backward.py; the default)")
     ap.add_argument("--variant", default=VARIANT, help=f"Mitsuba variant (default {VARIANT}; e.g. cuda_ad_rgb)")
     ap.add_argument("--out", default=str(HERE), help="output directory (default: benchmarks/)")
     ap.add_argument("--scenes", help=f"comma-separated subset of {','.join(SCENES)}")

@@ -161,3 +161,24 @@ def test_busy_note_judges_the_load_before_the_run_not_the_runs_own():
     assert run.busy_note(0.01, 1.7, 2) is None
     note = run.busy_note(1.5, 1.9, 2)
     assert note is not None and "busy" in note and "1.5" in note and "1.9" in note
+
+
+def test_water_profile_times_the_default_against_the_builtin_on_the_same_dielectric(tmp_path):
+    """The water profile: the bundled water scene with its own dielectric, the built-in's scene is
+    Mitsuba's normalmap wrapping that dielectric and the default's normalmap_microfacet around it,
+    both loadable; ``--profile all`` runs it."""
+    from variant import VARIANT
+
+    R = run_module()
+    sys.path.insert(0, str(SCRIPT.parent))         # benchmarks/probes.py, which import_mitsuba registers
+    try:
+        R.import_mitsuba(VARIANT)
+    finally:
+        sys.path.remove(str(SCRIPT.parent))
+    assert R.WATER in R.PROFILES["all"] and R.WATER.nested == (R.NATIVE,)
+    assets = R.prepare_assets(tmp_path, ("water",))
+    for method, kind in (("builtin", "normalmap"), ("faithful", "normalmap_microfacet")):
+        scene = R.scene_dict("water", assets, method, R.NATIVE, 16, 12, 1)
+        (bsdf,) = [v for v in scene["water"].values() if isinstance(v, dict) and "bsdf" in v]
+        assert bsdf["type"] == kind and bsdf["bsdf"]["type"] == "dielectric", bsdf
+        assert R.mi.load_dict(scene) is not None

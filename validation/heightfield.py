@@ -66,8 +66,8 @@ __all__ = [
     "tilt_stats", "texel_centres", "normal_map", "height_map", "texel_normals", "encode_normals",
     "bitmap_texture", "displaced_arrays", "displaced_mesh", "plane_mesh", "triangle_mesh",
     "View", "Lighting", "Magnification", "VIEWS", "LIGHTINGS", "MAGNIFICATIONS", "MATERIALS",
-    "scene_dict", "footprint", "Method", "METHODS", "DEFAULT_METHODS",
-    "plugin_method", "heightmap_method", "method_from_spec", "metrics", "near_black_threshold", "Cell", "render",
+    "scene_dict", "floor_mesh", "FLOOR_CHECKS", "footprint", "Method", "METHODS", "DEFAULT_METHODS",
+    "plugin_method", "heightmap_method", "method_from_spec", "metrics", "near_black_threshold", "Cell", "render", "render_counted",
     "render_cell", "cell_seed", "cell_metrics", "block_mean", "exposure_scale", "EXPOSURE_MEAN", "rel_mse", "luminance", "REL_MSE_EPS", "LN_FLOOR", "BLACK_FRACTION",
 ]
 
@@ -430,7 +430,9 @@ def plane_mesh(extent=(0.0, 1.0, 0.0, 1.0), z: float = 0.0, bsdf=None, name: str
 @dataclass(frozen=True)
 class View:
     """Orthographic camera at ``theta`` degrees from +z, on the −y side (azimuth −90°), looking
-    at the plane's centre; the image spans x ∈ [0, 1] and the plane's whole visible extent."""
+    at the plane's centre; the image spans x ∈ [0, 1] and the plane's whole visible extent.
+    ``theta`` > 90° puts the camera below the plane, looking up at its underside (180° − theta
+    from −z)."""
     name: str
     theta: float
 
@@ -463,6 +465,10 @@ VIEWS = {
     "frontal": View("frontal", 0.0),
     "grazing": View("grazing", 75.0),
     "grazing78": View("grazing78", 78.0),
+    # The dielectric cells (validation/dielectric.py): 40° from the normal, and 40° from the
+    # normal below the surface (a camera in the water or glass, looking up).
+    "oblique40": View("oblique40", 40.0),
+    "inside40": View("inside40", 140.0),
 }
 
 LIGHTINGS = {
@@ -475,6 +481,8 @@ LIGHTINGS = {
     "sun45": Lighting("sun45", 45.0, 0.0, 3.0, 0.0),
     # The convention test's light: 45° up, azimuth 30° (x and y gradients both matter), no sky.
     "test_sun": Lighting("test_sun", 45.0, 30.0, 3.0, 0.0),
+    # The sky alone (no sun: a delta light cannot reach a floor through a smooth dielectric).
+    "sky": Lighting("sky", 90.0, 0.0, 0.0, 1.0),
 }
 
 MAGNIFICATIONS = {
@@ -500,6 +508,10 @@ MATERIALS = {
     "aluminium": {"type": "roughconductor", "material": "Al", "distribution": "ggx", "alpha": 0.2},
     "gold": {"type": "roughconductor", "material": "Au", "distribution": "ggx", "alpha": 0.05},
     "glossy_metal": {"type": "roughconductor", "material": "Al", "distribution": "ggx", "alpha": 0.0225},
+    # Dielectric interfaces (validation/dielectric.py): the plane is the surface of the water or glass.
+    "water": {"type": "dielectric", "int_ior": 1.33, "ext_ior": 1.0},
+    "rough_glass": {"type": "roughdielectric", "distribution": "ggx", "alpha": 0.15,
+                    "int_ior": 1.5, "ext_ior": 1.0},
 }
 
 
@@ -517,7 +529,7 @@ CAMERA_AZIMUTH = -90.0
 
 def footprint(view: View):
     """(x0, x1, y0, y1): the part of the plane z = mean the camera sees (x ∈ [0, 1] across)."""
-    half_y = 0.5 / math.cos(math.radians(view.theta))
+    half_y = 0.5 / abs(math.cos(math.radians(view.theta)))
     return (0.0, 1.0, 0.5 - half_y, 0.5 + half_y)
 
 
@@ -527,7 +539,7 @@ def _extent(hf: Heightfield, view: View, lighting: Lighting, margin=None):
     one period; at least two periods."""
     lo, hi = hf.height_range
     if margin is None:
-        elev = min(lighting.sun_elevation, 90.0 - view.theta)
+        elev = min(lighting.sun_elevation, abs(90.0 - view.theta))
         elev = max(elev, 5.0)
         margin = max(2 * hf.period, (hi - lo) / math.tan(math.radians(elev)) + hf.period)
     x0, x1, y0, y1 = footprint(view)
@@ -560,6 +572,21 @@ def _emitters(lighting: Lighting) -> dict:
     return em
 
 
+#: The floor under a dielectric surface: checks of ``1 / (2 FLOOR_CHECKS)`` world units (a
+#: quarter period of the magnified heightfields), diffuse, dark and light grey.
+FLOOR_CHECKS = 4
+FLOOR_REFLECTANCE = (0.1, 0.7)
+
+
+def floor_mesh(extent, z: float, name: str = "floor") -> "mi.Mesh":
+    """A diffuse checkerboard floor (:data:`FLOOR_CHECKS`, :data:`FLOOR_REFLECTANCE`) at height
+    ``z`` over ``extent``: what is seen through a water or glass surface above it."""
+    dark, light = FLOOR_REFLECTANCE
+    checker = {"type": "checkerboard", "color0": _rgb([dark] * 3), "color1": _rgb([light] * 3),
+               "to_uv": mi.ScalarTransform4f().scale([FLOOR_CHECKS, FLOOR_CHECKS, 1.0])}
+    return plane_mesh(extent, z, {"type": "diffuse", "reflectance": checker}, name)
+
+
 def _lookup(table, key, what):
     if isinstance(key, str):
         if key not in table:
@@ -571,13 +598,15 @@ def _lookup(table, key, what):
 def scene_dict(hf: Heightfield, surface: str, bsdf: dict, lighting="sky_sun", view="frontal",
                res: int = 128, spp: int = 64, max_depth: int = 8, verts_per_period: int = 32,
                margin: float | None = None, sampler: str = "multijitter",
-               integrator: dict | None = None) -> dict:
+               integrator: dict | None = None, floor: float = 0.0) -> dict:
     """A Mitsuba scene dict: ``surface="true"`` (the dense :func:`displaced_mesh`, ``bsdf`` =
     the material) or ``"plane"`` (:func:`plane_mesh` at the mean height, ``bsdf`` = the
     material wrapped by a normal-mapping method), over the view's footprint plus a margin;
     ``path`` integrator with ``max_depth`` (or ``integrator``, e.g. ``prb`` for inverse rendering);
     orthographic sensor of ``res²`` pixels, ``sampler`` with ``spp``. The extent is the view's
-    footprint plus a margin that holds every shadow and occluder of it (``margin``: override)."""
+    footprint plus a margin that holds every shadow and occluder of it (``margin``: override).
+    ``floor`` > 0 adds a :func:`floor_mesh` that far below the mean height, over the extent grown
+    by one unit (for dielectric surfaces: what is seen through them)."""
     lighting = _lookup(LIGHTINGS, lighting, "lighting")
     view = _lookup(VIEWS, view, "view")
     ext = _extent(hf, view, lighting, margin)
@@ -588,10 +617,14 @@ def scene_dict(hf: Heightfield, surface: str, bsdf: dict, lighting="sky_sun", vi
         shape = plane_mesh(ext, z, bsdf)
     else:
         raise ValueError("surface must be 'true' or 'plane'")
+    extra = {}
+    if floor > 0:
+        x0, x1, y0, y1 = ext
+        extra["floor"] = floor_mesh((x0 - 1.0, x1 + 1.0, y0 - 1.0, y1 + 1.0), z - float(floor))
     return {"type": "scene",
             "integrator": integrator or {"type": "path", "max_depth": int(max_depth)},
             "sensor": _sensor(view, z, res, spp, sampler),
-            "surface": shape, **_emitters(lighting)}
+            "surface": shape, **extra, **_emitters(lighting)}
 
 
 # ---------------------------------------------------------------------------
@@ -769,7 +802,8 @@ def metrics(img: np.ndarray, truth: np.ndarray) -> dict:
 class Cell:
     """One comparison: a heightfield kind and steepness (a :data:`STEEPNESS` name or a max tilt
     in degrees), a :data:`MATERIALS` name (or a BSDF dict via ``material_dict``), a lighting,
-    a view and a magnification (names of the presets)."""
+    a view and a magnification (names of the presets); ``floor`` > 0: a checkerboard floor that
+    far below the surface (:func:`scene_dict`), for dielectric materials."""
     heightfield: str = "bumps"
     steepness: object = "mild"
     material: str = "diffuse"
@@ -777,12 +811,13 @@ class Cell:
     view: str = "frontal"
     magnification: str = "magnified"
     material_dict: tuple = field(default=(), compare=False)
+    floor: float = 0.0
 
     @property
     def name(self) -> str:
         st = self.steepness if isinstance(self.steepness, str) else f"{self.steepness:g}deg"
         return "/".join([self.heightfield, st, self.material, self.lighting, self.view,
-                         self.magnification])
+                         self.magnification] + ([f"floor{self.floor:g}"] if self.floor > 0 else []))
 
     @property
     def spp_factor(self) -> int:
@@ -811,22 +846,29 @@ class Cell:
         """The dense true mesh with the material (``kwargs``: :func:`scene_dict`'s)."""
         mag = MAGNIFICATIONS[self.magnification]
         return scene_dict(self.hf(), "true", self.nested(), self.lighting, self.view, res, spp,
-                          max_depth, mag.verts_per_period, **kwargs)
+                          max_depth, mag.verts_per_period, floor=self.floor, **kwargs)
 
     def plane_scene(self, method: Method, res=96, spp=64, max_depth=8, maps=None, **kwargs) -> dict:
         """The plane with the material wrapped by ``method`` around the baked map."""
         maps = maps or self.maps()
         bsdf = method.bsdf(self.nested(), maps["normalmap"], maps)
         return scene_dict(self.hf(), "plane", bsdf, self.lighting, self.view, res, spp, max_depth,
-                          **kwargs)
+                          floor=self.floor, **kwargs)
 
 
 def render(scene, spp: int, seed: int, pass_spp: int = 64) -> np.ndarray:
     """Linear RGB (H×W×3 float64) of a scene (dict or loaded) at ``spp``, in passes of
     ≤ ``pass_spp`` (seeds ``seed``, ``seed + 1``, ...; keep seed ranges of renders that must be
     independent apart: :func:`render_cell` uses multiples of 1000); NaN/Inf → 0."""
+    return render_counted(scene, spp, seed, pass_spp)[0]
+
+
+def render_counted(scene, spp: int, seed: int, pass_spp: int = 64) -> tuple:
+    """:func:`render` and the number of values (pixels × channels) it set to 0 because they were
+    NaN or Inf, and of those that are negative: ``(image, nonfinite, negative)``."""
     out = render_rgb(scene, spp, seed, pass_spp)
-    return np.where(np.isfinite(out), out, 0.0)
+    finite = np.isfinite(out)
+    return np.where(finite, out, 0.0), int((~finite).sum()), int((out[finite] < 0).sum())
 
 
 def block_mean(img: np.ndarray, b: int) -> np.ndarray:
@@ -858,7 +900,7 @@ def _truth_scene(cell: Cell, res, spp, max_depth):
     swapped) for the next cell with the same geometry, lighting and view: building the BVH of
     a dense mesh costs more than rendering it. Identical results to a fresh load (tested)."""
     key = (cell.hf(), cell.lighting, cell.view, MAGNIFICATIONS[cell.magnification].verts_per_period,
-           int(res), int(max_depth))
+           int(res), int(max_depth), cell.floor)
     hit = _TRUTH_SCENES.get(key)
     if hit is None:
         _TRUTH_SCENES.clear()
@@ -895,7 +937,9 @@ def render_cell(cell: Cell, methods, res: int = 96, spp: int = 64, ref_factor: i
     at spp, and each method), ``metrics`` {key: :func:`cell_metrics`}, ``floor`` (the truth at
     spp), ``truth_stats`` (the reference against itself: its contrast, mean), ``times``,
     ``errors`` {key: message} for methods whose scene failed to load (e.g. a model the plugin
-    does not have), ``tilts``, ``spp``, ``ref_spp``, ``block``, ``seed``.
+    does not have), ``invalid`` {key: {"nonfinite": n, "negative": n}} (values of each method's
+    render that were NaN/Inf, set to 0, or negative), ``tilts``, ``spp``, ``ref_spp``, ``block``,
+    ``seed``.
 
     Seeds (``seed``, default :func:`cell_seed`): methods ``1000·seed + i`` (the same for every
     method: common random numbers), the reference ``+ 100 + i``, the floor render ``+ 500 + i``,
@@ -910,7 +954,7 @@ def render_cell(cell: Cell, methods, res: int = 96, spp: int = 64, ref_factor: i
     block = cell.metric_block
     hf = cell.hf()
     maps = cell.maps()
-    out = {"cell": cell.name, "images": {}, "metrics": {}, "times": {}, "errors": {},
+    out = {"cell": cell.name, "images": {}, "metrics": {}, "times": {}, "errors": {}, "invalid": {},
            "tilts": tilt_stats(hf), "spp": spp, "ref_spp": spp * ref_factor, "block": block,
            "self_noise": {}, "seed": seed}
     t0 = time.time()
@@ -934,8 +978,9 @@ def render_cell(cell: Cell, methods, res: int = 96, spp: int = 64, ref_factor: i
             out["errors"][m.key] = f"{type(e).__name__}: {str(e).strip().splitlines()[-1][:300]}"
             log(f"  {m.key}: {out['errors'][m.key]}")
             continue
-        img = render(scene, spp, seed * 1000, pass_spp)
+        img, nonfinite, negative = render_counted(scene, spp, seed * 1000, pass_spp)
         out["times"][m.key] = time.time() - t0
+        out["invalid"][m.key] = {"nonfinite": nonfinite, "negative": negative}
         out["images"][m.key] = img
         out["metrics"][m.key] = cell_metrics(img, truth, block)
         if method_noise:

@@ -239,7 +239,7 @@ def contact_sheet(results, method_keys, labels, path, size=THUMB, title=""):
                  fontsize=5.5)
     for i, r in enumerate(results):
         y = head_h + i * (size + pad) + size / 2
-        name = r["cell"].replace("/", " / ")
+        name = r.get("label") or r["cell"].replace("/", " / ")
         fig.text(4 / W, 1 - y / Hh, f"{r.get('index', i + 1)}. {name}", ha="left", va="center", fontsize=5.5)
     if title:
         fig.text(4 / W, 1 - 4 / Hh, title, ha="left", va="top", fontsize=7, weight="bold")

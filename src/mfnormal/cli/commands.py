@@ -490,6 +490,8 @@ def _add_demo(sub):
 
 
 def _add_compare(sub):
+    from mfnormal.scenes.assets import BUNDLED
+
     names = ", ".join(m.key for m in METHODS)
     c = sub.add_parser("compare", help="render a scene with every normal-mapping method; write an HTML report",
                        description=f"Render SCENE once per normal-mapping method ({names}: the nested BSDF "
@@ -497,8 +499,9 @@ def _add_compare(sub):
                                    "normalmap_microfacet's models, the default faithful first) and write a "
                                    "self-contained DIR/report.html. SCENE is an XML file whose normal-mapped "
                                    "materials are normalmap_microfacet BSDFs, or a bundled scene: "
-                                   "'demo' (a) or 'model' (b).")
-    c.add_argument("scenes", nargs="+", metavar="SCENE", help="scene file (.xml), 'demo' or 'model'")
+                                   + "; ".join(f"'{b.name}', {b.title}" for b in BUNDLED.values()) + ".")
+    c.add_argument("scenes", nargs="+", metavar="SCENE",
+                   help="scene file (.xml) or a bundled scene: " + ", ".join(BUNDLED))
     c.add_argument("-o", "--output", default=os.path.join("out", "compare"),
                    help="output directory (default out/compare)")
     c.add_argument("--spp", type=int, help="samples per pixel (default 32; --quick: 2)")

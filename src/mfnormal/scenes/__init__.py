@@ -1,2 +1,2 @@
-"""The bundled scenes (``demo``, ``model``, ``eggcrate``: XML files beside this module) and
+"""The bundled scenes (``demo``, ``model``, ``eggcrate``, ``water``, ``glass``: XML files beside this module) and
 their procedurally generated assets (:mod:`mfnormal.scenes.assets`, :mod:`mfnormal.scenes.sky`)."""

@@ -1,6 +1,6 @@
 """The bundled scenes and their procedural assets (nothing is downloaded).
 
-:data:`BUNDLED` names the three scenes ``mfnormal compare`` knows: each is an XML
+:data:`BUNDLED` names the five scenes ``mfnormal compare`` knows: each is an XML
 file in ``scenes/``, a function that writes its assets into a folder and one that
 turns their paths into the scene's ``$`` parameters.
 
@@ -15,7 +15,11 @@ turns their paths into the scene's ``$`` parameters.
   :func:`make_domes_normalmap`, a hexagonal array of spherical domes whose rims tilt
   to 70°; :func:`make_roughness_map`, GGX α in [0.04, 0.45] in soft bands along the knot;
 - (c) ``eggcrate`` (:data:`EGGCRATE_XML`): glossy metal at grazing view;
-  :func:`make_eggcrate_normalmap`.
+  :func:`make_eggcrate_normalmap`;
+- (d) ``water`` (:data:`WATER_XML`): a rippled water surface (``dielectric``, ior 1.33) over
+  a checkerboard floor: :func:`make_ripples_normalmap`, a periodic sum of waves;
+- (e) ``glass`` (:data:`GLASS_XML`): a sphere of hammered glass (``dielectric``, ior 1.5, the
+  dome map of scene (b) with rims at 35°) on the same floor.
 
 Every scene is lit by the sky of :mod:`mfnormal.scenes.sky` (:data:`mfnormal.scenes.sky.DEMO` with
 a sun). Normal maps are written as 8-bit PNGs (:func:`encode_normalmap`), OpenGL
@@ -37,7 +41,8 @@ __all__ = ["BUNDLED", "Bundled", "DEMO_XML", "MODEL_XML", "EGGCRATE_XML", "encod
            "make_tiles_normalmap", "generate_demo_assets", "torus_knot_mesh", "write_ply",
            "make_domes_normalmap", "make_roughness_map", "generate_model_assets",
            "model_parameters", "make_eggcrate_normalmap", "generate_eggcrate_assets",
-           "file_parameters", "map_and_sky_parameters"]
+           "file_parameters", "map_and_sky_parameters", "WATER_XML", "make_ripples_normalmap",
+           "generate_water_assets", "GLASS_XML", "generate_glass_assets"]
 
 SCENES = Path(__file__).resolve().parent
 #: Scene (a): the demo (single source of truth).
@@ -46,10 +51,16 @@ DEMO_XML = SCENES / "demo.xml"
 MODEL_XML = SCENES / "model.xml"
 #: Scene (c): the egg crate at grazing view.
 EGGCRATE_XML = SCENES / "eggcrate.xml"
+#: Scene (d): water over a floor.
+WATER_XML = SCENES / "water.xml"
+#: Scene (e): a hammered glass sphere.
+GLASS_XML = SCENES / "glass.xml"
 
 TILES_NAME = "normalmap.png"
 MESH_NAME = "knot.ply"
 EGGCRATE_NAME = "eggcrate.png"
+RIPPLES_NAME = "ripples.png"
+HAMMERED_NAME = "hammered.png"
 DOMES_NAME = "domes.png"
 ROUGHNESS_NAME = "roughness.exr"
 ENVMAP_NAME = "envmap.exr"
@@ -371,6 +382,52 @@ def generate_eggcrate_assets(assets_dir) -> dict:
 
 
 # ---------------------------------------------------------------------------
+# Scene (d): water
+# ---------------------------------------------------------------------------
+
+#: The ripples' waves: (cycles along x, cycles along y, relative amplitude, phase) over the map.
+RIPPLE_WAVES = ((3, 1, 1.0, 0.3), (-2, 3, 0.7, 1.9), (5, -2, 0.45, 4.1), (1, 6, 0.35, 2.6),
+                (-7, -4, 0.2, 0.8), (9, 5, 0.12, 5.3))
+
+
+def make_ripples_normalmap(size: int = 256, max_tilt_deg: float = 25.0) -> np.ndarray:
+    """Unit normals (``size`` x ``size`` x 3, OpenGL convention) of wind ripples: the height field
+    ``Σ a cos(2π (k_x x + k_y y) + φ)`` of :data:`RIPPLE_WAVES` (integer wave numbers: the map
+    tiles), scaled so that its steepest slope is ``max_tilt_deg``."""
+    c = (np.arange(size) + 0.5) / size
+    x, y = np.meshgrid(c, 1.0 - c)                     # image row 0 is the top (v = 0), +y up
+    hx, hy = np.zeros_like(x), np.zeros_like(x)
+    for kx, ky, a, phi in RIPPLE_WAVES:
+        d = -2.0 * np.pi * a * np.sin(2.0 * np.pi * (kx * x + ky * y) + phi)
+        hx += kx * d
+        hy += ky * d
+    scale = np.tan(np.radians(max_tilt_deg)) / np.hypot(hx, hy).max()
+    n = np.stack([-scale * hx, -scale * hy, np.ones_like(hx)], axis=-1)
+    return (n / np.linalg.norm(n, axis=-1, keepdims=True)).astype(np.float32)
+
+
+def generate_water_assets(assets_dir) -> dict:
+    """Write the textures of scene (d) into ``assets_dir``; returns ``{'normalmap', 'envmap'}``
+    (the sky without a sun: a small bright sun seen through a smooth surface from a diffuse
+    floor is a caustic, which a path tracer finds only by chance)."""
+    assets_dir = Path(assets_dir)
+    paths = {"normalmap": assets_dir / RIPPLES_NAME, "envmap": assets_dir / ENVMAP_NAME}
+    _write_png(paths["normalmap"], make_ripples_normalmap())
+    _write_exr(paths["envmap"], sky.envmap(256, 128, sky.DEMO))
+    return paths
+
+
+def generate_glass_assets(assets_dir) -> dict:
+    """Write the textures of scene (e) into ``assets_dir``: the hammered-glass dome map (rims at
+    35°) and the sky without a sun (see :func:`generate_water_assets`)."""
+    assets_dir = Path(assets_dir)
+    paths = {"normalmap": assets_dir / HAMMERED_NAME, "envmap": assets_dir / ENVMAP_NAME}
+    _write_png(paths["normalmap"], make_domes_normalmap(rim_tilt_deg=35.0))
+    _write_exr(paths["envmap"], sky.envmap(256, 128, sky.DEMO))
+    return paths
+
+
+# ---------------------------------------------------------------------------
 # The bundled scenes
 # ---------------------------------------------------------------------------
 
@@ -385,7 +442,7 @@ class Bundled:
 
 
 def map_and_sky_parameters(assets: dict) -> dict:
-    """The ``$normalmap`` and ``$envmap`` of scenes (a) and (c) for generated ``assets``."""
+    """The ``$normalmap`` and ``$envmap`` of scenes (a), (c), (d) and (e) for generated ``assets``."""
     return file_parameters(assets, ("normalmap", "envmap"))
 
 
@@ -396,4 +453,8 @@ BUNDLED = {b.name: b for b in (
             generate_model_assets, model_parameters),
     Bundled("eggcrate", EGGCRATE_XML, "(c) egg crate: glossy metal at 78° from the vertical",
             generate_eggcrate_assets, map_and_sky_parameters),
+    Bundled("water", WATER_XML, "(d) water: rippled water over a tiled floor", generate_water_assets,
+            map_and_sky_parameters),
+    Bundled("glass", GLASS_XML, "(e) glass: a hammered glass sphere on a tiled floor", generate_glass_assets,
+            map_and_sky_parameters),
 )}
