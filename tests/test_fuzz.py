@@ -188,11 +188,15 @@ def roughplastic(draw):
 
 
 @st.composite
-def principled(draw):
+def principled(draw, transmits=True):
+    """Mitsuba's principled; ``transmits`` False: spec_trans = 0 (the paper's models refuse a
+    nested BSDF that transmits)."""
     spec = {"type": "principled", "base_color": draw(rgb())}
     for name in ("roughness", "metallic", "specular", "anisotropic", "sheen", "sheen_tint",
                  "clearcoat", "clearcoat_gloss", "spec_tint", "spec_trans"):
         spec[name] = draw(unit_float())
+    if not transmits:
+        spec["spec_trans"] = 0.0
     return spec
 
 
@@ -225,8 +229,9 @@ def extra_directions(draw):
 
 def fuzz_case(kind, model):
     walk = model not in ("analytic", "faithful")
+    nested = principled(transmits=False) if kind == "principled" and model != "faithful" else NESTED_STRATEGIES[kind]
     return st.fixed_dictionaries({
-        "nested": NESTED_STRATEGIES[kind],
+        "nested": nested,
         "strength": strength,
         "convention": st.sampled_from(["opengl", "directx"]),
         "max_bounces": st.sampled_from([1024, 1, 2, 64]) if walk else st.just(1024),
@@ -769,17 +774,21 @@ def test_tilt_below_sin_p_eps_is_exactly_flat():
         assert np.array_equal(out[0][0], out[1][0]) and np.array_equal(out[0][1], out[1][1]), model
 
 
-def test_eval_equals_eval_pdf_with_a_transmitting_nested_bsdf():
-    """Analytic model, principled with spec_trans = 1, nearly flat map (strength 1e-7),
-    ω_i and ω_o grazing: the p→t mirror term evaluated the nested BSDF at a direction
-    below the p facet, where it transmits: eval 1.9e-9, eval_pdf (which gated it)
-    1.8e-16. Now eval gates too: the facets only reflect. (The tilt here is below
-    SIN_P_EPS, which the test above now makes exactly flat; the gate is the second
-    line of defence, this test fails only with both removed.)"""
+@pytest.mark.parametrize("model", ["faithful", "analytic"])
+def test_eval_equals_eval_pdf_with_a_transmitting_nested_bsdf(model):
+    """Principled with spec_trans = 1, nearly flat map (strength 1e-7), ω_i and ω_o grazing:
+    the analytic model's p→t mirror term evaluated the nested BSDF at a direction below the
+    p facet, where it transmits: eval 1.9e-9, eval_pdf (which gated it) 1.8e-16. The analytic
+    model now refuses a transmitting nested BSDF at load; the default, which refracts, gives
+    eval = eval_pdf's value bit for bit at that query."""
     nested = {"type": "principled", "roughness": 0.166, "specular": 1.0, "anisotropic": 0.534,
               "clearcoat": 1.0, "clearcoat_gloss": 1.0, "spec_trans": 1.0}
-    bsdf = one_texel_bsdf("analytic", "specular", [0.7677456736564636, 0.544303297996521, 0.9199398756027222],
-                          nested, strength=1e-7)
+    texel = [0.7677456736564636, 0.544303297996521, 0.9199398756027222]
+    if model == "analytic":
+        with pytest.raises(RuntimeError, match="transmits light"):
+            one_texel_bsdf(model, "specular", texel, nested, strength=1e-7)
+        return
+    bsdf = one_texel_bsdf(model, "specular", texel, nested, strength=1e-7)
     si = same_query([-0.5026869177818298, 0.8644685745239258, 2.293029233157995e-08], 1)
     wo = vec3(np.float32([[0.10951605439186096, -0.9939849972724915, 3.5039218193588795e-09]]))
     value = np3(bsdf.eval(mi.BSDFContext(), si, wo), 1)

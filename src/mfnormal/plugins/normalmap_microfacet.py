@@ -37,8 +37,11 @@ Microfacet-based normal mapping (:monosp:`normalmap_microfacet`)
      directions stay in ``si.sh_frame`` for the integrator).
  * - (nested bsdf)
    - |bsdf|
-   - The material of the microfacets: any Mitsuba BSDF (its reflection part; a
-     transmitting one gets a ``TransmissionWarning``, once).
+   - The material of the microfacets: any Mitsuba BSDF. A transmitting one
+     (``dielectric``, ``roughdielectric``, ``thindielectric``, ``principled``
+     with ``spec_trans`` > 0, or a ``blendbsdf``/``twosided`` of one): with
+     ``faithful`` its reflection part (a ``TransmissionWarning``, once); the
+     paper's models only reflect and refuse it (a one-line ``ValueError``).
  * - model
    - |string|
    - ``faithful`` (default): the texel as the true geometry around it shows
