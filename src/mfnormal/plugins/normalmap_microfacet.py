@@ -211,8 +211,6 @@ and without a map it is cheaper than the normal-map path
 
 from __future__ import annotations
 
-import warnings
-
 import drjit as dr
 import mitsuba as mi
 
@@ -226,11 +224,7 @@ from mfnormal.normals.source import MITSUBA_TANGENTS, from_properties
 from mfnormal.normals.strength import STRENGTH_MAX
 from mfnormal.plugins.variant_class import variant_subclass
 
-__all__ = ["NormalMapMicrofacet", "bsdf_class", "MODELS", "DEFAULT_MODEL", "STRENGTH_MAX", "TransmissionWarning"]
-
-
-class TransmissionWarning(UserWarning):
-    """The nested BSDF transmits; the plugin drops its transmission."""
+__all__ = ["NormalMapMicrofacet", "bsdf_class", "MODELS", "DEFAULT_MODEL", "STRENGTH_MAX"]
 
 
 class NormalMapMicrofacet:
@@ -247,17 +241,11 @@ class NormalMapMicrofacet:
         self.model = interface.from_properties(props, self.nested, self.source)
         self._flat_texels = self.source.flat_texels()
 
-        # The microsurface only reflects: report the nested BSDF's reflection components.
-        reflect = ~mi.BSDFFlags.Transmission
-        self.m_components = [self.nested.flags(i) & reflect for i in range(self.nested.component_count())]
-        self.m_flags = (self.nested.flags() & reflect) | mi.BSDFFlags.FrontSide
-        if mi.has_flag(self.nested.flags(), mi.BSDFFlags.Transmission):
-            # A Python warning: one line (the command line's "mfnormal: warning: ..."), once per
-            # nested BSDF type and process, not Mitsuba's log with its timestamp and colours.
-            warnings.warn(f"normalmap_microfacet: the nested BSDF {self.nested.class_name()} transmits "
-                          "light, but the microsurface only reflects: its transmission is dropped (that "
-                          "light is absorbed) and only its reflection is normal-mapped. For a refracting "
-                          "surface use Mitsuba's 'normalmap' BSDF.", TransmissionWarning, stacklevel=2)
+        # The models refract only where the nested BSDF transmits (the paper's models refuse it:
+        # interface.make); otherwise they report the nested BSDF's reflection components.
+        keep = +mi.BSDFFlags.All if interface.transmits(self.nested) else ~mi.BSDFFlags.Transmission
+        self.m_components = [self.nested.flags(i) & keep for i in range(self.nested.component_count())]
+        self.m_flags = (self.nested.flags() & keep) | mi.BSDFFlags.FrontSide
 
     def traverse(self, callback):
         # None of them moves geometry, so none is discontinuous in Mitsuba's sense (visibility).
