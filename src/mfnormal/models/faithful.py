@@ -631,7 +631,6 @@ class Model:
         bs.wo = dr.select(delta, bs.wo, dr.detach(bs.wo))
         b = bs.wo
         tx_b = texel_for(b)
-
         if self.lobes.transmission:
             ok &= (a.z > 0) & (b.z > 0)          # the upper side's reflection only (eval_pdf_adjoint)
         value, pdf = self.eval_pdf_adjoint(sp, tx_a, tx_b, ok & negate(delta), texel_for)

@@ -39,9 +39,10 @@ Microfacet-based normal mapping (:monosp:`normalmap_microfacet`)
    - |bsdf|
    - The material of the microfacets: any Mitsuba BSDF. A transmitting one
      (``dielectric``, ``roughdielectric``, ``thindielectric``, ``principled``
-     with ``spec_trans`` > 0, or a ``blendbsdf``/``twosided`` of one): with
-     ``faithful`` its reflection part (a ``TransmissionWarning``, once); the
-     paper's models only reflect and refuse it (a one-line ``ValueError``).
+     with ``spec_trans`` > 0, or a ``blendbsdf``/``twosided`` of one) is
+     normal-mapped on both sides by ``faithful``, which refracts (seen from
+     above and from inside the medium; docs/faithful.md §7); the paper's models
+     only reflect and refuse it (a one-line ``ValueError``).
  * - model
    - |string|
    - ``faithful`` (default): the texel as the true geometry around it shows
@@ -50,6 +51,10 @@ Microfacet-based normal mapping (:monosp:`normalmap_microfacet`)
      texel is hidden, and the light they block re-emitted, so white facets
      stay white and energy never exceeds the nested albedo; deterministic
      ``eval``, exact ``pdf``; not reciprocal (light tracing gets its adjoint).
+     With a transmitting nested BSDF it refracts: the facet's transmitted
+     light leaves on the far side of the macro surface (a refracted direction
+     on the camera's side is folded across it), so a smooth lossless
+     dielectric keeps reflection + transmission = 1.
      ``analytic``: the paper's default model, paths of up to two
      facet bounces with a mirror tangent facet, deterministic ``eval`` and the
      exact ``pdf`` of its sampler. ``separable``: the main paper's random walk
@@ -129,7 +134,10 @@ Contracts (each one is tested):
 - ``eval`` returns :math:`f\cdot\langle\omega_o,\omega_g\rangle` in the base
   shading frame (:math:`\omega_g` = +z of ``si.sh_frame``; with
   ``macro_normal="geometric"`` :math:`\omega_g` = ``si.n`` turned to the shading
-  normal's side, directions still in ``si.sh_frame``), zero below it;
+  normal's side, directions still in ``si.sh_frame``), zero below it, except
+  for ``faithful`` with a transmitting nested BSDF, which answers for ω_i and
+  ω_o on either side (the nested BSDF's radiance scaling across the interface
+  included);
 - ``eval_pdf`` equals ``(eval, pdf)``; ``pdf`` is a deterministic function of
   (wi, wo): for ``faithful`` and ``analytic`` the exact density of ``sample``, for
   the random walks a function for MIS (below);
