@@ -29,6 +29,10 @@ view-averaged response to every light direction for every texel, i.e. no relief
 (docs/faithful.md). Light tracing sees the adjoint (``TransportMode.Importance``):
 eval*(a, b) = eval(b, a)·⟨b, ω_g⟩ / ⟨a, ω_g⟩, so path tracing and light tracing agree.
 
+A nested BSDF that transmits is normal-mapped on both sides (docs/faithful.md §7): the facet's
+transmitted light leaves on the far side of the macro surface (folded there from the camera's
+side), and a camera below the surface sees the mirrored heightfield (:class:`Texel`).
+
 The neighbourhood (the map's slopes, Smith masking by them, the blocked-light table) is
 :mod:`mfnormal.models.neighbourhood`.
 """
@@ -499,7 +503,8 @@ class Model:
             wo = dr.select(through, mi.Vector3f(d.x, d.y, -dr.abs(d.z)), wo)
         # Diffuse fill: a cosine lobe about ω_g.
         wo = dr.select(on_fill, mi.warp.square_to_cosine_hemisphere(sample2), wo)
-        # A nested sample counts only if it is one: positive weight, on the upper side of its frame.
+        # A nested sample counts only if it is one: positive weight, on the upper side of its frame
+        # (with transmission: on either side).
         side = dr.dot(bs.wo, frame.n)
         valid = (bs.pdf > 0) & dr.any(w > 0) & ((side != 0) if trans else (side > 0))
         ok = dr.select(on_fill, True, valid) & ((wo.z != 0) if trans else (wo.z > 0)) & dr.all(dr.isfinite(wo)) & \
@@ -515,7 +520,7 @@ class Model:
             p_exit = dr.select(through, 1.0, p_exit)
             bs.eta = dr.select(on_fill, 1.0, bs.eta)
         prob = dr.select(on_tex, b_tex * p_exit, b_hid)
-        return _Draw(bs, w, active & ok, delta, on_tex, bounced, prob, b_tex, b_hid)
+        return _Draw(bs, w, active & ok, delta, on_tex, bounced, prob, b_tex, b_hid, through if trans else None)
 
     def _derivatives(self, sp):
         """Whether anything this point's queries read carries derivatives (the normal, the
@@ -556,40 +561,74 @@ class Model:
         """The adjoint sampler's extra branches, for the parts of eval* that radiance sampling from
         a does not cover (their weight depends on the camera side b): the fill (a cosine lobe about
         ω_g) and, for glossy lobes, b sampled on the facet from each preimage d of a under the bounce
-        and b sampled on ω_g from a (the hidden texel's neighbours).
-        Returns [(probability, kind, frame, incident direction), ...]."""
-        sp, a = tx_a.sp, tx_a.wi
+        and b sampled on ω_g from a (the hidden texel's neighbours); with transmission, the hidden
+        texel's neighbours always, and b refracted on the facet from F(a) (the fold, where F(a)
+        lies on the facet's side that a refracted camera ray would leave from).
+        Returns [(probability, kind, frame, incident direction in the base frame), ...]."""
+        sp, a, a_real = tx_a.sp, tx_a.wi, tx_a.wi_real
         branches = [(mi.Float(0.05), "cosine", None, None)]
         if self.lobes.glossy:
             for k, (d, on_facet, share) in enumerate(tx_a.preimages(a)):
                 s_d = tx_a.seen(d)
                 p = dr.select(on_facet & (s_d < 1.0), dr.maximum(0.1 * tx_a.vis * (1.0 - s_d), 0.025), 0.0)
-                branches.append((p, "retro" if k >= 2 else "skim", sp.frame_p, d))
-            vis_c = texel_for(mi.Vector3f(-a.x, -a.y, a.z)).vis      # at the flat lobe's centre
-            branches.append((dr.maximum(0.3 * (1.0 - vis_c), 0.05), "hidden", macro_frame(), a))
+                branches.append((p, "retro" if k >= 2 else "skim", sp.frame_p, tx_a.to_camera(d)))
+        if self.lobes.glossy or self.lobes.transmission:
+            vis_c = texel_for(mi.Vector3f(-a_real.x, -a_real.y, a_real.z)).vis      # at the flat lobe's centre
+            branches.append((dr.maximum(0.3 * (1.0 - vis_c), 0.05), "hidden", macro_frame(), a_real))
+        if self.lobes.transmission:
+            on = dr.dot(_mirror_z(a), tx_a.wp) > 0
+            branches.append((dr.select(on, 0.1, 0.0), "fold", sp.frame_p, _mirror_z(a_real)))
         return branches
 
+    def _adjoint_branch_pdf(self, sp, tx_a, kind, frame, inc, b, active):
+        """The density at b of one extra branch of the adjoint sampler (where its samples count:
+        :meth:`_adjoint_branch_valid`)."""
+        a, ctx = tx_a.wi_real, mi.BSDFContext(RADIANCE)
+        trans = self.lobes.transmission
+        if kind == "cosine":
+            return (dr.maximum(tx_a.to_camera(b).z, 0.0) if trans else b.z) * INV_PI
+        if kind == "fold":
+            si_f = sp.facet_si(frame, inc)
+            b_f = frame.to_local(b)
+            on = active & (si_f.wi.z * b_f.z < 0) & (a.z * b.z < 0)
+            return dr.select(on, sp.nested.pdf(ctx, si_f, b_f, on), 0.0)
+        side = EITHER if kind == "hidden" else REFLECT
+        if trans and kind != "hidden":
+            active = active & (a.z * b.z > 0)
+        return _sided(sp, tx_a, ctx, frame, inc, b, active, False, True, side=side)[1]
+
+    @staticmethod
+    def _adjoint_branch_valid(kind, bs, w, frame, inc, a, trans):
+        """Whether a nested sample of an extra branch counts (:meth:`_adjoint_branch_pdf`'s region)."""
+        ok = (bs.pdf > 0) & dr.any(w > 0)
+        if not trans:
+            return ok & (dr.dot(bs.wo, frame.n) > 0) & (bs.wo.z > 0)
+        side = dr.dot(bs.wo, frame.n) * dr.dot(inc, frame.n)
+        if kind == "hidden":
+            return ok & (bs.wo.z != 0)
+        if kind == "fold":
+            return ok & (side < 0) & (a.z * bs.wo.z < 0)
+        return ok & (side > 0) & (a.z * bs.wo.z > 0)
+
     def eval_pdf_adjoint(self, sp, tx_a, tx_b, active, texel_for, want_value=True, want_pdf=True):
-        """(eval*, pdf*) for light tracing: light side ``tx_a.wi``, camera side ``tx_b.wi``."""
+        """(eval*, pdf*) for light tracing: light side ``tx_a.wi``, camera side ``tx_b.wi`` (base
+        frame: ``wi_real``; with transmission either side, |⟨b,ω_g⟩|/|⟨a,ω_g⟩|)."""
         a, b = tx_a.wi_real, tx_b.wi_real
-        # With transmission eval* covers both sides (|⟨b,ω_g⟩|/|⟨a,ω_g⟩|); its sampler and pdf
-        # only the upper side's reflection (docs/faithful.md §7).
-        either = active & (a.z != 0) & (b.z != 0) if self.lobes.transmission else None
-        active = active & (a.z > 0) & (b.z > 0)
+        trans = self.lobes.transmission
+        if trans:
+            active = active & (a.z != 0) & (b.z != 0)
+        else:
+            active = active & (a.z > 0) & (b.z > 0)
         value, pdf = mi.Spectrum(0.0), mi.Float(0.0)
         if want_value:
-            on = active if either is None else either
-            value, _ = self.eval_pdf(sp, tx_b, a, on, want_pdf=False)
-            value *= (b.z / dr.maximum(a.z, 1e-30)) if either is None else dr.abs(b.z) / dr.maximum(dr.abs(a.z), 1e-30)
-            value = dr.select(on & dr.all(dr.isfinite(value)), value, 0.0)
+            value, _ = self.eval_pdf(sp, tx_b, a, active, want_pdf=False)
+            value *= dr.abs(b.z) / dr.maximum(dr.abs(a.z), 1e-30) if trans else b.z / dr.maximum(a.z, 1e-30)
+            value = dr.select(active & dr.all(dr.isfinite(value)), value, 0.0)
         if want_pdf:
             _, p_rad = self.eval_pdf(sp, tx_a, b, active, want_value=False)
             share = mi.Float(0.0)
             for p, kind, frame, inc in self._adjoint_branches(tx_a, texel_for):
-                if kind == "cosine":
-                    p_k = b.z * INV_PI
-                else:
-                    _, p_k = _nested(sp, mi.BSDFContext(RADIANCE), frame, inc, b, active & (p > 0), False, True)
+                p_k = self._adjoint_branch_pdf(sp, tx_a, kind, frame, inc, b, active & (p > 0))
                 pdf, share = pdf + p * p_k, share + p
             pdf = pdf + (1.0 - share) * p_rad
             pdf = dr.select(active & dr.isfinite(pdf), dr.maximum(pdf, 0.0), 0.0)
@@ -597,7 +636,6 @@ class Model:
 
     def sample_adjoint(self, sp, tx_a, sample1, sample2, active, texel_for):
         """Light-tracing sample from the light side ``tx_a.wi``; ``texel_for(b)`` builds the texel seen from b."""
-        a = tx_a.wi
         extra = self._adjoint_branches(tx_a, texel_for)
         # Choose a branch: the extra ones first (consecutive intervals), then the radiance sampler.
         # (The choice, and sample1's rescaling, with detached probabilities.)
@@ -618,7 +656,7 @@ class Model:
         for k, (p, kind, frame, inc) in enumerate(extra):
             on_k = picked == k
             if kind == "cosine":
-                bs.wo = dr.select(on_k, mi.warp.square_to_cosine_hemisphere(sample2), bs.wo)
+                bs.wo = dr.select(on_k, tx_a.to_camera(mi.warp.square_to_cosine_hemisphere(sample2)), bs.wo)
                 delta &= negate(on_k)
                 ok = dr.select(on_k, active, ok)
                 continue
@@ -626,41 +664,58 @@ class Model:
             bs = _select_sample(on_k, bs_k, bs)
             w = dr.select(on_k, w_k, w)
             delta = dr.select(on_k, mi.has_flag(bs_k.sampled_type, mi.BSDFFlags.Delta), delta)
-            valid_k = (bs_k.pdf > 0) & dr.any(w_k > 0) & (dr.dot(bs_k.wo, frame.n) > 0) & (bs_k.wo.z > 0)
+            valid_k = self._adjoint_branch_valid(kind, bs_k, w_k, frame, inc, tx_a.wi_real, self.lobes.transmission)
             ok = dr.select(on_k, active & valid_k, ok)
         bs.wo = dr.select(delta, bs.wo, dr.detach(bs.wo))
-        b = bs.wo
-        tx_b = texel_for(b)
-        if self.lobes.transmission:
-            ok &= (a.z > 0) & (b.z > 0)          # the upper side's reflection only (eval_pdf_adjoint)
+        tx_b = texel_for(bs.wo)
         value, pdf = self.eval_pdf_adjoint(sp, tx_a, tx_b, ok & negate(delta), texel_for)
-        # Delta lobes: eval*'s coefficient on the sampled path over the draws that give that path.
-        ratio = b.z / dr.maximum(a.z, 1e-30)
-        p_hid_x = extra[-1][0] if self.lobes.glossy else mi.Float(0.0)
+        c_delta, prob_delta = self._adjoint_delta(sp, tx_a, tx_b, extra, dw, picked, p_rad, on_rad)
+        weight = dr.select(delta, w * c_delta * score(prob_delta), value / dr.detach(dr.select(pdf > 0, pdf, 1.0)))
+        bs.pdf = dr.select(delta, bs.pdf * prob_delta, pdf)
+        return _finish(bs, weight, ok)
+
+    def _adjoint_delta(self, sp, tx_a, tx_b, extra, dw, picked, p_rad, on_rad):
+        """Delta lobes: eval*'s coefficient on the sampled path over the draws that give that path,
+        and their probability. A refracted path's coefficient carries the change of variables of
+        the delta from a to b, |⟨a,ω_p⟩⟨b,ω_g⟩| / |⟨b,ω_p⟩⟨a,ω_g⟩| (1 for reflection)."""
+        a, b = tx_a.wi_real, tx_b.wi_real
+        trans = self.lobes.transmission
+        ratio = dr.abs(b.z) / dr.maximum(dr.abs(a.z), 1e-30) if trans else b.z / dr.maximum(a.z, 1e-30)
+        kinds = [br[1] for br in extra]
+        k_hid = kinds.index("hidden") if "hidden" in kinds else None
+        p_hid_x = extra[k_hid][0] if k_hid is not None else mi.Float(0.0)
         on_flat = on_rad & negate(dw.on_tex)
-        if self.lobes.glossy:
-            on_flat |= picked == len(extra) - 1
-        c_delta = tx_b.vis * tx_b.seen(a) * ratio / dr.maximum(p_rad * dw.prob, 1e-30)
+        if k_hid is not None:
+            on_flat |= picked == k_hid
+        c_delta = tx_b.vis * tx_b.seen(tx_b.to_camera(a)) * ratio / dr.maximum(p_rad * dw.prob, 1e-30)
         c_delta = dr.select(dw.bounced, 0.0, c_delta)
         prob_delta = p_rad * dw.prob
+        if trans:
+            refracted = tx_b.vis * ratio * dr.abs(dr.dot(a, sp.wp)) / dr.maximum(dr.abs(dr.dot(b, sp.wp)), 1e-30)
+            c_through = dr.select(a.z * b.z < 0, refracted, 0.0) / dr.maximum(p_rad * dw.prob, 1e-30)
+            c_delta = dr.select(dw.through, c_through, c_delta)
         c_delta = dr.select(on_flat, (1.0 - tx_b.vis) / dr.maximum(p_hid_x + p_rad * dw.b_hid, 1e-30), c_delta)
         prob_delta = dr.select(on_flat, p_hid_x + p_rad * dw.b_hid, prob_delta)
         share_b = tx_b.retro_share()
         for k, (p, kind, frame, inc) in enumerate(extra):
             if kind in ("skim", "retro"):
                 share = share_b if kind == "retro" else 1.0 - share_b
-                c_k = tx_b.vis * share * (1.0 - tx_b.seen(inc)) * ratio / dr.maximum(p, 1e-30)
-                c_delta = dr.select(picked == k, c_k, c_delta)
-                prob_delta = dr.select(picked == k, p, prob_delta)
-        weight = dr.select(delta, w * c_delta * score(prob_delta), value / dr.detach(dr.select(pdf > 0, pdf, 1.0)))
-        bs.pdf = dr.select(delta, bs.pdf * prob_delta, pdf)
-        return _finish(bs, weight, ok)
+                c_k = tx_b.vis * share * (1.0 - tx_b.seen(tx_b.to_camera(inc))) * ratio / dr.maximum(p, 1e-30)
+            elif kind == "fold":
+                c_k = tx_b.vis * ratio * dr.abs(dr.dot(inc, sp.wp)) / dr.maximum(
+                    dr.abs(dr.dot(b, sp.wp)) * p, 1e-30)
+            else:
+                continue
+            c_delta = dr.select(picked == k, c_k, c_delta)
+            prob_delta = dr.select(picked == k, p, prob_delta)
+        return c_delta, prob_delta
 
 
 class _Draw:
-    def __init__(self, bs, w, active, delta, on_tex, bounced, prob, b_tex, b_hid):
+    def __init__(self, bs, w, active, delta, on_tex, bounced, prob, b_tex, b_hid, through=None):
         self.bs, self.w, self.active, self.delta = bs, w, active, delta
         self.on_tex, self.bounced, self.prob, self.b_tex, self.b_hid = on_tex, bounced, prob, b_tex, b_hid
+        self.through = through          # transmitted through the facet (with transmission)
 
 
 def _finish(bs, weight, active):
