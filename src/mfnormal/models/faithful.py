@@ -207,6 +207,11 @@ def _nested(sp, ctx, frame, wi, wo, active, want_value=True, want_pdf=True, si_f
     """(f·cos, pdf) of the nested BSDF with context ``ctx`` on the facet with ``frame``
     (``si_f``: ``sp.facet_si(frame, wi)``, if the caller has it)."""
     si_f, wo_f, active = sp._facet_query(frame, wi, wo, active, si_f)
+    return _call(sp, ctx, si_f, wo_f, active, want_value, want_pdf)
+
+
+def _call(sp, ctx, si_f, wo_f, active, want_value, want_pdf):
+    """The nested BSDF's (f·cos, pdf) at the facet query (``si_f``, ``wo_f``), zero where inactive."""
     if want_value and want_pdf:
         v, p = sp.nested.eval_pdf(ctx, si_f, wo_f, active)
     elif want_value:
@@ -232,13 +237,7 @@ def _sided(sp, tx, ctx, frame, wi, wo, active, want_value=True, want_pdf=True, s
     c_o = sign * wo_f.z
     on_side = {REFLECT: c_o > 0, TRANSMIT: c_o < 0, EITHER: c_o != 0}[side]
     active = active & (sign * si_f.wi.z > 0) & on_side
-    if want_value and want_pdf:
-        v, p = sp.nested.eval_pdf(ctx, si_f, wo_f, active)
-    elif want_value:
-        v, p = sp.nested.eval(ctx, si_f, wo_f, active), mi.Float(0.0)
-    else:
-        v, p = mi.Spectrum(0.0), sp.nested.pdf(ctx, si_f, wo_f, active)
-    return dr.select(active, v, 0.0), dr.select(active, p, 0.0)
+    return _call(sp, ctx, si_f, wo_f, active, want_value, want_pdf)
 
 
 def _mirror_z(w):
