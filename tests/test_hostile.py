@@ -291,6 +291,8 @@ def test_hostile_scene_renders_finite_or_fails_in_one_line(worker, scenes, tmp_p
     else:
         assert_one_line_error(proc, *expected)
         assert not (tmp_path / "out.exr").exists()
+        if expected == REFUSED_TRANSMISSION:
+            assert proc.returncode == 2, proc.returncode
 
 
 # -- Nested BSDFs that transmit ------------------------------------------------------------------
