@@ -96,8 +96,10 @@ def test_rough_dielectric_never_exceeds_the_nested_albedo(nested):
     Mitsuba's own sample weights, which differ from its eval/pdf by ~1e-4), over tilts to 85°
     and θ_i to 89°, both azimuths, both sides. (The bound is the largest over θ_i, not the flat
     frame's value at the same θ_i: the facet sees the light at another angle, and a rough
-    dielectric loses more at grazing angles by itself.) The principled's blocked reflected
-    light goes to the fill (it ignores type_mask), its transmitted light below the surface."""
+    dielectric loses some of it by itself, by angle: Beckmann α 0.3 glass seen from inside at
+    θ_i = 60° keeps 0.882 flat but 0.9996 on a texel tilted 50° away, where the facet sees it at
+    10°; measured, 2^15 samples.) The principled's blocked reflected light goes to the fill (it
+    ignores type_mask), its transmitted light below the surface."""
     spec = TRANSMITTING[nested]
     failures = []
     for below in (False, True):
@@ -264,10 +266,13 @@ def test_light_tracing_eval_is_the_adjoint_on_both_sides(nested):
 
 
 def test_transmission_derivatives_match_finite_differences():
-    """d/d strength, d/d texel, d/dα and d/dη of eval for light the facet transmits (ω_o on the
-    far side from ω_i, both sides, 2^16 queries on four tilted texels of a GGX α 0.3 glass):
+    """d/d strength, d/d texel, d/dα and d/dη of eval (and d/d strength, d/d texel of pdf) for
+    light the facet transmits (ω_o on the far side from ω_i, both sides, 2^16 queries on four
+    tilted texels of a GGX α 0.3 glass):
     forward = reverse = FD (tests/gradients.py: within 4 paired standard errors + 3 %; the FD
-    averaged over nine steps about h = 1e-3), and each derivative resolved (|FD| > 4 SE)."""
+    averaged over nine steps about h = 1e-3), and each derivative resolved (|FD| > 4 SE) except
+    the pdf's by a texel (measured: FD −0.0026 ± 0.0010 paired, AD −0.0009; 2^16 queries do not
+    resolve it, the agreement is still checked)."""
     import gradients as G
     from helpers import make_si as si_of
 
@@ -281,15 +286,31 @@ def test_transmission_derivatives_match_finite_differences():
     si, u = si_of(wi, 4, p_index=np.arange(n)), rng.random((n, 3)).astype(np.float32)
     keys = [k for k in mi.traverse(b).keys()]
     failures = []
-    for key in ("strength", ("texel", 1, 1), "nested_bsdf.alpha.value", "nested_bsdf.eta"):
+    for what, key in [("eval", "strength"), ("eval", ("texel", 1, 1)), ("eval", "nested_bsdf.alpha.value"),
+                      ("eval", "nested_bsdf.eta"), ("pdf", "strength"), ("pdf", ("texel", 1, 1))]:
         if isinstance(key, str) and key not in keys:
             failures.append(f"{key} not traversed: {keys}")
             continue
-        c = G.check(b, key, si, vec3(wo), u, 1e-3, "eval", steps=G.STEPS)
-        print(f"transmission eval {key}: {c}")
-        if not (c.agrees() and abs(c.fd) > 4 * c.se):
-            failures.append(f"{key}: {c}")
+        c = G.check(b, key, si, vec3(wo), u, 1e-3, what, steps=G.STEPS)
+        print(f"transmission {what} {key}: {c}")
+        resolved = abs(c.fd) > 4 * c.se or (what, key) == ("pdf", ("texel", 1, 1))
+        if not (c.agrees() and resolved):
+            failures.append(f"{what} {key}: {c}")
     assert not failures, "\n".join(failures)
+
+
+def test_eval_is_deterministic_and_smooth_on_both_sides():
+    """As the reflection's test (test_faithful.py), with ω_i and ω_o on the whole sphere and
+    every transmitting nested BSDF here: the same query gives the same value, and jittering ω_i
+    by 1e-4 rad changes eval by < 1e-2 relative for 99.9 % of 20 000 queries (tilts to 85°) and
+    by < 3e-2 for all, continuously (measured: 99.9th percentile 0.002–0.003, largest 0.021)."""
+    from helpers import assert_deterministic_and_smooth
+    rng = np.random.default_rng(13)
+    n = 20_000
+    wi, wo = random_sphere(rng, n, 0.05), random_sphere(rng, n, 0.05)
+    texels = encode(sph(rng.uniform(0, 85, n), rng.uniform(0, 2 * np.pi, n)))
+    for name, nested in TRANSMITTING.items():
+        assert_deterministic_and_smooth(make_bsdf(nested, texels), wi, wo, rng, name)
 
 
 @pytest.mark.parametrize("nested", ["glass_0.3", "principled"])
