@@ -261,3 +261,47 @@ def mesh(name, positions, normals, uvs, faces, bsdf: dict):
     params["faces"] = uints(faces)
     params.update()
     return m
+
+
+def light_tracing_agrees(imgs, n_blocks=(6, 8), block=4):
+    """Path tracing against light tracing: ``imgs`` = {"path": renders, "ptracer": renders} (n
+    renders each, H × W × 3). Per block of ``block``² pixels, Welch's t test of the difference
+    (variances from the render-to-render spread, Welch-Satterthwaite degrees of freedom) over the
+    blocks path tracing lights (mean > 1e-3). Returns (the lit blocks' p-values, their |z|, the
+    images' mean ratio ptracer/path)."""
+    from scipy import stats
+    n = len(imgs["path"])
+    blocks = {k: v.reshape(n, n_blocks[0], block, n_blocks[1], block, 3).mean(axis=(2, 4, 5))
+              for k, v in imgs.items()}
+    mean = {k: v.mean(0) for k, v in blocks.items()}
+    var = {k: np.maximum(v.var(0, ddof=1) / n, 1e-12) for k, v in blocks.items()}
+    lit = mean["path"] > 1e-3
+    z = ((mean["path"] - mean["ptracer"]) / np.sqrt(var["path"] + var["ptracer"]))[lit]
+    dof = ((var["path"] + var["ptracer"]) ** 2
+           / (var["path"] ** 2 / (n - 1) + var["ptracer"] ** 2 / (n - 1)))[lit]
+    return 2.0 * stats.t.sf(np.abs(z), dof), np.abs(z), imgs["ptracer"].mean() / imgs["path"].mean()
+
+
+def assert_deterministic_and_smooth(bsdf, wi, wo, rng, what=""):
+    """The same queries (wi, wo: n×3) give the same eval, and eval has no jumps in ω_i: jittering
+    ω_i by 1e-4 rad (random directions from ``rng``) changes eval by < 1e-2 relative for 99.9 % of
+    the queries and by < 3e-2 for all; and wherever the change exceeds 1e-3, jittering by 1e-5
+    rad changes it ≥ 5× less (a continuous function scales ~10×, a jump not at all). Relative to
+    the value, but never to less than 1 % of the batch's largest value."""
+    n = len(wi)
+    direction = rng.normal(size=(n, 3))
+    direction -= (direction * wi).sum(1, keepdims=True) * wi
+    direction /= np.linalg.norm(direction, axis=1, keepdims=True)
+
+    def jittered(delta):
+        w = wi + delta * direction
+        return w / np.linalg.norm(w, axis=1, keepdims=True)
+
+    v1 = np3(bsdf.eval(mi.BSDFContext(), make_si(wi, n), vec3(wo)))
+    np.testing.assert_array_equal(v1, np3(bsdf.eval(mi.BSDFContext(), make_si(wi, n), vec3(wo))))
+    scale = np.maximum(v1.max(1), 1e-2 * v1.max())
+    rel = {d: np.abs(np3(bsdf.eval(mi.BSDFContext(), make_si(jittered(d), n), vec3(wo))) - v1).max(1) / scale
+           for d in (1e-4, 1e-5)}
+    assert np.percentile(rel[1e-4], 99.9) < 1e-2 and rel[1e-4].max() < 3e-2, (what, rel[1e-4].max())
+    moved = rel[1e-4] > 1e-3
+    assert np.all(rel[1e-5][moved] < 0.2 * rel[1e-4][moved]), what

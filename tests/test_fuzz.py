@@ -3,9 +3,12 @@
 Every model × tangent facet (faithful, analytic; separable and non-separable with a mirror
 or a same-material tangent facet) × nested BSDF (diffuse, roughconductor with
 α ∈ [1e-4, 1], roughplastic, principled, a delta ``conductor``, the plugin around
-``twosided`` and ``twosided`` around the plugin) is a pytest case; the default run keeps 23 of the 42
+``twosided`` and ``twosided`` around the plugin; for the default model also the transmitting
+``roughdielectric`` and a delta ``dielectric``) is a pytest case; the default run keeps 24 of the 44
 (``DEFAULT_PAIRS``: every model with the branches of its own, every nested BSDF with a
-deterministic model and a walk), MFNORMAL_SLOW=1 runs them all. In each case
+deterministic model and a walk), MFNORMAL_SLOW=1 runs them all. Where the plugin refracts (the
+default model with a transmitting nested BSDF, a principled with spec_trans > 0 included), eval
+and samples may lie on either side of the surface. In each case
 Hypothesis draws what is a *value* in the kernels (the nested BSDF's parameters,
 ``strength`` ∈ [0, 100] including 0, denormals and 100, the map convention, the
 bounce cap, extra adversarial texels — any float32, NaN and ±Inf included — and
@@ -105,7 +108,9 @@ ONE_MINUS_EPS = float(np.float32(1.0 - 2.0 ** -24))
 MODELS = [("faithful", "specular"), ("analytic", "specular"), ("separable", "specular"), ("separable", "same"),
           ("nonseparable", "specular"), ("nonseparable", "same")]
 NESTED_KINDS = ["diffuse", "roughconductor", "roughplastic", "principled", "conductor",
-                "plugin_around_twosided", "twosided_around_plugin"]
+                "plugin_around_twosided", "twosided_around_plugin", "roughdielectric", "dielectric"]
+# Nested BSDFs that transmit: the default model only (the paper's models refuse them at load).
+TRANSMITTING_KINDS = ("roughdielectric", "dielectric")
 
 FUZZ_SETTINGS = settings(max_examples=FUZZ_EXAMPLES, derandomize=not LONG, database=None, deadline=None,
                          phases=(Phase.explicit, Phase.generate), print_blob=LONG,
@@ -188,11 +193,15 @@ def roughplastic(draw):
 
 
 @st.composite
-def principled(draw):
+def principled(draw, transmits=True):
+    """Mitsuba's principled; ``transmits`` False: spec_trans = 0 (the paper's models refuse a
+    nested BSDF that transmits)."""
     spec = {"type": "principled", "base_color": draw(rgb())}
     for name in ("roughness", "metallic", "specular", "anisotropic", "sheen", "sheen_tint",
                  "clearcoat", "clearcoat_gloss", "spec_tint", "spec_trans"):
         spec[name] = draw(unit_float())
+    if not transmits:
+        spec["spec_trans"] = 0.0
     return spec
 
 
@@ -203,6 +212,10 @@ NESTED_STRATEGIES = {
     "principled": principled(),
     "conductor": st.sampled_from(["none", "Au"]).map(lambda m: {"type": "conductor", "material": m}),
 }
+NESTED_STRATEGIES["roughdielectric"] = st.fixed_dictionaries({
+    "type": st.just("roughdielectric"), "distribution": st.sampled_from(["ggx", "beckmann"]), "alpha": alpha,
+    "int_ior": st.floats(1.01, 2.5), "sample_visible": st.booleans()})
+NESTED_STRATEGIES["dielectric"] = st.floats(1.01, 2.5).map(lambda eta: {"type": "dielectric", "int_ior": eta})
 NESTED_STRATEGIES["plugin_around_twosided"] = st.one_of(
     NESTED_STRATEGIES["roughconductor"], NESTED_STRATEGIES["diffuse"]).map(lambda b: {"type": "twosided", "bsdf": b})
 NESTED_STRATEGIES["twosided_around_plugin"] = st.one_of(NESTED_STRATEGIES["diffuse"], NESTED_STRATEGIES["roughplastic"])
@@ -225,8 +238,9 @@ def extra_directions(draw):
 
 def fuzz_case(kind, model):
     walk = model not in ("analytic", "faithful")
+    nested = principled(transmits=False) if kind == "principled" and model != "faithful" else NESTED_STRATEGIES[kind]
     return st.fixed_dictionaries({
-        "nested": NESTED_STRATEGIES[kind],
+        "nested": nested,
         "strength": strength,
         "convention": st.sampled_from(["opengl", "directx"]),
         "max_bounces": st.sampled_from([1024, 1, 2, 64]) if walk else st.just(1024),
@@ -414,9 +428,16 @@ def timed(label, fn, timings):
     return out
 
 
+def transmits(kind, nested):
+    """Whether the plugin refracts (the default model with a nested BSDF that transmits): its
+    eval and samples then cover both sides of the surface."""
+    return kind in TRANSMITTING_KINDS or (kind == "principled" and nested.get("spec_trans", 0.0) > 0)
+
+
 def energy_conserving(kind, nested):
     inner = nested["bsdf"] if nested["type"] == "twosided" else nested
-    if kind == "principled" or inner.get("nonlinear", False):
+    # (Transmitted radiance-mode weights carry the 1/η² radiance scaling: test_faithful_transmission.)
+    if kind == "principled" or inner.get("nonlinear", False) or kind in TRANSMITTING_KINDS:
         return False
     return True
 
@@ -445,6 +466,7 @@ def check(cond, what, failures, describe):
 # MFNORMAL_FUZZ_LONG=1) runs every pair.
 DEFAULT_PAIRS = {
     ("faithful", "roughconductor"), ("faithful", "roughplastic"), ("faithful", "twosided_around_plugin"),
+    ("faithful", "roughdielectric"),
     ("analytic", "diffuse"), ("analytic", "principled"),
     ("separable-specular", "diffuse"),
     ("separable-same", "roughconductor"), ("separable-same", "twosided_around_plugin"),
@@ -459,6 +481,8 @@ def fuzz_params():
     for m, t in MODELS:
         name = m if m in ("faithful", "analytic") else f"{m}-{t}"
         for kind in NESTED_KINDS:
+            if kind in TRANSMITTING_KINDS and m != "faithful":
+                continue
             slow = () if LONG or (name, kind) in DEFAULT_PAIRS else (pytest.mark.slow,)
             out.append(pytest.param(m, t, kind, id=f"{m}-{t}-{kind}", marks=slow))
     return out
@@ -498,8 +522,9 @@ def test_fuzzed_queries_are_finite_valid_and_bounded(model, tangent_facet, kind,
 
     failures = []
     two = kind == "twosided_around_plugin"
+    through = transmits(kind, case["nested"])
     wi_z, wo_z = wi[:, 2].astype(np.float64), wo[:, 2].astype(np.float64)
-    same_side = (wi_z * wo_z > 0) if two else (wi_z > 0) & (wo_z > 0)
+    same_side = (wi_z * wo_z > 0) if two else (wi_z * wo_z != 0) if through else (wi_z > 0) & (wo_z > 0)
     for name, x in (("eval", value), ("pdf", pdf), ("pdf()", pdf_only), ("eval()", value_only),
                     ("sample weight", s_w), ("sample pdf", s_pdf)):
         x2 = x.reshape(len(x), -1)
@@ -521,13 +546,15 @@ def test_fuzzed_queries_are_finite_valid_and_bounded(model, tangent_facet, kind,
         length = np.linalg.norm(s_wo, axis=1)
         check(~live | (np.all(np.isfinite(s_wo), 1) & (np.abs(length - 1) <= UNIT_TOL)),
               "sampled direction not unit length", failures, describe)
-        check(~live | (s_wo[:, 2] * side > 0), "sampled direction not above the surface", failures, describe)
+        check(~live | ((s_wo[:, 2] != 0) if through else (s_wo[:, 2] * side > 0)),
+              "sampled direction not above the surface", failures, describe)
     check(~live | (s_pdf > 0), "sample with weight > 0 has pdf 0", failures, describe)
-    check(~live | (wi_z != 0) if two else ~live | (wi_z > 0), "sample from below the surface", failures, describe)
+    check(~live | (wi_z != 0) if two or through else ~live | (wi_z > 0), "sample from below the surface",
+          failures, describe)
     # The batch must not be trivially dead (a sharp lobe, α = 1e-4, is non-zero on few ω_o,
     # a delta conductor on none; a principled with spec_trans = 1 reflects little).
     assert live.any() or black(case["nested"]), "no sample has weight > 0"
-    assert kind == "conductor" or black(case["nested"]) or np.any(value > 0), "eval is zero everywhere"
+    assert kind in ("conductor", "dielectric") or black(case["nested"]) or np.any(value > 0), "eval is zero everywhere"
 
     # White furnace: mean sample weight and ∫eval dω per (texel, ω_i) group.
     albedo_note = ""
@@ -769,17 +796,21 @@ def test_tilt_below_sin_p_eps_is_exactly_flat():
         assert np.array_equal(out[0][0], out[1][0]) and np.array_equal(out[0][1], out[1][1]), model
 
 
-def test_eval_equals_eval_pdf_with_a_transmitting_nested_bsdf():
-    """Analytic model, principled with spec_trans = 1, nearly flat map (strength 1e-7),
-    ω_i and ω_o grazing: the p→t mirror term evaluated the nested BSDF at a direction
-    below the p facet, where it transmits: eval 1.9e-9, eval_pdf (which gated it)
-    1.8e-16. Now eval gates too: the facets only reflect. (The tilt here is below
-    SIN_P_EPS, which the test above now makes exactly flat; the gate is the second
-    line of defence, this test fails only with both removed.)"""
+@pytest.mark.parametrize("model", ["faithful", "analytic"])
+def test_eval_equals_eval_pdf_with_a_transmitting_nested_bsdf(model):
+    """Principled with spec_trans = 1, nearly flat map (strength 1e-7), ω_i and ω_o grazing:
+    the analytic model's p→t mirror term evaluated the nested BSDF at a direction below the
+    p facet, where it transmits: eval 1.9e-9, eval_pdf (which gated it) 1.8e-16. The analytic
+    model now refuses a transmitting nested BSDF at load; the default, which refracts, gives
+    eval = eval_pdf's value bit for bit at that query."""
     nested = {"type": "principled", "roughness": 0.166, "specular": 1.0, "anisotropic": 0.534,
               "clearcoat": 1.0, "clearcoat_gloss": 1.0, "spec_trans": 1.0}
-    bsdf = one_texel_bsdf("analytic", "specular", [0.7677456736564636, 0.544303297996521, 0.9199398756027222],
-                          nested, strength=1e-7)
+    texel = [0.7677456736564636, 0.544303297996521, 0.9199398756027222]
+    if model == "analytic":
+        with pytest.raises(RuntimeError, match="transmits light"):
+            one_texel_bsdf(model, "specular", texel, nested, strength=1e-7)
+        return
+    bsdf = one_texel_bsdf(model, "specular", texel, nested, strength=1e-7)
     si = same_query([-0.5026869177818298, 0.8644685745239258, 2.293029233157995e-08], 1)
     wo = vec3(np.float32([[0.10951605439186096, -0.9939849972724915, 3.5039218193588795e-09]]))
     value = np3(bsdf.eval(mi.BSDFContext(), si, wo), 1)

@@ -29,6 +29,10 @@ view-averaged response to every light direction for every texel, i.e. no relief
 (docs/faithful.md). Light tracing sees the adjoint (``TransportMode.Importance``):
 eval*(a, b) = eval(b, a)·⟨b, ω_g⟩ / ⟨a, ω_g⟩, so path tracing and light tracing agree.
 
+A nested BSDF that transmits is normal-mapped on both sides (docs/faithful.md §7): the facet's
+transmitted light leaves on the far side of the macro surface (folded there from the camera's
+side), and a camera below the surface sees the mirrored heightfield (:class:`Texel`).
+
 The neighbourhood (the map's slopes, Smith masking by them, the blocked-light table) is
 :mod:`mfnormal.models.neighbourhood`.
 """
@@ -80,6 +84,8 @@ class Lobes:
             glossy = False
             self.diffuse_mask = +mi.BSDFFlags.All
         self.diffuse, self.glossy = diffuse, glossy
+        # A transmitting nested BSDF: both hemispheres (Texel's mirrored frame, Model._transmitted).
+        self.transmission = mi.has_flag(flags, mi.BSDFFlags.Transmission)
 
 
 def _honours_type_mask(nested) -> bool:
@@ -103,12 +109,26 @@ def _honours_type_mask(nested) -> bool:
 
 
 class Texel:
-    """Geometry of one texel among its neighbours, seen from ω_i (all in the base frame)."""
+    """Geometry of one texel among its neighbours, seen from ω_i, in the camera's frame.
+
+    That is the base frame for a camera above the macro surface. For a transmitting nested
+    BSDF the camera may be below it (inside the water or glass): seen from there the surface is
+    the heightfield −h, so its geometry (V, S, Λ, the bounce) is that of the mirrored frame
+    F(x, y, z) = (x, y, −z), in which the camera is above and the texel's normal is
+    F(−ω_p) = (−p_x, −p_y, p_z), with the same slopes' σ (Λ is even in the slopes). ``wi`` and
+    ``wp`` are in the camera's frame, ``wi_real`` in the base frame; :meth:`to_camera` maps
+    between the two (F is its own inverse); the nested BSDF is always called in the base frame."""
 
     def __init__(self, sp, model, wi):
-        self.sp, self.wi, self.model = sp, wi, model
-        self.fill_rho = None          # Model._fill_rho's, once computed
+        self.sp, self.model, self.wi_real = sp, model, wi
+        self.flip = None              # where the camera is below the macro surface (None: never)
         wp = sp.wp
+        if model.lobes.transmission:
+            self.flip = wi.z < 0
+            wi = self.to_camera(wi)
+            wp = mi.Vector3f(dr.select(self.flip, -wp.x, wp.x), dr.select(self.flip, -wp.y, wp.y), wp.z)
+        self.wi, self.wp = wi, wp
+        self.fill_rho = None          # Model._fill_rho's, once computed
         self.lam_i = self.smith_lambda(wi)
         g1_i = dr.rcp(1.0 + self.lam_i)
         proj = dr.maximum(dr.dot(wi, wp), 0.0) / (wp.z * dr.maximum(wi.z, 1e-30))
@@ -117,6 +137,12 @@ class Texel:
         # (atan2's derivative is 0/0 at a flat normal: held there.)
         phi = _held(dr.atan2(dr.abs(p_e.y), dr.abs(p_e.x)), (p_e.x != 0.0) | (p_e.y != 0.0))
         self.blocked = model.blocked(wp.z, phi, g1_i)
+
+    def to_camera(self, w):
+        """``w`` from the base frame to the camera's (and back): F where the camera is below."""
+        if self.flip is None:
+            return w
+        return mi.Vector3f(w.x, w.y, dr.select(self.flip, -w.z, w.z))
 
     def principal(self, w):
         """``w`` (base frame) in the principal frame of the map's slopes."""
@@ -130,12 +156,12 @@ class Texel:
 
     def seen(self, w):
         """S(ω|ω_i): a visible point of the texel sees ω past the neighbours (0 below either horizon)."""
-        up = (w.z > 0) & (dr.dot(w, self.sp.wp) > 0)
+        up = (w.z > 0) & (dr.dot(w, self.wp) > 0)
         lam = self.smith_lambda(w)
         return dr.select(up, (1.0 + self.lam_i) / (1.0 + self.lam_i + lam), 0.0)
 
     def _mirror(self, w):
-        return 2.0 * dr.dot(w, self.sp.wp) * self.sp.wp - w
+        return 2.0 * dr.dot(w, self.wp) * self.wp - w
 
     def retro_share(self):
         """w(ω_i) = 1 − S(r|ω_i), r the facet's mirror direction of ω_i: how much of the glossy
@@ -156,7 +182,7 @@ class Texel:
     def preimages(self, w):
         """The blocked directions d that the bounce takes to ω, as (d, lies on the facet, the share
         of blocked light that takes that map): two for skimming on, two for retro-reflection."""
-        wp, share = self.sp.wp, self.retro_share()
+        wp, share = self.wp, self.retro_share()
         below = mi.Vector3f(w.x, w.y, -w.z)
         out = []
         for d, weight in ((w, 1.0 - share), (below, 1.0 - share),
@@ -181,6 +207,11 @@ def _nested(sp, ctx, frame, wi, wo, active, want_value=True, want_pdf=True, si_f
     """(f·cos, pdf) of the nested BSDF with context ``ctx`` on the facet with ``frame``
     (``si_f``: ``sp.facet_si(frame, wi)``, if the caller has it)."""
     si_f, wo_f, active = sp._facet_query(frame, wi, wo, active, si_f)
+    return _call(sp, ctx, si_f, wo_f, active, want_value, want_pdf)
+
+
+def _call(sp, ctx, si_f, wo_f, active, want_value, want_pdf):
+    """The nested BSDF's (f·cos, pdf) at the facet query (``si_f``, ``wo_f``), zero where inactive."""
     if want_value and want_pdf:
         v, p = sp.nested.eval_pdf(ctx, si_f, wo_f, active)
     elif want_value:
@@ -188,6 +219,30 @@ def _nested(sp, ctx, frame, wi, wo, active, want_value=True, want_pdf=True, si_f
     else:
         v, p = mi.Spectrum(0.0), sp.nested.pdf(ctx, si_f, wo_f, active)
     return dr.select(active, v, 0.0), dr.select(active, p, 0.0)
+
+
+# Which side of the facet a nested query's ω_o must be on, seen from the camera's side of it.
+REFLECT, TRANSMIT, EITHER = "reflect", "transmit", "either"
+
+
+def _sided(sp, tx, ctx, frame, wi, wo, active, want_value=True, want_pdf=True, si_f=None, side=REFLECT):
+    """:func:`_nested` (base-frame ``wi``, ``wo``) for a texel ``tx`` that may be seen from below:
+    active where ``wi`` is on the camera's side of ``frame`` (for a camera below, the facet's
+    lower side) and ``wo`` on the ``side`` asked for. Without transmission, :func:`_nested`."""
+    if tx.flip is None:
+        return _nested(sp, ctx, frame, wi, wo, active, want_value, want_pdf, si_f)
+    si_f = sp.facet_si(frame, wi) if si_f is None else si_f
+    wo_f = frame.to_local(wo)
+    sign = dr.select(tx.flip, -1.0, 1.0)
+    c_o = sign * wo_f.z
+    on_side = {REFLECT: c_o > 0, TRANSMIT: c_o < 0, EITHER: c_o != 0}[side]
+    active = active & (sign * si_f.wi.z > 0) & on_side
+    return _call(sp, ctx, si_f, wo_f, active, want_value, want_pdf)
+
+
+def _mirror_z(w):
+    """F(w) = (w_x, w_y, −w_z): the mirror image of ``w`` in the macro plane."""
+    return mi.Vector3f(w.x, w.y, -w.z)
 
 
 RADIANCE = mi.TransportMode.Radiance
@@ -292,13 +347,14 @@ class Model:
         if tx.fill_rho is None:
             ctx = mi.BSDFContext(RADIANCE, self.lobes.diffuse_mask)
             active = (tx.wi.z > 0) & (tx.vis > 0)
-            wp = sp.wp
+            wp = tx.wp
             down = wp.z * wp - mi.Vector3f(0.0, 0.0, 1.0)                 # −(ω_g − cosθ_p ω_p)
             n2 = dr.squared_norm(down)
             down = dr.select(n2 > 1e-12, down * dr.rsqrt(dr.maximum(n2, 1e-30)), sp.frame_p.s)
             w_h = HORIZON_MU * wp + math.sqrt(1.0 - HORIZON_MU ** 2) * down
-            f_n, _ = _nested(sp, ctx, sp.frame_p, tx.wi, wp, active, want_pdf=False)
-            f_h, _ = _nested(sp, ctx, sp.frame_p, tx.wi, w_h, active, want_pdf=False)
+            wi = tx.wi_real
+            f_n, _ = _sided(sp, tx, ctx, sp.frame_p, wi, tx.to_camera(wp), active, want_pdf=False)
+            f_h, _ = _sided(sp, tx, ctx, sp.frame_p, wi, tx.to_camera(w_h), active, want_pdf=False)
             tx.fill_rho = math.pi * dr.minimum(f_n, f_h / HORIZON_MU)
         return tx.fill_rho
 
@@ -329,8 +385,11 @@ class Model:
         shares it (a branch opens a scope that shares nothing with the outside)."""
         if gated is None:
             gated = self._gates(sp, tx, wo)
-        wi = tx.wi
-        active = active & (wi.z > 0) & (wo.z > 0)
+        wi, wo_g = tx.wi, tx.to_camera(wo)
+        trans = self.lobes.transmission
+        # (With transmission ω_o lies on either side: its side decides which terms it gets.)
+        either = active & (wi.z > 0) & (wo_g.z != 0) if trans else None
+        active = active & (wi.z > 0) & (wo_g.z > 0)
         full = mi.BSDFContext(RADIANCE)
         on_texel = active & (tx.vis > 0)
         value, pdf = mi.Spectrum(0.0), mi.Float(0.0)
@@ -340,34 +399,55 @@ class Model:
         # it adds are masked out below).
         fill = self._fill(sp, tx) if want_value else None
         # Lit directly past the neighbours.
-        s_o = tx.seen(wo)
-        si_p = sp.facet_si(sp.frame_p, wi)
-        f_dir, p_dir = _nested(sp, full, sp.frame_p, wi, wo, on_texel & (s_o > 0), want_value, want_pdf, si_p)
+        s_o = tx.seen(wo_g)
+        si_p = sp.facet_si(sp.frame_p, tx.wi_real)
+        f_dir, p_dir = _sided(sp, tx, full, sp.frame_p, tx.wi_real, wo, on_texel & (s_o > 0), want_value, want_pdf,
+                              si_p)
         value_t, pdf_t = f_dir * s_o, p_dir * s_o
         # Light the neighbours block, bounced toward ω_o: the glossy part in eval (the diffuse
         # part is the fill), every lobe in the sampler's pdf. A preimage below the macro plane
         # is never seen past the neighbours (S = 0: ω_o is above it here). The retro-reflected
         # pair (share w > 0) and the one below the plane are skipped by packets that need neither.
-        pre = tx.preimages(wo)
-        q = _Query(sp, tx, wi, pre, s_o, on_texel, si_p, want_value, want_pdf)
+        pre = tx.preimages(wo_g)
+        q = _Query(sp, tx, tx.wi_real, pre, s_o, on_texel, si_p, want_value, want_pdf)
         acc = self._bounced(q, (0,), (value_t, pdf_t))
         # (One branch for the three: each branch's scope repeats the nested BSDF's own ω_i terms,
         # 3 % more kernel operations with two.)
         rare = on_texel & ((pre[1][1] & (pre[1][2] > 0)) | (pre[2][2] > 0))
         value_t, pdf_t = _gated(rare, lambda: self._bounced(q, (1, 2, 3), acc), acc, gated)
+        if trans:
+            value_t, pdf_t = self._transmitted(q, wo, either & (wo_g.z < 0), (value_t, pdf_t))
+            active = either
         # The neighbours, where the texel is hidden.
-        f_hid, p_hid = _gated(active & (tx.vis < 1.0), lambda: _nested(
-            sp, full, macro_frame(), wi, wo, active & (tx.vis < 1.0), want_value, want_pdf),
-            (mi.Spectrum(0.0), mi.Float(0.0)), gated)
+        f_hid, p_hid = _gated(active & (tx.vis < 1.0), lambda: _sided(
+            sp, tx, full, macro_frame(), tx.wi_real, wo, active & (tx.vis < 1.0), want_value, want_pdf,
+            side=EITHER), (mi.Spectrum(0.0), mi.Float(0.0)), gated)
+        cos_fill = dr.maximum(wo_g.z, 0.0) if trans else wo.z
 
         if want_value:
-            value = tx.vis * (value_t + fill * (wo.z * INV_PI)) + (1.0 - tx.vis) * f_hid
+            value = tx.vis * (value_t + fill * (cos_fill * INV_PI)) + (1.0 - tx.vis) * f_hid
             value = dr.select(active & dr.all(dr.isfinite(value)), dr.maximum(value, 0.0), 0.0)
         if want_pdf:
             b_tex, b_fill, b_hid = self._branches(tx)
-            pdf = b_tex * pdf_t + b_fill * (wo.z * INV_PI) + b_hid * p_hid
+            pdf = b_tex * pdf_t + b_fill * (cos_fill * INV_PI) + b_hid * p_hid
             pdf = dr.select(active & dr.isfinite(pdf), dr.maximum(pdf, 0.0), 0.0)
         return value, pdf
+
+    def _transmitted(self, q, wo, down, acc):
+        """``acc`` plus the light the facet transmits toward ω_o, on the far side of the macro
+        surface from the camera (``down``): straight from the facet, or folded there from its
+        mirror image F(ω_o) (a refracted direction on the camera's side of the macro surface, the
+        side classic normal mapping sends it to). The neighbours block transmitted light too;
+        it leaves below them (M_T(d) = (d_x, d_y, −|d_z|) in the camera's frame, a piecewise
+        isometry: energy exact), so blocked or not, d below the macro plane leaves as d, and
+        S_T cancels: eval gets f_p^T(ω_i, ω_o) + f_p^T(ω_i, F(ω_o)), the pdf likewise."""
+        f_b, p_b = acc
+        full = mi.BSDFContext(RADIANCE)
+        on = down & (q.tx.vis > 0)
+        for d in (wo, _mirror_z(wo)):
+            f, p = _sided(q.sp, q.tx, full, q.sp.frame_p, q.wi, d, on, q.want_value, q.want_pdf, q.si_p, TRANSMIT)
+            f_b, p_b = f_b + f, p_b + p
+        return f_b, p_b
 
     def _bounced(self, q, ks, acc):
         """``acc`` plus the light the neighbours block toward the preimages ``ks`` of ω_o
@@ -379,17 +459,18 @@ class Model:
             d, on_facet, share = q.pre[k]
             s_d = q.s_o if k == 0 else mi.Float(0.0) if k == 1 else tx.seen(d)
             blocked = q.on_texel & on_facet & (s_d < 1.0) & (share > 0)
+            d = tx.to_camera(d)
             if self.lobes.glossy and q.want_value:
-                f, _ = _nested(sp, glossy, sp.frame_p, wi, d, blocked, True, False, q.si_p)
+                f, _ = _sided(sp, tx, glossy, sp.frame_p, wi, d, blocked, True, False, q.si_p)
                 f_b = f_b + f * (share * (1.0 - s_d))
             if q.want_pdf:
-                _, p = _nested(sp, full, sp.frame_p, wi, d, blocked, False, True, q.si_p)
+                _, p = _sided(sp, tx, full, sp.frame_p, wi, d, blocked, False, True, q.si_p)
                 p_b = p_b + p * (share * (1.0 - s_d))
         return f_b, p_b
 
     def _draw(self, sp, tx, sample1, sample2, active):
         """One draw of the radiance-mode sampler from ``tx.wi``: the exit direction and its path."""
-        wi = tx.wi
+        wi, trans = tx.wi, self.lobes.transmission
         active = active & (wi.z > 0)
         b_tex, b_fill, b_hid = self._branches(tx)
         # The branch is chosen, and sample1 rescaled, with detached probabilities.
@@ -403,28 +484,42 @@ class Model:
 
         # Nested sample on the facet (texel branch) or on the macro surface (hidden branch).
         frame = _select_frame(on_tex, sp.frame_p, macro_frame())
-        bs, w = sp.sample(frame, wi, s1, sample2, active & (on_tex | on_hid))
+        bs, w = sp.sample(frame, tx.wi_real, s1, sample2, active & (on_tex | on_hid))
+        d = tx.to_camera(bs.wo)
         # Texel branch: the sample leaves past the neighbours, or is blocked and bounced.
         seed = hash_floats(SALT_FAITHFUL_SAMPLE, sample1, sample2.x, sample2.y)
-        s_b = tx.seen(bs.wo)
+        s_b = tx.seen(d)
         # (Decisions with detached probabilities; the draw's prob keeps them attached: score.)
         bounced = on_tex & (uniform(seed, SLOT_FAITHFUL_BLOCKED) >= dr.detach(s_b))
         w_retro = tx.retro_share()
         retro = uniform(seed, SLOT_FAITHFUL_RETRO) < dr.detach(w_retro)
-        wo = dr.select(bounced, tx.bounce(bs.wo, retro), bs.wo)
+        if trans:
+            # Transmitted through the facet: leaves below the macro surface (Model._transmitted).
+            through = on_tex & (dr.dot(d, tx.wp) < 0)
+            bounced &= negate(through)
+        wo = dr.select(bounced, tx.bounce(d, retro), d)
+        if trans:
+            wo = dr.select(through, mi.Vector3f(d.x, d.y, -dr.abs(d.z)), wo)
         # Diffuse fill: a cosine lobe about ω_g.
         wo = dr.select(on_fill, mi.warp.square_to_cosine_hemisphere(sample2), wo)
-        # A nested sample counts only if it is one: positive weight, on the upper side of its frame.
-        valid = (bs.pdf > 0) & dr.any(w > 0) & (dr.dot(bs.wo, frame.n) > 0)
-        ok = dr.select(on_fill, True, valid) & (wo.z > 0) & dr.all(dr.isfinite(wo)) & (width > 0)
+        # A nested sample counts only if it is one: positive weight, on the upper side of its frame
+        # (with transmission: on either side).
+        side = dr.dot(bs.wo, frame.n)
+        valid = (bs.pdf > 0) & dr.any(w > 0) & ((side != 0) if trans else (side > 0))
+        ok = dr.select(on_fill, True, valid) & ((wo.z != 0) if trans else (wo.z > 0)) & dr.all(dr.isfinite(wo)) & \
+            (width > 0)
         delta = negate(on_fill) & mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
         bs.sampled_type = dr.select(on_fill, mi.UInt32(+mi.BSDFFlags.DiffuseReflection), bs.sampled_type)
         bs.sampled_component = dr.select(on_fill, mi.UInt32(0), bs.sampled_component)
-        bs.wo = wo
+        bs.wo = tx.to_camera(wo)
         # The draw's probability factor for delta lobes (the nested pdf times this).
         share = dr.select(retro, w_retro, 1.0 - w_retro)
-        prob = dr.select(on_tex, b_tex * dr.select(bounced, (1.0 - s_b) * share, s_b), b_hid)
-        return _Draw(bs, w, active & ok, delta, on_tex, bounced, prob, b_tex, b_hid)
+        p_exit = dr.select(bounced, (1.0 - s_b) * share, s_b)
+        if trans:
+            p_exit = dr.select(through, 1.0, p_exit)
+            bs.eta = dr.select(on_fill, 1.0, bs.eta)
+        prob = dr.select(on_tex, b_tex * p_exit, b_hid)
+        return _Draw(bs, w, active & ok, delta, on_tex, bounced, prob, b_tex, b_hid, through if trans else None)
 
     def _derivatives(self, sp):
         """Whether anything this point's queries read carries derivatives (the normal, the
@@ -465,36 +560,74 @@ class Model:
         """The adjoint sampler's extra branches, for the parts of eval* that radiance sampling from
         a does not cover (their weight depends on the camera side b): the fill (a cosine lobe about
         ω_g) and, for glossy lobes, b sampled on the facet from each preimage d of a under the bounce
-        and b sampled on ω_g from a (the hidden texel's neighbours).
-        Returns [(probability, kind, frame, incident direction), ...]."""
-        sp, a = tx_a.sp, tx_a.wi
+        and b sampled on ω_g from a (the hidden texel's neighbours); with transmission, the hidden
+        texel's neighbours always, and b refracted on the facet from F(a) (the fold, where F(a)
+        lies on the facet's side that a refracted camera ray would leave from).
+        Returns [(probability, kind, frame, incident direction in the base frame), ...]."""
+        sp, a, a_real = tx_a.sp, tx_a.wi, tx_a.wi_real
         branches = [(mi.Float(0.05), "cosine", None, None)]
         if self.lobes.glossy:
             for k, (d, on_facet, share) in enumerate(tx_a.preimages(a)):
                 s_d = tx_a.seen(d)
                 p = dr.select(on_facet & (s_d < 1.0), dr.maximum(0.1 * tx_a.vis * (1.0 - s_d), 0.025), 0.0)
-                branches.append((p, "retro" if k >= 2 else "skim", sp.frame_p, d))
-            vis_c = texel_for(mi.Vector3f(-a.x, -a.y, a.z)).vis      # at the flat lobe's centre
-            branches.append((dr.maximum(0.3 * (1.0 - vis_c), 0.05), "hidden", macro_frame(), a))
+                branches.append((p, "retro" if k >= 2 else "skim", sp.frame_p, tx_a.to_camera(d)))
+        if self.lobes.glossy or self.lobes.transmission:
+            vis_c = texel_for(mi.Vector3f(-a_real.x, -a_real.y, a_real.z)).vis      # at the flat lobe's centre
+            branches.append((dr.maximum(0.3 * (1.0 - vis_c), 0.05), "hidden", macro_frame(), a_real))
+        if self.lobes.transmission:
+            on = dr.dot(_mirror_z(a), tx_a.wp) > 0
+            branches.append((dr.select(on, 0.1, 0.0), "fold", sp.frame_p, _mirror_z(a_real)))
         return branches
 
+    def _adjoint_branch_pdf(self, sp, tx_a, kind, frame, inc, b, active):
+        """The density at b of one extra branch of the adjoint sampler (where its samples count:
+        :meth:`_adjoint_branch_valid`)."""
+        a, ctx = tx_a.wi_real, mi.BSDFContext(RADIANCE)
+        trans = self.lobes.transmission
+        if kind == "cosine":
+            return (dr.maximum(tx_a.to_camera(b).z, 0.0) if trans else b.z) * INV_PI
+        if kind == "fold":
+            si_f = sp.facet_si(frame, inc)
+            b_f = frame.to_local(b)
+            on = active & (si_f.wi.z * b_f.z < 0) & (a.z * b.z < 0)
+            return dr.select(on, sp.nested.pdf(ctx, si_f, b_f, on), 0.0)
+        side = EITHER if kind == "hidden" else REFLECT
+        if trans and kind != "hidden":
+            active = active & (a.z * b.z > 0)
+        return _sided(sp, tx_a, ctx, frame, inc, b, active, False, True, side=side)[1]
+
+    @staticmethod
+    def _adjoint_branch_valid(kind, bs, w, frame, inc, a, trans):
+        """Whether a nested sample of an extra branch counts (:meth:`_adjoint_branch_pdf`'s region)."""
+        ok = (bs.pdf > 0) & dr.any(w > 0)
+        if not trans:
+            return ok & (dr.dot(bs.wo, frame.n) > 0) & (bs.wo.z > 0)
+        side = dr.dot(bs.wo, frame.n) * dr.dot(inc, frame.n)
+        if kind == "hidden":
+            return ok & (bs.wo.z != 0)
+        if kind == "fold":
+            return ok & (side < 0) & (a.z * bs.wo.z < 0)
+        return ok & (side > 0) & (a.z * bs.wo.z > 0)
+
     def eval_pdf_adjoint(self, sp, tx_a, tx_b, active, texel_for, want_value=True, want_pdf=True):
-        """(eval*, pdf*) for light tracing: light side ``tx_a.wi``, camera side ``tx_b.wi``."""
-        a, b = tx_a.wi, tx_b.wi
-        active = active & (a.z > 0) & (b.z > 0)
+        """(eval*, pdf*) for light tracing: light side ``tx_a.wi``, camera side ``tx_b.wi`` (base
+        frame: ``wi_real``; with transmission either side, |⟨b,ω_g⟩|/|⟨a,ω_g⟩|)."""
+        a, b = tx_a.wi_real, tx_b.wi_real
+        trans = self.lobes.transmission
+        if trans:
+            active = active & (a.z != 0) & (b.z != 0)
+        else:
+            active = active & (a.z > 0) & (b.z > 0)
         value, pdf = mi.Spectrum(0.0), mi.Float(0.0)
         if want_value:
             value, _ = self.eval_pdf(sp, tx_b, a, active, want_pdf=False)
-            value *= b.z / dr.maximum(a.z, 1e-30)
+            value *= dr.abs(b.z) / dr.maximum(dr.abs(a.z), 1e-30) if trans else b.z / dr.maximum(a.z, 1e-30)
             value = dr.select(active & dr.all(dr.isfinite(value)), value, 0.0)
         if want_pdf:
             _, p_rad = self.eval_pdf(sp, tx_a, b, active, want_value=False)
             share = mi.Float(0.0)
             for p, kind, frame, inc in self._adjoint_branches(tx_a, texel_for):
-                if kind == "cosine":
-                    p_k = b.z * INV_PI
-                else:
-                    _, p_k = _nested(sp, mi.BSDFContext(RADIANCE), frame, inc, b, active & (p > 0), False, True)
+                p_k = self._adjoint_branch_pdf(sp, tx_a, kind, frame, inc, b, active & (p > 0))
                 pdf, share = pdf + p * p_k, share + p
             pdf = pdf + (1.0 - share) * p_rad
             pdf = dr.select(active & dr.isfinite(pdf), dr.maximum(pdf, 0.0), 0.0)
@@ -502,7 +635,6 @@ class Model:
 
     def sample_adjoint(self, sp, tx_a, sample1, sample2, active, texel_for):
         """Light-tracing sample from the light side ``tx_a.wi``; ``texel_for(b)`` builds the texel seen from b."""
-        a = tx_a.wi
         extra = self._adjoint_branches(tx_a, texel_for)
         # Choose a branch: the extra ones first (consecutive intervals), then the radiance sampler.
         # (The choice, and sample1's rescaling, with detached probabilities.)
@@ -523,7 +655,7 @@ class Model:
         for k, (p, kind, frame, inc) in enumerate(extra):
             on_k = picked == k
             if kind == "cosine":
-                bs.wo = dr.select(on_k, mi.warp.square_to_cosine_hemisphere(sample2), bs.wo)
+                bs.wo = dr.select(on_k, tx_a.to_camera(mi.warp.square_to_cosine_hemisphere(sample2)), bs.wo)
                 delta &= negate(on_k)
                 ok = dr.select(on_k, active, ok)
                 continue
@@ -531,40 +663,58 @@ class Model:
             bs = _select_sample(on_k, bs_k, bs)
             w = dr.select(on_k, w_k, w)
             delta = dr.select(on_k, mi.has_flag(bs_k.sampled_type, mi.BSDFFlags.Delta), delta)
-            valid_k = (bs_k.pdf > 0) & dr.any(w_k > 0) & (dr.dot(bs_k.wo, frame.n) > 0) & (bs_k.wo.z > 0)
+            valid_k = self._adjoint_branch_valid(kind, bs_k, w_k, frame, inc, tx_a.wi_real, self.lobes.transmission)
             ok = dr.select(on_k, active & valid_k, ok)
         bs.wo = dr.select(delta, bs.wo, dr.detach(bs.wo))
-        b = bs.wo
-        tx_b = texel_for(b)
-
+        tx_b = texel_for(bs.wo)
         value, pdf = self.eval_pdf_adjoint(sp, tx_a, tx_b, ok & negate(delta), texel_for)
-        # Delta lobes: eval*'s coefficient on the sampled path over the draws that give that path.
-        ratio = b.z / dr.maximum(a.z, 1e-30)
-        p_hid_x = extra[-1][0] if self.lobes.glossy else mi.Float(0.0)
+        c_delta, prob_delta = self._adjoint_delta(sp, tx_a, tx_b, extra, dw, picked, p_rad, on_rad)
+        weight = dr.select(delta, w * c_delta * score(prob_delta), value / dr.detach(dr.select(pdf > 0, pdf, 1.0)))
+        bs.pdf = dr.select(delta, bs.pdf * prob_delta, pdf)
+        return _finish(bs, weight, ok)
+
+    def _adjoint_delta(self, sp, tx_a, tx_b, extra, dw, picked, p_rad, on_rad):
+        """Delta lobes: eval*'s coefficient on the sampled path over the draws that give that path,
+        and their probability. A refracted path's coefficient carries the change of variables of
+        the delta from a to b, |⟨a,ω_p⟩⟨b,ω_g⟩| / |⟨b,ω_p⟩⟨a,ω_g⟩| (1 for reflection)."""
+        a, b = tx_a.wi_real, tx_b.wi_real
+        trans = self.lobes.transmission
+        ratio = dr.abs(b.z) / dr.maximum(dr.abs(a.z), 1e-30) if trans else b.z / dr.maximum(a.z, 1e-30)
+        kinds = [br[1] for br in extra]
+        k_hid = kinds.index("hidden") if "hidden" in kinds else None
+        p_hid_x = extra[k_hid][0] if k_hid is not None else mi.Float(0.0)
         on_flat = on_rad & negate(dw.on_tex)
-        if self.lobes.glossy:
-            on_flat |= picked == len(extra) - 1
-        c_delta = tx_b.vis * tx_b.seen(a) * ratio / dr.maximum(p_rad * dw.prob, 1e-30)
+        if k_hid is not None:
+            on_flat |= picked == k_hid
+        c_delta = tx_b.vis * tx_b.seen(tx_b.to_camera(a)) * ratio / dr.maximum(p_rad * dw.prob, 1e-30)
         c_delta = dr.select(dw.bounced, 0.0, c_delta)
         prob_delta = p_rad * dw.prob
+        if trans:
+            refracted = tx_b.vis * ratio * dr.abs(dr.dot(a, sp.wp)) / dr.maximum(dr.abs(dr.dot(b, sp.wp)), 1e-30)
+            c_through = dr.select(a.z * b.z < 0, refracted, 0.0) / dr.maximum(p_rad * dw.prob, 1e-30)
+            c_delta = dr.select(dw.through, c_through, c_delta)
         c_delta = dr.select(on_flat, (1.0 - tx_b.vis) / dr.maximum(p_hid_x + p_rad * dw.b_hid, 1e-30), c_delta)
         prob_delta = dr.select(on_flat, p_hid_x + p_rad * dw.b_hid, prob_delta)
         share_b = tx_b.retro_share()
         for k, (p, kind, frame, inc) in enumerate(extra):
             if kind in ("skim", "retro"):
                 share = share_b if kind == "retro" else 1.0 - share_b
-                c_k = tx_b.vis * share * (1.0 - tx_b.seen(inc)) * ratio / dr.maximum(p, 1e-30)
-                c_delta = dr.select(picked == k, c_k, c_delta)
-                prob_delta = dr.select(picked == k, p, prob_delta)
-        weight = dr.select(delta, w * c_delta * score(prob_delta), value / dr.detach(dr.select(pdf > 0, pdf, 1.0)))
-        bs.pdf = dr.select(delta, bs.pdf * prob_delta, pdf)
-        return _finish(bs, weight, ok)
+                c_k = tx_b.vis * share * (1.0 - tx_b.seen(tx_b.to_camera(inc))) * ratio / dr.maximum(p, 1e-30)
+            elif kind == "fold":
+                c_k = tx_b.vis * ratio * dr.abs(dr.dot(inc, sp.wp)) / dr.maximum(
+                    dr.abs(dr.dot(b, sp.wp)) * p, 1e-30)
+            else:
+                continue
+            c_delta = dr.select(picked == k, c_k, c_delta)
+            prob_delta = dr.select(picked == k, p, prob_delta)
+        return c_delta, prob_delta
 
 
 class _Draw:
-    def __init__(self, bs, w, active, delta, on_tex, bounced, prob, b_tex, b_hid):
+    def __init__(self, bs, w, active, delta, on_tex, bounced, prob, b_tex, b_hid, through=None):
         self.bs, self.w, self.active, self.delta = bs, w, active, delta
         self.on_tex, self.bounced, self.prob, self.b_tex, self.b_hid = on_tex, bounced, prob, b_tex, b_hid
+        self.through = through          # transmitted through the facet (with transmission)
 
 
 def _finish(bs, weight, active):

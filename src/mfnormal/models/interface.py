@@ -190,6 +190,11 @@ class Walk:
         return value, mis_pdf(sp, params, wo, active), sampled
 
 
+def transmits(nested) -> bool:
+    """Whether the nested BSDF has a transmitting component (Mitsuba's flags)."""
+    return mi.has_flag(nested.flags(), mi.BSDFFlags.Transmission)
+
+
 def make(name, tangent_facet, nested, source, walk_values):
     """The model called ``name`` (``MODELS``) with its parameters, checked."""
     if name not in MODELS:
@@ -200,6 +205,9 @@ def make(name, tangent_facet, nested, source, walk_values):
         _fail(f"tangent_facet 'same' needs model='separable' or 'nonseparable'; the {name} "
               "model has no tangent facet of the nested material")
     values = checked_walk_values(*walk_values)
+    if name != "faithful" and transmits(nested):
+        _fail(f"the nested BSDF {nested.class_name()} transmits light, but model='{name}' only reflects; "
+              "use model=\"faithful\" (the default), which refracts")
     if name == "faithful":
         model = Faithful(nested, source)
     elif name == "analytic":

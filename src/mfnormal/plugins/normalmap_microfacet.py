@@ -37,8 +37,12 @@ Microfacet-based normal mapping (:monosp:`normalmap_microfacet`)
      directions stay in ``si.sh_frame`` for the integrator).
  * - (nested bsdf)
    - |bsdf|
-   - The material of the microfacets: any Mitsuba BSDF (its reflection part; a
-     transmitting one gets a ``TransmissionWarning``, once).
+   - The material of the microfacets: any Mitsuba BSDF. A transmitting one
+     (``dielectric``, ``roughdielectric``, ``thindielectric``, ``principled``
+     with ``spec_trans`` > 0, or a ``blendbsdf``/``twosided`` of one) is
+     normal-mapped on both sides by ``faithful``, which refracts (seen from
+     above and from inside the medium; docs/faithful.md §7); the paper's models
+     only reflect and refuse it (a one-line ``ValueError``).
  * - model
    - |string|
    - ``faithful`` (default): the texel as the true geometry around it shows
@@ -47,6 +51,10 @@ Microfacet-based normal mapping (:monosp:`normalmap_microfacet`)
      texel is hidden, and the light they block re-emitted, so white facets
      stay white and energy never exceeds the nested albedo; deterministic
      ``eval``, exact ``pdf``; not reciprocal (light tracing gets its adjoint).
+     With a transmitting nested BSDF it refracts: the facet's transmitted
+     light leaves on the far side of the macro surface (a refracted direction
+     on the camera's side is folded across it), so a smooth lossless
+     dielectric keeps reflection + transmission = 1.
      ``analytic``: the paper's default model, paths of up to two
      facet bounces with a mirror tangent facet, deterministic ``eval`` and the
      exact ``pdf`` of its sampler. ``separable``: the main paper's random walk
@@ -126,7 +134,10 @@ Contracts (each one is tested):
 - ``eval`` returns :math:`f\cdot\langle\omega_o,\omega_g\rangle` in the base
   shading frame (:math:`\omega_g` = +z of ``si.sh_frame``; with
   ``macro_normal="geometric"`` :math:`\omega_g` = ``si.n`` turned to the shading
-  normal's side, directions still in ``si.sh_frame``), zero below it;
+  normal's side, directions still in ``si.sh_frame``), zero below it, except
+  for ``faithful`` with a transmitting nested BSDF, which answers for ω_i and
+  ω_o on either side (the nested BSDF's radiance scaling across the interface
+  included);
 - ``eval_pdf`` equals ``(eval, pdf)``; ``pdf`` is a deterministic function of
   (wi, wo): for ``faithful`` and ``analytic`` the exact density of ``sample``, for
   the random walks a function for MIS (below);
@@ -208,8 +219,6 @@ and without a map it is cheaper than the normal-map path
 
 from __future__ import annotations
 
-import warnings
-
 import drjit as dr
 import mitsuba as mi
 
@@ -223,11 +232,7 @@ from mfnormal.normals.source import MITSUBA_TANGENTS, from_properties
 from mfnormal.normals.strength import STRENGTH_MAX
 from mfnormal.plugins.variant_class import variant_subclass
 
-__all__ = ["NormalMapMicrofacet", "bsdf_class", "MODELS", "DEFAULT_MODEL", "STRENGTH_MAX", "TransmissionWarning"]
-
-
-class TransmissionWarning(UserWarning):
-    """The nested BSDF transmits; the plugin drops its transmission."""
+__all__ = ["NormalMapMicrofacet", "bsdf_class", "MODELS", "DEFAULT_MODEL", "STRENGTH_MAX"]
 
 
 class NormalMapMicrofacet:
@@ -244,17 +249,11 @@ class NormalMapMicrofacet:
         self.model = interface.from_properties(props, self.nested, self.source)
         self._flat_texels = self.source.flat_texels()
 
-        # The microsurface only reflects: report the nested BSDF's reflection components.
-        reflect = ~mi.BSDFFlags.Transmission
-        self.m_components = [self.nested.flags(i) & reflect for i in range(self.nested.component_count())]
-        self.m_flags = (self.nested.flags() & reflect) | mi.BSDFFlags.FrontSide
-        if mi.has_flag(self.nested.flags(), mi.BSDFFlags.Transmission):
-            # A Python warning: one line (the command line's "mfnormal: warning: ..."), once per
-            # nested BSDF type and process, not Mitsuba's log with its timestamp and colours.
-            warnings.warn(f"normalmap_microfacet: the nested BSDF {self.nested.class_name()} transmits "
-                          "light, but the microsurface only reflects: its transmission is dropped (that "
-                          "light is absorbed) and only its reflection is normal-mapped. For a refracting "
-                          "surface use Mitsuba's 'normalmap' BSDF.", TransmissionWarning, stacklevel=2)
+        # The models refract only where the nested BSDF transmits (the paper's models refuse it:
+        # interface.make); otherwise they report the nested BSDF's reflection components.
+        keep = +mi.BSDFFlags.All if interface.transmits(self.nested) else ~mi.BSDFFlags.Transmission
+        self.m_components = [self.nested.flags(i) & keep for i in range(self.nested.component_count())]
+        self.m_flags = (self.nested.flags() & keep) | mi.BSDFFlags.FrontSide
 
     def traverse(self, callback):
         # None of them moves geometry, so none is discontinuous in Mitsuba's sense (visibility).
