@@ -533,6 +533,20 @@ def test_compare_on_a_local_cluster_gives_the_same_report(tmp_path, capsys):
         assert np.abs(a - b).max() <= TOL, key
 
 
+def test_compare_on_a_local_cluster_shows_the_methods_that_refuse_the_scene(tmp_path, capsys):
+    """The water scene on a cluster: the paper's model refuses its dielectric as it does here (no
+    render, its reason in the report), the others render; exit 0."""
+    args = ["compare", "water", "--quick", "--methods", "flat,faithful,analytic",
+            "-o", str(tmp_path), "--cluster", "local:1"]
+    rc, out, err = _cli(args, capsys)
+    assert rc == 0, err
+    assert re.search(r"analytic +refuses this scene", out), out
+    html = (tmp_path / "report.html").read_text()
+    assert "id='refused-water-analytic'" in html and "model=&#x27;analytic&#x27; only reflects" in html
+    assert not (tmp_path / "water" / "analytic.exr").exists()
+    assert all((tmp_path / "water" / f"{key}.exr").is_file() for key in ("flat", "faithful"))
+
+
 # -- A worker's own variant (mfnormal.cli.worker) -----------------------------------------------------
 
 

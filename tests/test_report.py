@@ -12,6 +12,7 @@ and the generated torus knot (seamless UVs, outward normals, and a tangent
 frame whose t axis is the normal map's +y in Mitsuba).
 """
 
+import html
 import os
 import re
 import subprocess
@@ -35,6 +36,7 @@ from mfnormal.report import compare, coverage, metrics
 from mfnormal.io import scene_xml
 from mfnormal.report.methods import METHODS, PLUGIN  # noqa: E402
 from mfnormal.io.images import png_bytes  # noqa: E402
+from cli_checks import assert_one_line_error  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -293,19 +295,74 @@ def test_ripples_normal_map_tiles_and_hits_its_max_tilt():
     assert step < 3 * np.abs(np.diff(n, axis=1)).max()
 
 
+#: The paper's models only reflect: they refuse a transmitting nested BSDF by design.
+PAPER_MODELS = {m.key for m in METHODS if m.kind == "microfacet" and m.model != "faithful"}
+
+
+def run_compare(*args):
+    env = dict(os.environ, PYTHONPATH=str(ROOT / "src"))
+    return subprocess.run([sys.executable, "-m", "mfnormal", "compare", *map(str, args)], env=env,
+                          capture_output=True, text=True, timeout=600)
+
+
 @pytest.mark.parametrize("scene", ["water", pytest.param("glass", marks=pytest.mark.slow)])
 def test_compare_renders_the_dielectric_scenes_with_every_method(tmp_path, scene):
-    """``mfnormal compare water --quick`` (and ``glass``): the report and a finite, non-negative
-    render per method; the floor is seen through the un-mapped surface (its render is not dark)."""
-    env = dict(os.environ, PYTHONPATH=str(ROOT / "src"))
-    proc = subprocess.run([sys.executable, "-m", "mfnormal", "compare", scene, "--quick",
-                           "-o", str(tmp_path)], env=env, capture_output=True, text=True, timeout=600)
+    """``mfnormal compare water --quick`` (and ``glass``): exit 0 and the report; a finite,
+    non-negative render per method, except the paper's models, which refuse the transmitting
+    material: no render, their cells say so with the reason, and the log names them; the floor is
+    seen through the un-mapped surface (its render is not dark)."""
+    proc = run_compare(scene, "--quick", "-o", tmp_path)
     assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert PAPER_MODELS and "faithful" not in PAPER_MODELS
     text = (tmp_path / "report.html").read_text(encoding="utf-8")
     assert f"id='scene-{scene}'" in text
     for method in METHODS:
-        img = np.array(mi.Bitmap(str(tmp_path / scene / f"{method.key}.exr")))
+        exr = tmp_path / scene / f"{method.key}.exr"
+        if method.key in PAPER_MODELS:
+            assert not exr.exists() and f"img-{scene}-{method.key}" not in text
+            reason = html.escape(f"transmits light, but model='{method.model}' only reflects")
+            cell = re.search(f"<figure class=refused id='refused-{scene}-{method.key}'.*?</figure>", text)
+            assert cell and "refuses this scene" in cell[0] and reason in cell[0], method.key
+            assert "<img" not in cell[0]
+            log = [ln for ln in proc.stdout.splitlines() if ln.split()[:2] == [method.key, "refuses"]]
+            assert len(log) == 1 and f"model='{method.model}' only reflects" in log[0]
+            continue
+        img = np.array(mi.Bitmap(str(exr)))
         assert img.shape[1] == compare.QUICK.width and np.isfinite(img).all() and (img >= 0).all()
-        assert f"img-{scene}-{method.key}" in text
+        assert f"img-{scene}-{method.key}" in text and f"refused-{scene}-{method.key}" not in text
+    # Left out of the measurements: a row with the reason and no numbers.
+    table = text[text.index("<table class=metrics>"):]
+    table = table[:table.index("</table>")]
+    refused_rows = re.findall(r"<tr class=refused>.*?</tr>", table)
+    assert len(refused_rows) == len(PAPER_MODELS)
+    assert all("refuses this scene" in row and " s</td>" not in row for row in refused_rows)
     flat = np.array(mi.Bitmap(str(tmp_path / scene / "flat_ref.exr")))
     assert flat.mean() > 0.05
+
+
+def test_compare_finds_refusals_from_the_scene_wherever_the_plugin_sits():
+    """The methods that refuse a scene come from its loaded materials (the plugin nested in a
+    ``blendbsdf`` too): the paper's models on a transmitting nested BSDF, none on a reflecting one."""
+    def scene(nested):
+        plugin = {"type": PLUGIN, "bsdf": nested,
+                  "normalmap": {"type": "bitmap", "raw": True, "data": mi.TensorXf(np.full((4, 4, 3), 0.5, np.float32))}}
+        return mi.load_dict({"type": "scene", "integrator": {"type": "path"},
+                             "s": {"type": "rectangle",
+                                   "bsdf": {"type": "blendbsdf", "weight": 0.5, "a": plugin,
+                                            "b": {"type": "diffuse"}}}})
+    refused = compare.refusals(scene({"type": "roughdielectric"}), METHODS)
+    assert {m.key for m in refused} == PAPER_MODELS
+    assert all(f"model='{m.model}' only reflects" in reason for m, reason in refused.items())
+    assert compare.refusals(scene({"type": "roughconductor"}), METHODS) == {}
+
+
+def test_compare_fails_in_one_line_on_a_broken_dielectric_scene(tmp_path):
+    """A dielectric scene that cannot load (a missing normal map) is an error, not a refusal: one
+    line, exit 2, nothing written; and so is a scene that every method asked for refuses."""
+    proc = run_compare("water", "--quick", "-o", tmp_path / "a", "-D", "normalmap=missing.png")
+    assert_one_line_error(proc, "cannot load water.xml", "missing.png")
+    assert proc.returncode == 2 and "refuses" not in proc.stdout + proc.stderr
+    assert not (tmp_path / "a" / "report.html").exists()
+    proc = run_compare("water", "--quick", "-o", tmp_path / "b", "--methods", "analytic,separable_same")
+    assert_one_line_error(proc, "water.xml", "every method refuses it", "model='analytic' only reflects")
+    assert proc.returncode == 2 and not (tmp_path / "b" / "report.html").exists()

@@ -15,7 +15,7 @@ import re
 
 import mitsuba as mi
 
-__all__ = ["is_normal_mapped", "normal_mapped_shapes", "check_scene"]
+__all__ = ["is_normal_mapped", "normal_mapped_shapes", "plugin_instances", "check_scene"]
 
 
 def _is_plugin(bsdf) -> bool:
@@ -35,6 +35,12 @@ def is_normal_mapped(bsdf) -> bool:
 
 def normal_mapped_shapes(scene) -> list:
     return [s for s in scene.shapes() if is_normal_mapped(s.bsdf())]
+
+
+def plugin_instances(scene) -> list:
+    """The ``normalmap_microfacet`` BSDFs of ``scene``, wherever they sit (a shape's BSDF, or
+    nested in ``twosided``, ``blendbsdf``, ``mask``): every object of its scene graph."""
+    return [obj for obj in mi.traverse(scene).hierarchy if _is_plugin(obj)]
 
 
 def _shape_name(shape) -> str:

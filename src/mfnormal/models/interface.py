@@ -195,6 +195,15 @@ def transmits(nested) -> bool:
     return mi.has_flag(nested.flags(), mi.BSDFFlags.Transmission)
 
 
+def refusal(name, nested) -> str | None:
+    """Why the model called ``name`` refuses the nested BSDF ``nested`` by design (one line), or
+    None: the paper's models only reflect, so they refuse a transmitting one."""
+    if name != "faithful" and transmits(nested):
+        return (f"the nested BSDF {nested.class_name()} transmits light, but model='{name}' only "
+                "reflects; use model=\"faithful\" (the default), which refracts")
+    return None
+
+
 def make(name, tangent_facet, nested, source, walk_values):
     """The model called ``name`` (``MODELS``) with its parameters, checked."""
     if name not in MODELS:
@@ -205,9 +214,9 @@ def make(name, tangent_facet, nested, source, walk_values):
         _fail(f"tangent_facet 'same' needs model='separable' or 'nonseparable'; the {name} "
               "model has no tangent facet of the nested material")
     values = checked_walk_values(*walk_values)
-    if name != "faithful" and transmits(nested):
-        _fail(f"the nested BSDF {nested.class_name()} transmits light, but model='{name}' only reflects; "
-              "use model=\"faithful\" (the default), which refracts")
+    refused = refusal(name, nested)
+    if refused:
+        _fail(refused)
     if name == "faithful":
         model = Faithful(nested, source)
     elif name == "analytic":

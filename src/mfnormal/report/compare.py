@@ -11,7 +11,10 @@ higher-spp reference of the same method, and the fraction of near-black pixels
 on the normal-mapped surfaces (and of pixels much darker than the flat render)
 (:mod:`mfnormal.report.metrics`, on the pixels :mod:`mfnormal.report.coverage` finds);
 :func:`mfnormal.report.bsdf_checks.bsdf_checks` adds the white-furnace albedo and the
-reciprocity error of each method's BSDF alone. The results feed
+reciprocity error of each method's BSDF alone. A method whose model refuses the scene's
+material by design (:func:`mfnormal.models.interface.refusal`: the paper's models on a
+transmitting nested BSDF, read from the scene loaded with the default model) is not rendered:
+the report shows its reason in place of its render and measurements. The results feed
 :func:`mfnormal.report.html.write_report`, which only writes the HTML.
 
 Bundled scenes (:data:`mfnormal.scenes.assets.BUNDLED`): ``demo`` (a), ``model`` (b) and
@@ -43,7 +46,8 @@ from mfnormal.io.messages import one_line
 from mfnormal.report.methods import METHOD_BY_KEY, METHODS, PLUGIN, Method
 from mfnormal.report.metrics import luminance, near_black_fraction, rel_mse
 from mfnormal.cli.rendering import render_rgb
-from mfnormal.io.scene_checks import check_scene
+from mfnormal.io.scene_checks import check_scene, plugin_instances
+from mfnormal.models.interface import DEFAULT_MODEL, refusal
 from mfnormal.io.scene_xml import (SceneError, defaults, film_size_parameters, read_scene, references,
                         rewrite, set_film_width)
 from mfnormal.io.inputs import DEFAULT_LIMITS, check_render_size
@@ -280,8 +284,10 @@ def _start_scene(src: SceneSource, out_dir: Path, settings: Settings, methods, l
     src, root, values, width, height = _sized_scene(src, settings, limits)
     notes: set = set()
 
-    # Which pixels show normal-mapped shapes, and where they are seen at grazing angles.
-    probe = load_method_scene(src, root, values, METHOD_BY_KEY["analytic"], notes)
+    # The default model loads every material: its scene shows which methods refuse it, which
+    # pixels show normal-mapped shapes, and where they are seen at grazing angles.
+    probe = load_method_scene(src, root, values, METHOD_BY_KEY[DEFAULT_MODEL], notes)
+    methods, refused = _methods_to_render(src, probe, methods, log)
     coverage_by_shape, mean_cos = surface_maps(probe)
     del probe
     coverage = coverage_by_shape.sum(axis=0)
@@ -302,16 +308,45 @@ def _start_scene(src: SceneSource, out_dir: Path, settings: Settings, methods, l
         mask_png = tonemap(np.repeat((0.3 * (coverage > 0) + 0.7 * grazing)[..., None], 3, axis=-1))
         atomic_write(out_dir / "mask.png", lambda p: Path(p).write_bytes(png_bytes(mask_png)))
         return _section(src, width, height, settings, crops, mask, grazing, threshold, notes,
-                        results, mask_png)
+                        results, refused, mask_png)
     return finish
 
 
+def refusals(scene, methods) -> dict:
+    """``{method: reason}`` for each of ``methods`` whose model refuses a ``normalmap_microfacet``
+    of the loaded ``scene`` by design (:func:`mfnormal.models.interface.refusal`: the paper's
+    models on a transmitting nested BSDF), in the order of ``methods``."""
+    nested = [bsdf.nested for bsdf in plugin_instances(scene)]
+    out = {}
+    for method in methods:
+        if method.kind == "microfacet":
+            reason = next(filter(None, (refusal(method.model, n) for n in nested)), None)
+            if reason:
+                out[method] = reason
+    return out
+
+
+def _methods_to_render(src: SceneSource, probe, methods, log) -> tuple:
+    """(the methods to render, ``{method: reason}`` of those that refuse the scene), each refusal
+    logged; a SceneError when every method refuses it."""
+    refused = refusals(probe, methods)
+    for method, reason in refused.items():
+        log(f"  {method.key:<22} refuses this scene, not rendered: {reason}")
+    rendered = [m for m in methods if m not in refused]
+    if not rendered:
+        method, reason = next(iter(refused.items()))
+        raise SceneError(f"cannot compare {src.path.name}: every method refuses it "
+                         f"({method.key}: {reason})")
+    return rendered, refused
+
+
 def _section(src, width, height, settings, crops, mask, grazing, threshold, notes, results,
-             mask_png) -> dict:
+             refused, mask_png) -> dict:
     return {"name": src.name, "title": src.title, "path": str(src.path), "width": width,
             "height": height, "spp": settings.spp, "ref_spp": settings.ref_spp, "crops": crops,
             "mask_fraction": float(mask.mean()), "grazing_fraction": float(grazing.mean()),
             "black_threshold": threshold, "notes": sorted(notes), "results": results,
+            "refused": [{"method": m, "reason": r} for m, r in refused.items()],
             "mask_png": mask_png}
 
 

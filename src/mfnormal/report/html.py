@@ -85,6 +85,9 @@ table.fig img.full { width: 400px; image-rendering: pixelated; display: block; }
 table.fig .croprow img { width: 130px; image-rendering: pixelated; display: inline-block; margin: 1px; }
 .bad { background: #fdd; } .good { background: #dfd; }
 .notes { color: #744; }
+.thumbs figure.refused { cursor: default; } .thumbs figure.refused div { width: 200px; padding: 8px;
+  box-sizing: border-box; border: 2px dashed #bbb; color: #744; text-align: left; }
+.refuses { color: #744; white-space: normal; }
 figure.val { display: inline-block; margin: 6px; font-size: 12px; } figure.val img { max-width: 600px; display: block; }
 dl dt { font-weight: 600; } dl dd { margin: 0 0 6px 18px; }
 """
@@ -197,21 +200,32 @@ def _metrics_table(section, checks_by_key) -> str:
             f"<td class={black_cls}>{_fmt(r['black'], pct=True)}</td><td>{_fmt(r['black_ref'], pct=True)}</td>"
             f"<td>{_fmt(r['darkened'], pct=True)}</td>"
             f"<td>{alb}</td><td>{rec}</td><td>{r['nonfinite']}</td><td>{r['negative']}</td></tr>")
+    rows += [f"<tr class=refused><td class=l title='{E(x['method'].about)}'>{E(x['method'].label)}</td>"
+             f"<td class=l colspan=12>{_refusal(x)}</td></tr>" for x in section.get("refused", ())]
     return f"<table class=metrics>{head}{''.join(rows)}</table>"
+
+
+def _refusal(refused) -> str:
+    """What a method that refuses the scene shows in place of its render and measurements."""
+    return f"<span class=refuses>refuses this scene: {E(refused['reason'])}</span>"
 
 
 def _figure_layout(section, uris, crop_uris) -> str:
     """Supplemental Figs. 2–5: rows = tangent facet, columns = separable / non-separable."""
     by_key = {r["method"].key: r for r in section["results"]}
+    refused = {x["method"].key: x for x in section.get("refused", ())}
     cols = [("separable", "separable (main paper)"), ("nonseparable", "non-separable (supplemental)")]
     rows = [("specular", "specular tangent facet"), ("same", "same-material tangent facet")]
-    if not any(f"{m}_{t}" in by_key for m, _ in cols for t, _ in rows):
+    if not any(f"{m}_{t}" in by_key or f"{m}_{t}" in refused for m, _ in cols for t, _ in rows):
         return ""
     out = ["<table class=fig><tr><th></th>" + "".join(f"<th>{E(c)}</th>" for _, c in cols) + "</tr>"]
     for t, tl in rows:
         out.append(f"<tr><th class=l>{E(tl)}</th>")
         for m, _ in cols:
             key = f"{m}_{t}"
+            if key in refused:
+                out.append(f"<td class=l>{_refusal(refused[key])}</td>")
+                continue
             if key not in by_key:
                 out.append("<td>–</td>")
                 continue
@@ -254,6 +268,10 @@ def _section(section, checks_by_key) -> str:
         f"alt='{E(r['method'].label)}' title='{E(r['method'].about)} (click: right side, "
         f"shift+click: left side)'><figcaption>{E(r['method'].label)}</figcaption></figure>"
         for k, r in zip(keys, results))
+    thumbs += "".join(
+        f"<figure class=refused id='refused-{name}-{x['method'].key}' title='{E(x['method'].about)}'>"
+        f"<div>{_refusal(x)}</div><figcaption>{E(x['method'].label)}</figcaption></figure>"
+        for x in section.get("refused", ()))
     crop_table = _crop_table(section, results, keys, crop_uris)
     notes = "".join(f"<p class=notes>Note: {E(n)}</p>" for n in section["notes"])
     return f"""
