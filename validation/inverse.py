@@ -68,6 +68,11 @@ class Setup:
     # (validation/results/inverse_rendering.md).
     slope_derivatives: bool = True
     material: dict = field(default_factory=lambda: dict(MATERIAL))
+    # The renders to match: (lighting, view) pairs (heightfield.LIGHTINGS / VIEWS names or
+    # objects); None: one per sun, frontal
+    shots: tuple = None
+    floor: float = 0.0                         # > 0: a checkerboard floor that far below (water)
+    max_depth: int = 2                         # prb's and the same-method target's path depth
 
     def __post_init__(self):
         if self.heightfield is None:
@@ -76,6 +81,13 @@ class Setup:
 
 def lightings(setup):
     return [H.Lighting(f"sun{k}", el, az, setup.irradiance, 0.0) for k, (el, az) in enumerate(setup.suns)]
+
+
+def shots(setup):
+    """The (lighting, view) of each render to match: ``setup.shots``, or one per sun, frontal."""
+    if setup.shots is not None:
+        return list(setup.shots)
+    return [(light, "frontal") for light in lightings(setup)]
 
 
 def flat_map(setup):
@@ -104,16 +116,16 @@ def _plane_scenes(setup, method, texels):
     """One plane scene per sun, ``method`` with the map ``texels``, prb integrator."""
     tex = H.bitmap_texture(texels)
     return [mi.load_dict(H.scene_dict(setup.heightfield, "plane", method_bsdf(method, setup.material, tex),
-                                      lighting=light, view="frontal", res=setup.res, spp=setup.spp,
-                                      sampler="independent",
-                                      integrator={"type": "prb", "max_depth": 2}))
-            for light in lightings(setup)]
+                                      lighting=light, view=view, res=setup.res, spp=setup.spp,
+                                      sampler="independent", floor=setup.floor,
+                                      integrator={"type": "prb", "max_depth": setup.max_depth}))
+            for light, view in shots(setup)]
 
 
 def same_method_targets(setup, method):
     """Renders of the plane with the true map, by ``method`` itself (path tracing, target_spp)."""
     scenes = _plane_scenes(setup, method, H.encode_normals(true_normals(setup)))
-    path = mi.load_dict({"type": "path", "max_depth": 2})
+    path = mi.load_dict({"type": "path", "max_depth": setup.max_depth})
     return [mi.render(s, spp=setup.target_spp, seed=1234, integrator=path) for s in scenes]
 
 
@@ -121,9 +133,9 @@ def true_geometry_targets(setup, verts_per_period=64, max_depth=8):
     """Renders of the true geometry: the heightfield as a dense displaced mesh of the bare
     material (path tracing, every bounce up to max_depth)."""
     out = []
-    for light in lightings(setup):
+    for light, view in shots(setup):
         scene = mi.load_dict(H.scene_dict(setup.heightfield, "true", setup.material, lighting=light,
-                                          view="frontal", res=setup.res, spp=setup.target_spp,
+                                          view=view, res=setup.res, spp=setup.target_spp, floor=setup.floor,
                                           max_depth=max_depth, verts_per_period=verts_per_period))
         out.append(mi.render(scene, spp=setup.target_spp, seed=1234))
     return out
@@ -209,7 +221,7 @@ def _detach_slopes(scene):
 
 def optimise(setup, method, targets, iterations=None, log=None):
     """Adam on the map's texels from a flat map, the L2 distance of ``method``'s prb renders to
-    ``targets`` (one per sun); texels clamped to [0, 1] after each step; the rate constant, or
+    ``targets`` (one per shot); texels clamped to [0, 1] after each step; the rate constant, or
     falling to ``setup.lr_final``."""
     iterations = setup.iterations if iterations is None else iterations
     scenes = _plane_scenes(setup, method, flat_map(setup))
