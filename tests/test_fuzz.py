@@ -410,22 +410,39 @@ def inherited_zero_pdf(case, kind, si, wo, value, pdf):
     return out
 
 
-def inherited_gain(case, si, s_wo, weights, q):
-    """Whether albedo group ``q`` (query indices) is one where the plugin is exactly its nested
-    BSDF (a flat texel) and the gain is the nested BSDF's own: each sample's weight equals the
-    nested eval/pdf at that sample's direction (relative 1e-4, as eval = eval_pdf for the
-    deterministic models: their code paths differ by a few ulps), and their mean exceeds the bound
-    too. Mitsuba's roughconductor (Beckmann, α (1, 1e-4), ``sample_visible`` false) at ω_i 1e-7
-    above the horizon has pdf() ≈ 0.6× its own sample's pdf (median): eval/pdf on its own
-    samples averages 1.62 against its sample weight's 0.91; a model that weighs a nested sample
-    by eval/pdf cannot repair that. Only such groups are exempt from the furnace bound."""
+def inherited_gain(case, si, s_wo, weights, q, u, tilt):
+    """Whether albedo group ``q`` (query indices, sample numbers ``u``, texel tilt ``tilt`` rad)
+    is one whose gain is the nested BSDF's own. Mitsuba's roughconductor (Beckmann, one α ≤ 1e-3,
+    ``sample_visible`` false) at ω_i 1e-7 above the horizon has pdf() ≈ 0.6× its own sample's
+    pdf (median): eval/pdf on its own samples averages 1.62 against its sample weight's 0.91 (α
+    (1, 1e-4)); a model that weighs a nested sample by eval/pdf cannot repair that. Exempt:
+    - the plugin is exactly its nested BSDF (a flat texel): each weight equals the nested eval/pdf
+      at that sample's direction (relative 1e-4, as eval = eval_pdf for the deterministic
+      models: their code paths differ by a few ulps), and their mean exceeds the bound;
+    - or the texel is within 1e-3 rad of flat (its facet frame is the macro frame but for that)
+      and the nested BSDF's own eval/pdf on its own samples from the same numbers exceeds the
+      bound with a mean the plugin's does not exceed (5 combined standard errors): faithful on a
+      1e-5 tilt, α (1.3e-4, 0.22) gold, read 1.38 ± 0.03.
+    Only such groups are exempt from the furnace bound."""
     nested = mi.load_dict(case["nested"])
     sub = dr.gather(type(si), si, helpers.uints(q))
-    own_value, own_pdf = nested.eval_pdf(mi.BSDFContext(), sub, vec3(s_wo[q]))
-    own_value, own_pdf = np3(own_value, len(q)), np1(own_pdf, len(q))
-    own = np.where(own_pdf[:, None] > 0, own_value / np.where(own_pdf > 0, own_pdf, 1.0)[:, None], 0.0)
-    same = np.allclose(weights, own, rtol=1e-4, atol=1e-7)
-    return same and own.mean(0).max() > 1.0 + ALBEDO_SLACK
+    ctx = mi.BSDFContext()
+
+    def ratio(wo):
+        value, pdf = nested.eval_pdf(ctx, sub, vec3(wo))
+        value, pdf = np3(value, len(q)), np1(pdf, len(q))
+        return np.where(pdf[:, None] > 0, value / np.where(pdf > 0, pdf, 1.0)[:, None], 0.0)
+
+    bound = 1.0 + ALBEDO_SLACK
+    own = ratio(s_wo[q])
+    if np.allclose(weights, own, rtol=1e-4, atol=1e-7):
+        return own.mean(0).max() > bound
+    if tilt >= 1e-3:
+        return False
+    bs, _ = nested.sample(ctx, sub, mi.Float(u[q, 0]), mi.Point2f(u[q, 1], u[q, 2]))
+    own = ratio(np3(bs.wo, len(q)))
+    sem = np.sqrt(weights.var(0) / len(q) + own.var(0) / len(q))
+    return own.mean(0).max() > bound and bool(np.all(weights.mean(0) <= own.mean(0) + 5 * sem))
 
 
 def make_si(t, wi):
@@ -465,6 +482,16 @@ def black(nested):
     """A diffuse nested BSDF (or twosided of one) with reflectance 0: every weight is 0."""
     inner = nested["bsdf"] if nested["type"] == "twosided" else nested
     return inner["type"] == "diffuse" and not any(inner["reflectance"]["value"])
+
+
+def dead_on_its_own(nested, si, wo, u):
+    """Whether the nested BSDF alone gives no sample a weight > 0 and no query an eval > 0 on
+    these queries (Mitsuba's principled with roughness 0, metallic 1 and a black base colour, or
+    an anisotropic one of roughness 0 and metallic 1, is): then the plugin at ``strength`` 0,
+    exactly that BSDF, is dead too."""
+    bsdf, ctx = mi.load_dict(nested), mi.BSDFContext()
+    _, w = bsdf.sample(ctx, si, mi.Float(u[:, 0]), mi.Point2f(u[:, 1], u[:, 2]))
+    return not np.any(np3(w, len(u)) > 0) and not np.any(np3(bsdf.eval(ctx, si, vec3(wo)), len(u)) > 0)
 
 
 def check(cond, what, failures, describe):
@@ -571,9 +598,12 @@ def test_fuzzed_queries_are_finite_valid_and_bounded(model, tangent_facet, kind,
     check(~live | (wi_z != 0) if two or through else ~live | (wi_z > 0), "sample from below the surface",
           failures, describe)
     # The batch must not be trivially dead (a sharp lobe, α = 1e-4, is non-zero on few ω_o,
-    # a delta conductor on none; a principled with spec_trans = 1 reflects little).
-    assert live.any() or black(case["nested"]), "no sample has weight > 0"
-    assert kind in ("conductor", "dielectric") or black(case["nested"]) or np.any(value > 0), "eval is zero everywhere"
+    # a delta conductor on none; a principled with spec_trans = 1 reflects little; a nested BSDF
+    # may be dead on its own).
+    dead = black(case["nested"]) or ((not live.any() or not np.any(value > 0))
+                                     and dead_on_its_own(case["nested"], si, wo, u))
+    assert live.any() or dead, "no sample has weight > 0"
+    assert kind in ("conductor", "dielectric") or dead or np.any(value > 0), "eval is zero everywhere"
 
     # White furnace: mean sample weight and ∫eval dω per (texel, ω_i) group.
     albedo_note = ""
@@ -589,7 +619,9 @@ def test_fuzzed_queries_are_finite_valid_and_bounded(model, tangent_facet, kind,
             if label == "sample weights":
                 for j in np.flatnonzero(bad.any(1)):
                     q = np.arange(albedo.start + j * ALBEDO_M, albedo.start + (j + 1) * ALBEDO_M)
-                    if inherited_gain(case, si, s_wo, s_w[q], q):
+                    wp = decode_ref(texels[t[q[:1]]], case["strength"], case["convention"] == "directx")[0]
+                    tilt = float(np.arccos(np.clip(wp[2], -1.0, 1.0)))
+                    if inherited_gain(case, si, s_wo, s_w[q], q, u, tilt):
                         bad[j] = False
                         albedo_note += f" (group {j}: the nested BSDF's own gain)"
             if bad.any():
@@ -788,7 +820,9 @@ def test_the_inherited_gain_exemption_covers_only_a_flat_texel():
         bsdf = one_texel_bsdf("analytic", "specular", texel, nested, strength=100.0)
         si = same_query([0.0, 1.0, 1e-7], n)
         bs, w = bsdf.sample(mi.BSDFContext(), si, mi.Float(u[:, 0]), mi.Point2f(u[:, 1], u[:, 2]))
-        out.append(inherited_gain({"nested": nested}, si, np3(bs.wo, n), np3(w, n), np.arange(n)))
+        wp = decode_ref(np.float32([texel]), 100.0, False)[0]
+        out.append(inherited_gain({"nested": nested}, si, np3(bs.wo, n), np3(w, n), np.arange(n), u,
+                                  float(np.arccos(np.clip(wp[2], -1.0, 1.0)))))
     assert out == [True, False], out
 
 
