@@ -400,7 +400,9 @@ def inherited_zero_pdf(case, kind, si, wo, value, pdf):
     if not suspect.any():
         return suspect
     q = np.flatnonzero(suspect)
-    nested = mi.load_dict(case["nested"])
+    # (``twosided`` around the plugin: the nested BSDF behind the same two-sided flip.)
+    own = {"type": "twosided", "bsdf": case["nested"]} if kind == "twosided_around_plugin" else case["nested"]
+    nested = mi.load_dict(own)
     sub = dr.gather(type(si), si, helpers.uints(q))
     ctx = mi.BSDFContext()
     own_value, own_pdf = nested.eval_pdf(ctx, sub, vec3(wo[q]))
