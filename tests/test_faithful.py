@@ -155,10 +155,13 @@ def test_one_texel_at_the_clamp_does_not_make_the_map_rough():
     assert s_steep[0] < 1.2 * s_clean[0]
 
 
-def test_one_texel_at_the_clamp_leaves_the_other_texels_shading():
+@pytest.mark.parametrize("width", [0.0, 8.0], ids=["map-wide", "local"])
+def test_one_texel_at_the_clamp_leaves_the_other_texels_shading(width):
     """The other 255 texels of that map shade as without the outlier: eval (roughplastic, ω_i 60°,
     ω_o 50°) differs by at most 1 % of the clean value (measured 0.15 %; with the plain rms, σ1 3.1:
-    36 %)."""
+    36 %). With local statistics (``neighbourhood`` 8 texels, the default) the texels in the
+    outlier's window see it as a neighbour (capped as in the map's σ): within 3 % there (measured
+    1.8 %), within 1 % beyond 3 standard deviations of the window (12 texels)."""
     nested = {"type": "roughplastic", "alpha": 0.2, "diffuse_reflectance": {"type": "rgb", "value": [0.6] * 3}}
     clean = _bumps_row()
     steep = clean.copy()
@@ -166,11 +169,16 @@ def test_one_texel_at_the_clamp_leaves_the_other_texels_shading():
     wi, wo = np.tile(sph(60.0, 0.3), (256, 1)), np.tile(sph(50.0, 2.5), (256, 1))
     values = []
     for normals in (clean, steep):
-        bsdf = make_bsdf(nested, encode(normals))
+        bsdf = make_bsdf(nested, encode(normals), neighbourhood=width)
         values.append(np3(bsdf.eval(mi.BSDFContext(), make_si(wi, 256), vec3(wo)))[:, 0])
     others = np.arange(256) != OUTLIER
     rel = np.abs(values[1] - values[0])[others] / values[0][others]
-    assert rel.max() < 0.01
+    if width == 0.0:
+        assert rel.max() < 0.01
+        return
+    far = (np.abs(np.arange(256) - OUTLIER) % 256)[others]
+    far = np.minimum(far, 256 - far) > 12
+    assert rel.max() < 0.03 and rel[far].max() < 0.01, (rel.max(), rel[far].max())
 
 
 @pytest.mark.parametrize("max_tilt", [35.0, 65.0])
@@ -206,9 +214,12 @@ FURNACE_CASES = [(tilt, theta, phi) for tilt in (0.0, 30.0, 60.0, 85.0) for thet
 @pytest.mark.parametrize("tilt,theta_i,phi", FURNACE_CASES)
 def test_white_furnace_is_one_for_white_lambertian_facets(tilt, theta_i, phi):
     """Sample weights and ∫eval both give 1 ± 1 % (the issue's bound), with the Monte Carlo
-    error (≤ 0.2 % at 2^18 queries) well inside it; tilts to 85°, θ_i to 89°, both azimuths."""
+    error (≤ 0.2 % at 2^18 queries) well inside it; tilts to 85°, θ_i to 89°, both azimuths.
+    (One texel: with local statistics a plane at that tilt, whose weights vary more at 85°
+    than a facet among neighbours', 2^19 queries there.)"""
+    n = 1 << 19 if tilt >= 85.0 else 1 << 18
     for estimate in (albedo_by_sampling, albedo_by_integration):
-        mean, se = estimate(WHITE, tilt, theta_i, phi)
+        mean, se = estimate(WHITE, tilt, theta_i, phi, n=n)
         assert abs(mean - 1.0) < 0.01, (estimate.__name__, mean, se)
         assert se < 0.003
 
@@ -385,6 +396,18 @@ def test_eval_is_deterministic_and_smooth():
     wi = random_hemisphere(rng, n, z_min=0.05)
     wo = random_hemisphere(rng, n, z_min=0.05)
     texels = encode(sph(rng.uniform(0, 85, n), rng.uniform(0, 2 * np.pi, n)))
+    # With local statistics (the default) the texel's projected area is taken on its
+    # neighbourhood's mean plane ω_m, not ω_g: the queries keep ω_i 0.05 above that plane too
+    # (on this map of random texels ω_m leans up to ~60°), as z_min keeps it above ω_g.
+    bsdf = make_bsdf(NESTED["diffuse"], texels)
+    _, wm = bsdf.model.core.local_stats(bsdf.shading_point(mi.BSDFContext(), make_si(wi, n)))
+    wm = np3(wm)
+    for _ in range(50):                       # redraw those below it, on the same texels
+        low = np.sum(wi * wm, 1) <= 0.05
+        if not low.any():
+            break
+        wi[low] = random_hemisphere(rng, int(low.sum()), z_min=0.05)
+    assert not low.any()
     for nested in NESTED.values():
         assert_deterministic_and_smooth(make_bsdf(nested, texels), wi, wo, rng, nested["type"])
 

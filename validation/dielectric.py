@@ -79,7 +79,7 @@ def harness_parser(module: str, doc: str, quick: str) -> argparse.ArgumentParser
                                 formatter_class=argparse.RawDescriptionHelpFormatter, epilog=doc)
     p.add_argument("--out", type=Path, default=ROOT / "validation" / "results")
     p.add_argument("--quick", action="store_true", help=quick)
-    p.add_argument("--methods", type=lambda s: s.split(","), default=list(DEFAULT_METHODS),
+    p.add_argument("--methods", type=H.split_methods, default=list(DEFAULT_METHODS),
                    help="validation.heightfield method keys or plugin:MODEL[:FACET][,k=v] ('plugin:': "
                         "the plugin's default model)")
     p.add_argument("--seed", type=int, default=0)

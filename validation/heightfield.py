@@ -719,6 +719,18 @@ DEFAULT_METHODS = ("nomap", "classic", "classic_fixed", "analytic", "separable_s
                    "separable_same", "nonseparable_specular", "nonseparable_same")
 
 
+def split_methods(text: str) -> list:
+    """A comma-separated list of method specs (:func:`method_from_spec`), where a spec's own
+    ``name=value`` items stay with it: ``classic,plugin:faithful,neighbourhood=8`` is two specs."""
+    out = []
+    for item in text.split(","):
+        if out and "=" in item and out[-1].startswith("plugin:"):
+            out[-1] += "," + item
+        else:
+            out.append(item)
+    return out
+
+
 def method_from_spec(spec: str) -> Method:
     """A :data:`METHODS` key, or ``plugin:MODEL[:TANGENT_FACET][,name=value...]`` for any
     ``normalmap_microfacet`` configuration (values parsed as int, float, bool or string);

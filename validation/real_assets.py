@@ -104,7 +104,7 @@ def parse_args(argv=None):
     for name in ("assets", "materials", "lightings", "views"):
         p.add_argument(f"--{name}", type=lambda s: s.split(","), default=None,
                        help=f"comma-separated subset (default: {','.join(FULL[name])})")
-    p.add_argument("--methods", type=lambda s: s.split(","), default=None,
+    p.add_argument("--methods", type=H.split_methods, default=None,
                    help="method keys of validation.heightfield.METHODS or plugin:MODEL specs")
     for name, kind in (("res", int), ("spp", int), ("ref_factor", int), ("faces", int), ("map_size", int)):
         p.add_argument("--" + name.replace("_", "-"), type=kind, default=None)

@@ -93,7 +93,7 @@ def parse_args(argv=None):
     for name in ("heightfields", "steepness", "materials", "lightings", "views", "magnifications"):
         p.add_argument(f"--{name}", type=lambda s: s.split(","), default=None,
                        help=f"comma-separated subset (default: {','.join(FULL[name])})")
-    p.add_argument("--methods", type=lambda s: s.split(","), default=list(H.DEFAULT_METHODS),
+    p.add_argument("--methods", type=H.split_methods, default=list(H.DEFAULT_METHODS),
                    help="method keys or plugin:MODEL[:FACET][,k=v] specs")
     p.add_argument("--extra-methods", action="append", default=[],
                    help="FILE.py:NAME, a list of heightfield.Method objects to add")

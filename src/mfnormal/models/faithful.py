@@ -47,10 +47,11 @@ import mitsuba as mi
 import numpy as np
 
 from mfnormal.models.microsurface import negate, replace_grad, score
-from mfnormal.models.neighbourhood import INV_PI, _held, blocked_table, lookup, smith_lambda
+from mfnormal.models.neighbourhood import (INV_PI, _held, blocked_table, field_lookup, local_scales, lookup,
+                                           smith_lambda)
 from mfnormal.models.rng import (ONE_MINUS_EPS, SALT_FAITHFUL_SAMPLE, SLOT_FAITHFUL_BLOCKED, SLOT_FAITHFUL_RETRO,
                                  hash_floats, uniform)
-from mfnormal.models.shading import to_tangent_frame
+from mfnormal.models.shading import from_tangent_rotation, to_tangent_frame
 
 
 # -- The model at one shading point ------------------------------------------------------------
@@ -126,17 +127,30 @@ class Texel:
         if model.lobes.transmission:
             self.flip = wi.z < 0
             wi = self.to_camera(wi)
-            wp = mi.Vector3f(dr.select(self.flip, -wp.x, wp.x), dr.select(self.flip, -wp.y, wp.y), wp.z)
+            wp = self._camera_side(wp)
         self.wi, self.wp = wi, wp
         self.fill_rho = None          # Model._fill_rho's, once computed
+        # With local statistics: the neighbourhood's slopes are the map's times k, and its mean
+        # normal ω_m is the macro surface the texel's projected area is measured on (None: the
+        # map's slopes, about ω_g).
+        self.k, wm = model.local_stats(sp)
         self.lam_i = self.smith_lambda(wi)
         g1_i = dr.rcp(1.0 + self.lam_i)
-        proj = dr.maximum(dr.dot(wi, wp), 0.0) / (wp.z * dr.maximum(wi.z, 1e-30))
-        self.vis = dr.minimum(1.0, proj * g1_i)
+        if wm is None:
+            proj = dr.maximum(dr.dot(wi, wp), 0.0) / (wp.z * dr.maximum(wi.z, 1e-30))
+            self.vis = dr.minimum(1.0, proj * g1_i)
+        else:
+            self.vis = _visible_share(wi, wp, self._camera_side(wm), g1_i)
         p_e = self.principal(wp)
         # (atan2's derivative is 0/0 at a flat normal: held there.)
         phi = _held(dr.atan2(dr.abs(p_e.y), dr.abs(p_e.x)), (p_e.x != 0.0) | (p_e.y != 0.0))
-        self.blocked = model.blocked(wp.z, phi, g1_i)
+        self.blocked = model.blocked(wp.z, phi, g1_i, self.k)
+
+    def _camera_side(self, w):
+        """A normal ``w`` (base frame) as the camera sees it: mirrored where it is below (F(−w))."""
+        if self.flip is None:
+            return w
+        return mi.Vector3f(dr.select(self.flip, -w.x, w.x), dr.select(self.flip, -w.y, w.y), w.z)
 
     def to_camera(self, w):
         """``w`` from the base frame to the camera's (and back): F where the camera is below."""
@@ -152,7 +166,10 @@ class Texel:
         return mi.Vector3f(c * w.x + s * w.y, c * w.y - s * w.x, w.z)
 
     def smith_lambda(self, w):
-        return smith_lambda(self.principal(w), self.model.sigma1, self.model.sigma2)
+        s1, s2 = self.model.sigma1, self.model.sigma2
+        if self.k is not None:
+            s1, s2 = s1 * self.k, s2 * self.k
+        return smith_lambda(self.principal(w), s1, s2)
 
     def seen(self, w):
         """S(ω|ω_i): a visible point of the texel sees ω past the neighbours (0 below either horizon)."""
@@ -169,7 +186,14 @@ class Texel:
         tails of mild texels' lobes) skims on past the neighbours, mirrored off the macro plane;
         that of a lobe whose centre is blocked is trapped in a cavity and comes back (retro-
         reflection); w blends the two (continuous in ω_i)."""
-        return 1.0 - self.seen(self._mirror(self.wi))
+        blocked = 1.0 - self.seen(self._mirror(self.wi))
+        if self.k is None:
+            return blocked
+        # With local statistics a smooth region (k → 0) is a plane, which has no cavity to send
+        # light back: its blocked light (what leaves below the macro plane) skims on. So the share
+        # fades with k below RETRO_K, which also keeps w continuous in ω_i where the neighbours'
+        # Λ, ∝ k, no longer smooths S's step at the macro horizon.
+        return blocked * dr.minimum(self.k * (1.0 / RETRO_K), 1.0)
 
     def bounce(self, d, retro):
         """M(d): where blocked light travelling along d leaves: back the way the facet's mirror
@@ -189,6 +213,28 @@ class Texel:
                           (self._mirror(w), share), (self._mirror(below), share)):
             out.append((d, dr.dot(d, wp) > 0, weight))
         return out
+
+
+#: With local statistics, the neighbourhood scale k below which a texel's blocked glossy light is
+#: less and less retro-reflected (Texel.retro_share): 0 for a plane (k = 0).
+RETRO_K = 0.5
+#: With local statistics, the texel's projected area R is taken on its neighbourhood's mean plane,
+#: whose cosines with ω_i and ω_p count at least this share of their cosines with ω_g: R stays
+#: finite, and V continuous, where ω_i skims or passes under that plane while it sees the facet.
+MEAN_PLANE_MIN = 0.5
+
+
+def _visible_share(wi, wp, wm, g1):
+    """V = min(1, R·G1) with local statistics: R = ⟨ω_i,ω_p⟩₊/(⟨ω_p,ω_m⟩⟨ω_i,ω_m⟩) the texel's projected
+    area on its neighbourhood's mean plane (normal ω_m), each cosine at least MEAN_PLANE_MIN times
+    its cosine with ω_g (so R is the map-wide one where ω_m = ω_g, and V falls continuously to 0 at
+    the facet's horizon). (Written so that no derivative is 0·∞ where R is large.)"""
+    cos_i = dr.dot(wi, wp)
+    num = dr.maximum(cos_i, 0.0) * g1
+    den = (dr.maximum(dr.dot(wp, wm), MEAN_PLANE_MIN * wp.z) *
+           dr.maximum(dr.dot(wi, wm), MEAN_PLANE_MIN * dr.maximum(wi.z, 1e-30)))
+    full = num >= den
+    return dr.select(full, 1.0, num / dr.select(full, 1.0, den))
 
 
 def _gated(cond, fn, otherwise, gated=True):
@@ -274,13 +320,29 @@ class _Query:
 class Model:
     """The faithful model for one plugin instance: its lobes, the map's σ and the Lambertian table."""
 
-    def __init__(self, nested, slopes, cos_min: float, fill_share=(FILL_SHARE_MIN, FILL_SHARE_MAX)):
+    def __init__(self, nested, slopes, cos_min: float, fill_share=(FILL_SHARE_MIN, FILL_SHARE_MAX), local=None):
         self.lobes = Lobes(nested)
         self.fill_share = fill_share
         self.cos_min = cos_min
-        self.set_slopes(slopes)
+        self.set_slopes(slopes, local=local)
 
-    def set_slopes(self, slopes, attached=None):
+    def local_stats(self, sp):
+        """(k, ω_m) at the shading point with local statistics: the scale of its neighbourhood's
+        slopes and the neighbourhood's mean normal (the local macro surface, base frame); (None,
+        None) where the model uses the map's for every texel."""
+        if self.local is None:
+            return None, None
+        fields, res, uv_of = self.local
+        uv = uv_of(sp.si)
+        k, mx, my = field_lookup(fields, res, uv.x, uv.y)
+        # (The table's k ends at local_scales()[-1]: Λ must not see a rougher neighbourhood than B.)
+        k = dr.minimum(k, self.k_max)
+        wm = dr.normalize(mi.Vector3f(-mx, -my, 1.0))
+        if sp.map_rotation is not None:
+            wm = from_tangent_rotation(wm, sp.map_rotation)
+        return k, wm
+
+    def set_slopes(self, slopes, attached=None, local=None):
         """(Re)build what depends on the map's slopes ``(σ1, σ2, φ_e)`` (principal_slopes);
         they enter the kernels as opaque values, so a new map compiles nothing new.
 
@@ -288,8 +350,29 @@ class Model:
         the map and ``strength``: :func:`attached_slopes`), or None. σ and φ_e then carry those
         derivatives into every query (a texel moves the map's rms slope by O(1/texels)), and the
         table B(σ1, σ2) its own, from tables of ∂B/∂σ1 and ∂B/∂σ2 (docs/faithful.md §6). The
-        values are the numpy ones either way."""
+        values are the numpy ones either way.
+
+        ``local``: ((k, m_x, m_y), the same as Dr.Jit values that carry derivatives or None, res,
+        uv_of): the neighbourhood's scale k and mean slope on a res × res grid of the map (numpy;
+        :func:`neighbourhood.local_field`), and the map's uv at a surface interaction; None: every
+        texel has the map's neighbourhood about ω_g. The table then has an axis in k."""
         s1, s2, phi_e = (float(x) for x in slopes)
+        self.local, scales = None, None
+        if local is not None:
+            fields, fields_ad, res, uv_of = local
+            scales = local_scales()
+            self.k_max = scales[-1]
+            values = []
+            for n, field in enumerate(fields):
+                field = np.asarray(field, np.float32).ravel()
+                if dr.is_jit_v(mi.Float):
+                    field = mi.Float(field)
+                    if fields_ad is not None:
+                        field = replace_grad(field, fields_ad[n])
+                    else:
+                        dr.make_opaque(field)
+                values.append(field)
+            self.local = (values, res, uv_of)
         self.slopes = (s1, s2, phi_e)
         self.sigma1, self.sigma2 = mi.Float(s1), mi.Float(s2)
         self.cos_e, self.sin_e = mi.Float(math.cos(phi_e)), mi.Float(math.sin(phi_e))
@@ -299,11 +382,11 @@ class Model:
             phi = phi + (phi_e - dr.detach(phi))          # φ_e's value, the derivative of phi
             self.sigma1, self.sigma2 = replace_grad(self.sigma1, a1), replace_grad(self.sigma2, a2)
             self.cos_e, self.sin_e = replace_grad(self.cos_e, dr.cos(phi)), replace_grad(self.sin_e, dr.sin(phi))
-            table, t1, t2 = blocked_table(s1, s2, self.cos_min, derivatives=True)
+            table, t1, t2 = blocked_table(s1, s2, self.cos_min, derivatives=True, scales=scales)
             self.d_tables = (mi.Float(t1.ravel()), mi.Float(t2.ravel()))
             dr.make_opaque(*self.d_tables)
         else:
-            table = blocked_table(s1, s2, self.cos_min)
+            table = blocked_table(s1, s2, self.cos_min, scales=scales)
         table = table.ravel()
         if dr.is_jit_v(mi.Float):
             self.table = mi.Float(table)
@@ -311,15 +394,15 @@ class Model:
         else:
             self.table = table
 
-    def blocked(self, cos_p, phi, g):
-        """B(cosθ_p, φ, G1(ω_i)) from the table, with its derivative with respect to σ1, σ2 when
-        they carry one."""
-        value = lookup(self.table, self.cos_min, cos_p, phi, g)
+    def blocked(self, cos_p, phi, g, k=None):
+        """B(cosθ_p, φ, G1(ω_i)) from the table (at the neighbourhood's scale ``k``, with local
+        statistics), with its derivative with respect to σ1, σ2 when they carry one."""
+        value = lookup(self.table, self.cos_min, cos_p, phi, g, k)
         if self.d_tables is None:
             return value
         s1, s2 = dr.detach(self.sigma1), dr.detach(self.sigma2)
-        return replace_grad(value, value + lookup(self.d_tables[0], self.cos_min, cos_p, phi, g) * (self.sigma1 - s1)
-                            + lookup(self.d_tables[1], self.cos_min, cos_p, phi, g) * (self.sigma2 - s2))
+        return replace_grad(value, value + lookup(self.d_tables[0], self.cos_min, cos_p, phi, g, k) * (self.sigma1 - s1)
+                            + lookup(self.d_tables[1], self.cos_min, cos_p, phi, g, k) * (self.sigma2 - s2))
 
     def texel(self, sp, wi):
         return Texel(sp, self, wi)

@@ -37,6 +37,9 @@ DEFAULT_MODEL = "faithful"
 TANGENT_FACETS = ("specular", "same")
 INT32_MAX = 2 ** 31 - 1          # walk counters are 32-bit
 WALK_KEYS = ("max_bounces", "rr_depth", "mis_boost_max")
+#: The faithful model's local statistics: the width of the window around a texel, in the map's
+#: texels (0: the whole map's slopes for every texel; docs/faithful.md §5).
+NEIGHBOURHOOD = 8.0
 
 
 def _fail(msg: str):
@@ -101,11 +104,19 @@ class Faithful(_Deterministic):
 
     name = "faithful"
 
-    def __init__(self, nested, source):
-        self.core = faithful.Model(nested, source.slopes()[0], COS_P_MIN)
+    def __init__(self, nested, source, neighbourhood=0.0):
+        self.neighbourhood = neighbourhood
+        self.core = faithful.Model(nested, source.slopes()[0], COS_P_MIN, local=self._local(source))
+
+    def _local(self, source, attached=False):
+        """The local statistics' field (faithful.Model.set_slopes), or None: the map's slopes for
+        every texel (``neighbourhood`` 0, or a normal source without a map of normals)."""
+        if self.neighbourhood <= 0 or not hasattr(source, "local"):
+            return None
+        return source.local(self.neighbourhood, attached)
 
     def map_changed(self, source):
-        self.core.set_slopes(*source.slopes(attached=True))
+        self.core.set_slopes(*source.slopes(attached=True), local=self._local(source, attached=True))
 
     def _texel(self, sp, wi=None):
         return self.core.texel(sp, sp.wi if wi is None else wi)
@@ -204,7 +215,15 @@ def refusal(name, nested) -> str | None:
     return None
 
 
-def make(name, tangent_facet, nested, source, walk_values):
+def checked_neighbourhood(value) -> float:
+    """``neighbourhood`` (texels) as a float ≥ 0 (else ValueError)."""
+    value = float(value)
+    if not (0.0 <= value < float("inf")):
+        _fail(f"neighbourhood must be a finite number of texels >= 0 (0: the whole map), got {value}")
+    return value
+
+
+def make(name, tangent_facet, nested, source, walk_values, neighbourhood=0.0):
     """The model called ``name`` (``MODELS``) with its parameters, checked."""
     if name not in MODELS:
         _fail(f"unknown model '{name}'; choose one of {', '.join(MODELS)}")
@@ -218,7 +237,7 @@ def make(name, tangent_facet, nested, source, walk_values):
     if refused:
         _fail(refused)
     if name == "faithful":
-        model = Faithful(nested, source)
+        model = Faithful(nested, source, checked_neighbourhood(neighbourhood))
     elif name == "analytic":
         model = Analytic()
     else:
@@ -232,4 +251,5 @@ def from_properties(props, nested, source):
     ``max_bounces``, ``rr_depth``, ``mis_boost_max``), checked."""
     return make(props.get("model", DEFAULT_MODEL), props.get("tangent_facet", "specular"), nested, source,
                 (props.get("max_bounces", walk.MAX_BOUNCES), props.get("rr_depth", walk.RR_DEPTH),
-                 props.get("mis_boost_max", walk.MIS_BOOST_MAX)))
+                 props.get("mis_boost_max", walk.MIS_BOOST_MAX)),
+                props.get("neighbourhood", NEIGHBOURHOOD))

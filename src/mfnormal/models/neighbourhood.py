@@ -33,9 +33,12 @@ A_UNMASKED = 4.0
 def smith_lambda(w, sigma1, sigma2):
     """Beckmann Λ(ω) for ``w`` given in the principal frame of the slopes (σ1 along x, σ2 along
     y); 0 where unmasked: a = ω_z / (√2 (σ1² ω_x² + σ2² ω_y²)^½)."""
-    spread = dr.sqrt(dr.fma(sigma1 * sigma1, w.x * w.x, sigma2 * sigma2 * w.y * w.y))
+    spread2 = dr.fma(sigma1 * sigma1, w.x * w.x, sigma2 * sigma2 * w.y * w.y)
+    # (No spread, e.g. a smooth region's k = 0: unmasked, and no 0·∞ derivative of √ at 0.)
+    some = spread2 > 1e-30
+    spread = dr.sqrt(dr.select(some, spread2, 1.0))
     a = dr.maximum(w.z, 0.0) / dr.maximum(math.sqrt(2.0) * spread, 1e-30)
-    a = dr.maximum(a, 1e-7)
+    a = dr.select(some, dr.maximum(a, 1e-7), 1e30)
     # Λ = e^(−a²)·(1/(2a√π) − erfcx(a)/2), erfcx(a) = e^(a²)erfc(a) ≈ P(1/(1 + p·a)) (Abramowitz &
     # Stegun 7.1.26, as _erf_np): one exp and no erf.
     t = dr.rcp(dr.fma(0.3275911, a, 1.0))
@@ -114,6 +117,19 @@ def _cap_attached(sx, sy, s2_np, t2):
     return sx * scale, sy * scale
 
 
+def attached_winsorised(wp, capped=True):
+    """The slopes of the unit normals ``wp`` (Dr.Jit) as :func:`winsorised_slopes` gives them, with
+    wp's derivatives (``capped`` false: not winsorised)."""
+    z = dr.maximum(wp.z, 1e-3)
+    sx, sy = -wp.x / z, -wp.y / z
+    if capped:
+        s2_np = np.square(np.array(dr.detach(sx), np.float64)) + np.square(np.array(dr.detach(sy), np.float64))
+        t2 = slope_cap2(s2_np)
+        if t2 is not None:
+            sx, sy = _cap_attached(sx, sy, s2_np, t2)
+    return sx, sy
+
+
 def attached_slopes(wp, strength=None):
     """(σ1, σ2, φ_e) of the unit normals ``wp`` (a Dr.Jit Vector3f, e.g. the map decoded at
     texel centres) as Dr.Jit values that carry wp's derivatives: :func:`principal_slopes`'s
@@ -123,13 +139,7 @@ def attached_slopes(wp, strength=None):
     is used at this strength, 0: the slopes are strength × those of wp (exact while no normal is
     clamped; none is capped near strength 0, where every slope is below WINSOR_FLOOR), so that σ has
     its derivative at strength 0 (where √(σ²) has none)."""
-    z = dr.maximum(wp.z, 1e-3)
-    sx, sy = -wp.x / z, -wp.y / z
-    if strength is None:
-        s2_np = np.square(np.array(dr.detach(sx), np.float64)) + np.square(np.array(dr.detach(sy), np.float64))
-        t2 = slope_cap2(s2_np)
-        if t2 is not None:
-            sx, sy = _cap_attached(sx, sy, s2_np, t2)
+    sx, sy = attached_winsorised(wp, capped=strength is None)
     a, b, c = dr.mean(sx * sx), dr.mean(sx * sy), dr.mean(sy * sy)
     q = dr.square(0.5 * (a - c)) + b * b
     iso = q > 1e-24
@@ -146,11 +156,9 @@ def attached_slopes(wp, strength=None):
     return s1, s2, phi
 
 
-def principal_slopes(normals: np.ndarray, winsor=(WINSOR_C, WINSOR_FLOOR)):
-    """(σ1, σ2, φ_e): the principal rms slopes of unit normals (N×3) about the macro normal
-    (σ1 ≥ σ2) and the angle of σ1's axis from the tangent frame's x axis. Slopes over the cap of
-    :func:`slope_cap2` (a few texels far steeper than the rest, ``winsor`` its parameters) are
-    scaled onto it first."""
+def winsorised_slopes(normals: np.ndarray, winsor=(WINSOR_C, WINSOR_FLOOR)):
+    """The slopes (s_x, s_y) = (−n_x/n_z, −n_y/n_z) of unit normals (…×3, flattened; float64), those
+    over the cap of :func:`slope_cap2` scaled onto it."""
     n = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
     z = np.maximum(n[:, 2], 1e-3)
     sx, sy = -n[:, 0] / z, -n[:, 1] / z
@@ -159,6 +167,15 @@ def principal_slopes(normals: np.ndarray, winsor=(WINSOR_C, WINSOR_FLOOR)):
     if t2 is not None:
         scale = np.where(s2 > t2, np.sqrt(t2 / np.where(s2 > t2, s2, 1.0)), 1.0)
         sx, sy = sx * scale, sy * scale
+    return sx, sy
+
+
+def principal_slopes(normals: np.ndarray, winsor=(WINSOR_C, WINSOR_FLOOR)):
+    """(σ1, σ2, φ_e): the principal rms slopes of unit normals (N×3) about the macro normal
+    (σ1 ≥ σ2) and the angle of σ1's axis from the tangent frame's x axis. Slopes over the cap of
+    :func:`slope_cap2` (a few texels far steeper than the rest, ``winsor`` its parameters) are
+    scaled onto it first."""
+    sx, sy = winsorised_slopes(normals, winsor)
     cov = np.array([[np.mean(sx * sx), np.mean(sx * sy)], [np.mean(sx * sy), np.mean(sy * sy)]])
     values, vectors = np.linalg.eigh(cov)                       # ascending
     s1, s2 = math.sqrt(max(values[1], 0.0)), math.sqrt(max(values[0], 0.0))
@@ -200,15 +217,29 @@ def _facet_quadrature(c: float, s: float):
     return local, weights
 
 
-@functools.lru_cache(maxsize=8)
-def blocked_table(sigma1: float, sigma2: float, cos_min: float, derivatives: bool = False):
+@functools.lru_cache(maxsize=32)
+def blocked_table(sigma1: float, sigma2: float, cos_min: float, derivatives: bool = False, scales=None):
     """B[i, j, k]: 1 − ∫ (1/π)⟨ω,ω_p⟩ S(ω|ω_i) dω for a white Lambertian facet at θ_p = θ_i
     (TABLE_COS steps from 0 to acos(``cos_min``)), azimuth φ_j (TABLE_PHI steps over [0, π/2])
     in the slopes' principal frame, and G1(ω_i) = g_k³ (g_k: TABLE_G steps from 0 to 1).
 
     With ``derivatives``: (B, ∂B/∂σ1, ∂B/∂σ2) at fixed G1(ω_i) (its own σ-dependence is the
     lookup's), by the same quadrature: ∂S/∂Λ(ω) = −(1 + Λ_i)/(1 + Λ_i + Λ(ω))². Cached (scenes
-    that share a map rebuild the same tables after each update): treat the arrays as read-only."""
+    that share a map rebuild the same tables after each update): treat the arrays as read-only.
+
+    ``scales`` (a tuple, :func:`local_scales`): one table for each neighbourhood whose slopes are the
+    map's times a scale k, shape (TABLE_COS, TABLE_PHI, len(scales), TABLE_G), read by :func:`lookup`
+    with its ``k``; the derivatives are still with respect to the map's σ1, σ2."""
+    if scales is not None:
+        parts = [blocked_table(k * sigma1, k * sigma2, cos_min, derivatives) for k in scales]
+        if not derivatives:
+            parts = [(t,) for t in parts]
+        # ∂B/∂σ of the map = k·∂B/∂σ of the scaled neighbourhood.
+        out = tuple(np.ascontiguousarray(np.stack([p[n] * (k if n else 1.0) for p, k in zip(parts, scales)], 2))
+                    for n in range(len(parts[0])))
+        for a in out:
+            a.setflags(write=False)
+        return out if derivatives else out[0]
     g = np.linspace(0.0, 1.0, TABLE_G) ** 3
     lam_i = np.where(g > 0, 1.0 / np.maximum(g, 1e-30) - 1.0, 1e30)[:, None]
     table = np.zeros((TABLE_COS, TABLE_PHI, TABLE_G))
@@ -249,19 +280,29 @@ def _held(x, differentiable):
     return dr.select(differentiable, x, dr.detach(x)) if dr.is_diff_v(x) else x
 
 
-def lookup(table, cos_min, cos_p, phi, g):
-    """Trilinear lookup of B(θ_p, φ ∈ [0, π/2], G1 = g) in the table (flat, G innermost)."""
-    def axis(x, n):
-        x = dr.clip(x, 0.0, 1.0) * (n - 1)
-        x0 = dr.minimum(mi.UInt32(x), n - 2)
-        return x0, x - mi.Float(x0)
-    # acos at 1 and ∛ at 0 have infinite derivatives: there the axis is held (the value is the same).
+def _axis(x, n):
+    """(cell, fraction) of x ∈ [0, 1] on an axis of n nodes."""
+    x = dr.clip(x, 0.0, 1.0) * (n - 1)
+    x0 = dr.minimum(mi.UInt32(x), n - 2)
+    return x0, x - mi.Float(x0)
+
+
+def _axes(cos_min, cos_p, phi, g):
+    """The table's (cell, fraction) along θ_p, φ and G1^⅓. acos at 1 and ∛ at 0 have infinite
+    derivatives: there the axis is held (the value is the same)."""
     c = dr.clip(cos_p, cos_min, 1.0)
     theta = _held(dr.acos(c), c < 1.0)
     g = dr.clip(g, 0.0, 1.0)
-    xc, fc = axis(theta * (1.0 / math.acos(cos_min)), TABLE_COS)
-    xp, fp = axis(phi * (2.0 / math.pi), TABLE_PHI)
-    xg, fg = axis(_held(dr.cbrt(g), g > 0.0), TABLE_G)
+    return (_axis(theta * (1.0 / math.acos(cos_min)), TABLE_COS), _axis(phi * (2.0 / math.pi), TABLE_PHI),
+            _axis(_held(dr.cbrt(g), g > 0.0), TABLE_G))
+
+
+def lookup(table, cos_min, cos_p, phi, g, k=None):
+    """Trilinear lookup of B(θ_p, φ ∈ [0, π/2], G1 = g) in the table (flat, G innermost); with the
+    neighbourhood's scale ``k`` (a table of :func:`blocked_table`'s ``scales``), quadrilinear."""
+    if k is not None:
+        return _lookup_scaled(table, cos_min, cos_p, phi, g, k)
+    (xc, fc), (xp, fp), (xg, fg) = _axes(cos_min, cos_p, phi, g)
     acc = mi.Float(0.0)
     for dc, wc in ((0, 1.0 - fc), (1, fc)):
         for dp, wph in ((0, 1.0 - fp), (1, fp)):
@@ -275,3 +316,111 @@ def rms_slope(normals: np.ndarray) -> float:
     """(Isotropic summary) √((σ1² + σ2²)/2) of :func:`principal_slopes`."""
     s1, s2, _ = principal_slopes(normals)
     return math.sqrt(0.5 * (s1 * s1 + s2 * s2))
+
+
+# -- Local statistics: the neighbourhood around each texel ----------------------------------------
+#
+# A real map is heterogeneous: smooth plains next to craters, and slopes that hold the large-scale
+# difference between the low- and high-poly shapes, which masks nothing at the texel's scale. With
+# local statistics the neighbourhood of a texel has the map's principal slopes times k(uv):
+# k² = (E_w[|s|²] − |E_w[s]|²)/(σ1² + σ2²), the slopes' variance about their mean under a Gaussian
+# window w around the texel (LEAN mapping's moments, Olano and Baker 2010), over the map's.
+
+#: The scales k of the local table: u = k/(1 + k) in LOCAL_STEPS steps from 0 to LOCAL_U_MAX (k ≤ 4).
+LOCAL_STEPS = 9
+LOCAL_U_MAX = 0.8
+
+
+def local_scales() -> tuple:
+    u = np.linspace(0.0, LOCAL_U_MAX, LOCAL_STEPS)
+    return tuple(float(x) for x in u / (1.0 - u))
+
+
+def window_taps(width_cells: float, res: int):
+    """(offsets, weights) of a normalised Gaussian of standard deviation ``width_cells`` / 2 grid
+    cells, cut at 3 standard deviations and at half the grid (the grid wraps)."""
+    sd = max(0.5 * float(width_cells), 1e-3)
+    radius = int(min(math.ceil(3.0 * sd), (res - 1) // 2))
+    offsets = np.arange(-radius, radius + 1)
+    w = np.exp(-0.5 * (offsets / sd) ** 2)
+    return offsets, w / w.sum()
+
+
+def _blur_np(f, taps):
+    offsets, weights = taps
+    for axis in (0, 1):
+        f = sum(w * np.roll(f, -o, axis) for o, w in zip(offsets, weights))
+    return f
+
+
+def local_field(sx, sy, res: int, taps, total):
+    """(k, m_x, m_y) on the res × res grid (numpy, float64, flat) from the winsorised slopes ``sx``,
+    ``sy`` (flat, the grid's order) and ``total`` = σ1² + σ2² of the map: the neighbourhood's scale
+    and its mean slope (the local macro surface)."""
+    fx, fy = sx.reshape(res, res), sy.reshape(res, res)
+    m2, mx, my = (_blur_np(f, taps) for f in (fx * fx + fy * fy, fx, fy))
+    var = np.maximum(m2 - mx * mx - my * my, 0.0)
+    k = np.sqrt(var / total) if total > 0 else np.zeros_like(var)
+    return k.ravel(), mx.ravel(), my.ravel()
+
+
+def _blur_dr(f, res: int, taps):
+    offsets, weights = taps
+    i = dr.arange(mi.UInt32, res * res)
+    row, col = i // res, i % res
+    for axis in (0, 1):
+        acc = mi.Float(0.0)
+        for o, w in zip(offsets, weights):
+            if axis == 0:
+                j = ((row + mi.UInt32(int(o) % res)) % res) * res + col
+            else:
+                j = row * res + (col + mi.UInt32(int(o) % res)) % res
+            acc += float(w) * dr.gather(mi.Float, f, j)
+        f = acc
+    return f
+
+
+def attached_field(sx, sy, res: int, taps, s1, s2):
+    """:func:`local_field` as Dr.Jit values that carry the derivatives of the slopes ``sx``, ``sy``
+    (Dr.Jit, winsorised as :func:`attached_slopes`) and of the map's σ1, σ2."""
+    m2, mx, my = (_blur_dr(f, res, taps) for f in (sx * sx + sy * sy, sx, sy))
+    var = dr.maximum(m2 - mx * mx - my * my, 0.0)
+    total = s1 * s1 + s2 * s2
+    ratio = dr.select(total > 0, var / dr.maximum(total, 1e-30), 0.0)
+    ok = ratio > 1e-12
+    return dr.select(ok, dr.sqrt(dr.select(ok, ratio, 1.0)), 0.0), mx, my
+
+
+def field_lookup(fields, res: int, u, v):
+    """Bilinear lookups of res × res grids (``fields``: flat arrays, u major; cell centres at
+    (i + ½)/res) at (u, v), repeating outside the unit square: one value per field."""
+    def axis(x):
+        x = (x - dr.floor(x)) * res - 0.5
+        x0 = dr.floor(x)
+        f = x - x0
+        i0 = mi.Int32(x0)
+        i0 = dr.select(i0 < 0, i0 + res, i0)
+        i1 = dr.select(i0 + 1 >= res, i0 + 1 - res, i0 + 1)
+        return mi.UInt32(i0), mi.UInt32(i1), f
+    a0, a1, fu = axis(u)
+    b0, b1, fv = axis(v)
+
+    def one(field):
+        def at(a, b):
+            return _gather(field, a * res + b)
+        return dr.lerp(dr.lerp(at(a0, b0), at(a0, b1), fv), dr.lerp(at(a1, b0), at(a1, b1), fv), fu)
+    return [one(f) for f in fields]
+
+
+def _lookup_scaled(table, cos_min, cos_p, phi, g, k):
+    """:func:`lookup` in a table of ``scales`` = :func:`local_scales`: linear in u = k/(1 + k)."""
+    (xc, fc), (xp, fp), (xg, fg) = _axes(cos_min, cos_p, phi, g)
+    xk, fk = _axis(k / (1.0 + k) * (1.0 / LOCAL_U_MAX), LOCAL_STEPS)
+    acc = mi.Float(0.0)
+    for dc, wc in ((0, 1.0 - fc), (1, fc)):
+        for dp, wph in ((0, 1.0 - fp), (1, fp)):
+            for dk, wk in ((0, 1.0 - fk), (1, fk)):
+                base = (((xc + dc) * TABLE_PHI + (xp + dp)) * LOCAL_STEPS + (xk + dk)) * TABLE_G + xg
+                v0, v1 = _gather(table, base), _gather(table, base + 1)
+                acc += (wc * wph * wk) * dr.lerp(v0, v1, fg)
+    return acc

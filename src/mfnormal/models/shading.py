@@ -34,11 +34,17 @@ def from_tangent_frame(wp, frame, tangent, sign):
     for sign < 0) and ω_p's tilt is kept. Where T is missing (zero) or
     parallel to N, ω_p is returned unchanged: the map is decoded in ``frame``.
     """
-    tx, ty, s, ok = tangent_rotation(frame, tangent, sign)
+    return from_tangent_rotation(wp, tangent_rotation(frame, tangent, sign))
+
+
+def from_tangent_rotation(w, rotation):
+    """``w`` given in the vertex tangent frame, in the base frame: the inverse of
+    :func:`to_tangent_frame` (``rotation`` from :func:`tangent_rotation`)."""
+    tx, ty, s, ok = rotation
     # In local coordinates N = (0, 0, 1), T = (tx, ty, 0) and N×T = (−ty, tx, 0).
-    x = tx * wp.x - s * ty * wp.y
-    y = ty * wp.x + s * tx * wp.y
-    return dr.select(ok, mi.Vector3f(x, y, wp.z), wp)
+    x = tx * w.x - s * ty * w.y
+    y = ty * w.x + s * tx * w.y
+    return dr.select(ok, mi.Vector3f(x, y, w.z), w)
 
 
 def to_tangent_frame(w, rotation):

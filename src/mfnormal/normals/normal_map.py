@@ -32,6 +32,9 @@ CONVENTIONS = ("opengl", "directx")
 FLAT_NUDGE = 1e-3
 STRENGTH_NUDGE = 1e-3
 NUDGES = ((0, 1.0), (0, -1.0), (1, 1.0), (1, -1.0))   # (axis, sign): ±x, ±y of the map's frame
+# Local statistics (the faithful model's ``neighbourhood``) are measured on the map's texels up to
+# this resolution (a larger map is sampled at its texel centres on this grid).
+LOCAL_RES = 1024
 
 
 def channels_message(texture, what: str = "") -> str | None:
@@ -164,30 +167,88 @@ class NormalMap:
         u = (np.arange(res) + 0.5) / res
         return np.meshgrid(u, u, indexing="ij")
 
-    def slopes(self, attached=False):
-        """(σ1, σ2, φ_e), the map's principal rms slopes about the macro normal and their axis,
-        from its decoded texels (neighbourhood.principal_slopes); and, where the map or ``strength``
-        carry derivatives and ``attached``, the same as Dr.Jit values that carry them
-        (neighbourhood.attached_slopes), else None."""
-        from mfnormal.models.neighbourhood import attached_slopes, principal_slopes
-        res = 256 if dr.is_jit_v(mi.Float) else 32
+    def _sampled(self, max_res=256):
+        """(res, the map's RGB, its decoded unit normals) on a res × res grid of texel centres over
+        the unit square (u major), res the map's resolution up to ``max_res`` (32 in scalar variants,
+        where the normals are a numpy (res², 3) array and the RGB None)."""
+        res = max_res if dr.is_jit_v(mi.Float) else 32
         params = mi.traverse(self.texture)
         if "data" in params.keys():
             shape = params["data"].shape
             res = min(res, max(shape[0], shape[1]))
         uu, vv = self._grid(res)
         if not dr.is_jit_v(mi.Float):
-            return principal_slopes(np.array([self._scalar_normal(x, y) for x, y in zip(uu.ravel(), vv.ravel())])), None
+            return res, None, np.array([self._scalar_normal(x, y) for x, y in zip(uu.ravel(), vv.ravel())])
         si = dr.zeros(mi.SurfaceInteraction3f, res * res)
         si.uv = mi.Point2f(mi.Float(uu.ravel()), mi.Float(vv.ravel()))
         rgb = self.texture.eval_3(si)
-        wp = decode_normal(rgb, self.strength.value, self.directx)
+        return res, rgb, decode_normal(rgb, self.strength.value, self.directx)
+
+    def slopes(self, attached=False):
+        """(σ1, σ2, φ_e), the map's principal rms slopes about the macro normal and their axis,
+        from its decoded texels (neighbourhood.principal_slopes); and, where the map or ``strength``
+        carry derivatives and ``attached``, the same as Dr.Jit values that carry them
+        (neighbourhood.attached_slopes), else None."""
+        from mfnormal.models.neighbourhood import attached_slopes, principal_slopes
+        _, rgb, wp = self._sampled()
+        if rgb is None:
+            return principal_slopes(wp), None
         slopes = principal_slopes(np.stack([np.array(wp.x), np.array(wp.y), np.array(wp.z)], -1))
         if not (attached and dr.grad_enabled(wp)):
             return slopes, None
         if max(self.strength.ok) > 0:
             return slopes, attached_slopes(wp)
         return slopes, attached_slopes(decode_normal(rgb, 1.0, self.directx), self.strength.value)
+
+    def local(self, width: float, attached=False):
+        """Local statistics (docs/faithful.md §5): ((k, m_x, m_y), the same as Dr.Jit values that
+        carry the map's and ``strength``'s derivatives or None, res, uv_of) for a Gaussian window
+        ``width`` texels of the map wide (two standard deviations): the neighbourhood's scale and
+        mean slope on the grid of :meth:`_sampled` (neighbourhood.local_field), and the function
+        that gives the map's uv at a surface interaction (:meth:`map_uv`)."""
+        from mfnormal.models import neighbourhood as nb
+        res, rgb, wp = self._sampled(LOCAL_RES)
+        params = mi.traverse(self.texture)
+        texels = max(params["data"].shape[:2]) if "data" in params.keys() else res
+        taps = nb.window_taps(width * res / texels, res)
+
+        def field(wp, attached):
+            normals = wp if rgb is None else np.stack([np.array(wp.x), np.array(wp.y), np.array(wp.z)], -1)
+            s1, s2, _ = nb.principal_slopes(normals)
+            sx, sy = nb.winsorised_slopes(normals)
+            out = nb.local_field(sx, sy, res, taps, s1 * s1 + s2 * s2)
+            if not (attached and rgb is not None and dr.grad_enabled(wp)):
+                return out, None
+            a1, a2, _ = nb.attached_slopes(wp)
+            ax, ay = nb.attached_winsorised(wp)
+            return out, nb.attached_field(ax, ay, res, taps, a1, a2)
+        values, values_ad = field(wp, attached)
+        if rgb is not None and max(self.strength.ok) == 0:
+            # k is the ratio of two variances that both scale with strength²: at strength 0 (no
+            # slopes, no mean slope), k of the map at strength 1, which is its limit there.
+            k1, k1_ad = field(decode_normal(rgb, 1.0, self.directx), attached)
+            values = (k1[0],) + tuple(values[1:])
+            if values_ad is not None:
+                # (k1 carries the texels' derivatives, if they have any; strength's is 0.)
+                k1_ad = mi.Float(np.asarray(k1[0], np.float32)) if k1_ad is None else k1_ad[0]
+                values_ad = (k1_ad,) + tuple(values_ad[1:])
+        return values, values_ad, res, self.map_uv
+
+    def map_uv(self, si):
+        """The uv at which :meth:`map_rgb` reads the map (its uv transform applied)."""
+        si = finite_uv(si)
+        if self.uv is not None:
+            m00, m01, m02, m10, m11, m12 = self.uv
+        else:
+            params = mi.traverse(self.texture)
+            if "to_uv" not in params.keys():
+                return si.uv
+            m = np.array(params["to_uv"].matrix, dtype=np.float64)
+            if m.shape != (3, 3) or np.array_equal(m, np.eye(3)):
+                return si.uv
+            m00, m01, m02, m10, m11, m12 = (float(m[i, j]) for i in range(2) for j in range(3))
+        u, v = si.uv.x, si.uv.y
+        return mi.Point2f(dr.fma(m01, v, dr.fma(m00, u, m02)), dr.fma(m11, v, dr.fma(m10, u, m12)))
 
     def _scalar_normal(self, x, y):
         s1 = mi.SurfaceInteraction3f()

@@ -47,7 +47,7 @@ Microfacet-based normal mapping (:monosp:`normalmap_microfacet`)
    - |string|
    - ``faithful`` (default): the texel as the true geometry around it shows
      it (docs/faithful.md): the nested BSDF on the facet, masked and shadowed
-     by neighbours with the map's own rms slope, the neighbours where the
+     by the neighbours around it (``neighbourhood``), the neighbours where the
      texel is hidden, and the light they block re-emitted, so white facets
      stay white and energy never exceeds the nested albedo; deterministic
      ``eval``, exact ``pdf``; not reciprocal (light tracing gets its adjoint).
@@ -61,6 +61,17 @@ Microfacet-based normal mapping (:monosp:`normalmap_microfacet`)
      over all bounce orders (separable masking-shadowing). ``nonseparable``:
      the supplemental's walk with height-correlated masking-shadowing, which
      equals ray tracing the sawtooth microsurface exactly.
+ * - neighbourhood
+   - |float|
+   - ``faithful`` only: the width, in texels of the map, of the window
+     around a texel whose slopes are its neighbourhood (default 8; a Gaussian
+     of standard deviation half of it). The texel's projected area is taken
+     on the window's mean plane and its neighbours have the window's slope
+     variance (LEAN mapping's moments, the map's anisotropy): a smooth region
+     of a real map (the low-poly's shape difference) shades as classic
+     normal mapping, a rough one is masked and shadowed by its own relief.
+     0: the whole map's rms slopes about the macro normal for every texel.
+     Measured on normal maps; a height map always uses the whole map's.
  * - tangent_facet
    - |string|
    - Random-walk models only: ``specular`` (default; the tangent facet is a

@@ -1,0 +1,209 @@
+"""The default model's local statistics (``neighbourhood``, docs/faithful.md §5): the neighbourhood
+of a texel is measured around it (the slopes' variance and mean under a Gaussian window), not over
+the whole map.
+
+References are independent of the model code: a direct (non-separable) weighted sum over the
+window for the field, Mitsuba's ``normalmap`` for a smooth region, Monte Carlo furnaces drawn
+here, finite differences for derivatives. Every seed is fixed.
+"""
+
+import math
+
+import mfnormal  # noqa: F401  (first: selects a working libLLVM)
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+import pytest
+from helpers import WHITE, encode, make_bsdf, make_si, np1, np3, random_hemisphere, sph, vec3
+
+import gradients as G
+from mfnormal.models import neighbourhood
+
+GLOSSY = {"type": "roughconductor", "distribution": "ggx", "alpha": 0.15}
+
+
+def texture(rgb):
+    """A raw bilinear bitmap of an H×W×3 map."""
+    return {"type": "bitmap", "bitmap": mi.Bitmap(np.ascontiguousarray(rgb, np.float32)), "raw": True,
+            "filter_type": "bilinear"}
+
+
+def bsdf_on(rgb, nested, **params):
+    return mi.load_dict({"type": "normalmap_microfacet", "normalmap": texture(rgb), "bsdf": nested, **params})
+
+
+def half_smooth_map(size=64, tilt=25.0):
+    """Left half (u < ½): one constant tilt; right half: steep bumps. RGB in [0, 1], H×W×3."""
+    from helpers import bumps_normalmap
+    rgb = bumps_normalmap(size, 8, 0.45)
+    rgb[:, : size // 2] = encode(sph(tilt, 0.5)[None])[0]
+    return rgb
+
+
+def test_local_field_is_the_windowed_variance_and_mean():
+    """The field (separable blur, wrapping) against a direct 2-D weighted sum over the window at a
+    few texels: k² = (E|s|² − |E s|²)/(σ1² + σ2²) and E s, to 1e-9."""
+    rng = np.random.default_rng(3)
+    res = 32
+    sx, sy = rng.normal(0, 0.3, res * res), rng.normal(0, 0.2, res * res)
+    taps = neighbourhood.window_taps(6.0, res)
+    total = float(np.mean(sx * sx + sy * sy))
+    k, mx, my = neighbourhood.local_field(sx, sy, res, taps, total)
+    off, w = taps
+    fx, fy = sx.reshape(res, res), sy.reshape(res, res)
+    for i, j in ((0, 0), (5, 17), (31, 9)):
+        acc = np.zeros(3)
+        for a, wa in zip(off, w):
+            for b, wb in zip(off, w):
+                x, y = fx[(i + a) % res, (j + b) % res], fy[(i + a) % res, (j + b) % res]
+                acc += wa * wb * np.array([x * x + y * y, x, y])
+        var = acc[0] - acc[1] ** 2 - acc[2] ** 2
+        n = i * res + j
+        assert abs(mx[n] - acc[1]) < 1e-9 and abs(my[n] - acc[2]) < 1e-9
+        assert abs(k[n] - math.sqrt(var / total)) < 1e-9
+
+
+def test_a_smooth_region_has_no_neighbourhood_and_its_own_macro_surface():
+    """On the constant-tilt half, k = 0 and the mean normal is the tilt itself; on the bumpy half
+    k is of the order of the map's (the map-wide σ is about the bumps: k > 1)."""
+    b = bsdf_on(half_smooth_map(), GLOSSY, neighbourhood=4.0)
+    n = 6
+    si = make_si(np.tile(sph(0.0), (2 * n, 1)), 1)
+    v = np.linspace(0.1, 0.9, n)
+    si.uv = mi.Point2f(np.r_[np.full(n, 0.25), np.full(n, 0.75)], np.r_[v, v])
+    core = b.model.core
+    k, wm = core.local_stats(b.shading_point(mi.BSDFContext(), si))
+    k, wm = np1(k), np3(wm)
+    assert np.all(k[:n] < 1e-3), k[:n]
+    assert np.all(k[n:] > 1.0), k[n:]
+    want = sph(25.0, 0.5)
+    np.testing.assert_allclose(wm[:n], np.tile(want, (n, 1)), atol=2e-3)
+
+
+def test_a_smooth_tilted_region_shades_as_classic_normal_mapping():
+    """Where the map is a constant tilt (a smooth region of a real map: the low-poly's shape
+    difference), the texel is a plane, not a facet among neighbours: with local statistics the
+    model is Mitsuba's ``normalmap`` (fixes off) there, to 1e-4 relative, at every query whose
+    directions see the facet and whose mirror images (the bounce's preimages) leave it. With the
+    map-wide statistics of the bumps next to it, the same queries differ (masking, the hidden
+    texel): by more than 5 % on a tenth of them."""
+    rgb = half_smooth_map()
+    classic = mi.load_dict({"type": "normalmap", "normalmap": texture(rgb), "bsdf": GLOSSY,
+                            "flip_invalid_normals": False, "use_shadowing_function": False})
+    rng = np.random.default_rng(5)
+    n = 20000
+    wi, wo = random_hemisphere(rng, n, 0.05), random_hemisphere(rng, n, 0.05)
+    wp = sph(25.0, 0.5)
+    mirror = 2 * (wi @ wp)[:, None] * wp - wi
+    keep = (wi @ wp > 0.05) & (wo @ wp > 0.05) & (mirror[:, 2] > 0.05) & ((wo * [1, 1, -1]) @ wp < 0)
+    wi, wo = wi[keep], wo[keep]
+    si = make_si(wi, 1)
+    si.uv = mi.Point2f(rng.uniform(0.16, 0.34, len(wi)), rng.uniform(0.0, 1.0, len(wi)))
+    ctx = mi.BSDFContext()
+    ref = np3(classic.eval(ctx, si, vec3(wo)))
+    local = np3(bsdf_on(rgb, GLOSSY, neighbourhood=4.0).eval(ctx, si, vec3(wo)))
+    wide = np3(bsdf_on(rgb, GLOSSY, neighbourhood=0.0).eval(ctx, si, vec3(wo)))
+    assert len(wi) > 2000
+    np.testing.assert_allclose(local, ref, rtol=1e-4, atol=1e-6)
+    assert np.mean(np.abs(wide - ref) > 0.05 * ref + 1e-6) > 0.1
+
+
+@pytest.mark.parametrize("width", [2.0, 8.0])
+def test_white_furnace_with_local_statistics(width):
+    """White Lambertian facets on a map whose neighbourhood varies from none to several times the
+    map's (k between the table's nodes): 64 random (texel, ω_i) pairs, 2^13 samples each, every
+    mean sample weight within 1 ± (1 % + 4 standard errors), as the map-wide test."""
+    rgb = half_smooth_map(32)
+    rng = np.random.default_rng(8)
+    pairs, per = 64, 1 << 13
+    uv = np.repeat(rng.random((pairs, 2)), per, axis=0)
+    wi = np.repeat(random_hemisphere(rng, pairs, z_min=0.02), per, axis=0)
+    b = bsdf_on(rgb, WHITE, neighbourhood=width)
+    si = make_si(wi, 1)
+    si.uv = mi.Point2f(uv[:, 0], uv[:, 1])
+    s1 = mi.Float(rng.random(len(wi)).astype(np.float32))
+    s2 = mi.Point2f(rng.random(len(wi)).astype(np.float32), rng.random(len(wi)).astype(np.float32))
+    _, w = b.sample(mi.BSDFContext(), si, s1, s2)
+    w = np3(w)[:, 0].reshape(pairs, per)
+    mean, se = w.mean(1), w.std(1) / math.sqrt(per)
+    assert np.all(np.abs(mean - 1.0) < 0.01 + 4 * se), (mean.min(), mean.max())
+
+
+def test_sample_eval_pdf_are_consistent_with_local_statistics():
+    """weight = eval/pdf, bs.pdf = pdf(ω_o) on the half-smooth map (1e-4 relative, float32)."""
+    rgb = half_smooth_map(32)
+    rng = np.random.default_rng(9)
+    n = 40000
+    b = bsdf_on(rgb, {"type": "roughplastic", "alpha": 0.2}, neighbourhood=4.0)
+    si = make_si(random_hemisphere(rng, n, 0.01), 1)
+    si.uv = mi.Point2f(rng.random(n), rng.random(n))
+    s1 = mi.Float(rng.random(n).astype(np.float32))
+    s2 = mi.Point2f(rng.random(n).astype(np.float32), rng.random(n).astype(np.float32))
+    bs, w = b.sample(mi.BSDFContext(), si, s1, s2)
+    ok = np1(bs.pdf) > 0
+    v, p = b.eval_pdf(mi.BSDFContext(), si, bs.wo)
+    np.testing.assert_allclose(np3(w)[ok], np3(v)[ok] / np1(p)[ok, None], rtol=1e-4, atol=1e-6)
+    np.testing.assert_allclose(np1(bs.pdf)[ok], np1(p)[ok], rtol=1e-4, atol=1e-7)
+
+
+def _field_after(b, data):
+    params = mi.traverse(b)
+    params["normalmap.data"] = data
+    params.update()
+    return b.model.core.local[0]
+
+
+@pytest.mark.parametrize("strength", [1.0, 0.0])
+def test_local_field_carries_the_texels_derivatives(strength):
+    """k and the mean slope on an 8 × 8 map with a window of 3 texels: forward-mode derivatives
+    with respect to one texel channel against central differences of the field (h = 1e-3), at every
+    grid cell, to 2 % + 2e-3 (float32 texels: the FD's rounding is ~1e-4 of the field). At strength 0
+    k is the map's at strength 1 (its limit), and it keeps that map's derivatives."""
+    rng = np.random.default_rng(21)
+    rgb = encode(sph(rng.uniform(0, 50, 64), rng.uniform(0, 2 * np.pi, 64))).reshape(8, 8, 3)
+    b = bsdf_on(rgb, WHITE, neighbourhood=3.0, strength=strength)
+    base = np.array(mi.traverse(b)["normalmap.data"])
+    h = 1e-3
+    for texel, channel in (((2, 3), 0), ((5, 5), 1)):
+        def at(delta):
+            data = base.copy()
+            data[texel[0], texel[1], channel] += delta
+            return [np.array(f, np.float64) for f in _field_after(b, mi.TensorXf(data))]
+        fd = [(p - m) / (2 * h) for p, m in zip(at(h), at(-h))]
+        # k, and the mean slope along the channel's axis (red: x, green: y).
+        for n in ((0, 1 + channel) if strength else (0,)):
+            b = bsdf_on(rgb, WHITE, neighbourhood=3.0, strength=strength)
+            params = mi.traverse(b)
+            data = params["normalmap.data"]
+            dr.enable_grad(data)
+            params.update()
+            field = b.model.core.local[0][n]
+            seed = np.zeros(base.shape, np.float32)
+            seed[texel[0], texel[1], channel] = 1.0
+            dr.set_grad(data, mi.TensorXf(seed))
+            dr.forward_to(field)
+            ad = np.array(dr.grad(field), np.float64)
+            assert np.abs(fd[n]).max() > 0.02, (n, "the texel must move the field")
+            np.testing.assert_allclose(ad, fd[n], rtol=0.02, atol=2e-3, err_msg=f"field {n}, texel {texel}")
+
+
+def test_local_statistics_carry_the_texels_derivatives():
+    """d eval / d texel on a 4-texel map whose every texel is in every other's window (neighbourhood
+    2 texels): a texel moves its neighbours' k and mean normal, and forward = reverse = FD (the
+    harness of tests/test_gradients.py: 4 paired SE + 3 %; the FD is noisier than the map-wide
+    model's, a texel moves the kinks of every texel's V)."""
+    texels = encode(np.array([sph(30, 0.3), sph(50, 0.8), sph(15, -0.4), sph(40, 2.5)]).reshape(-1, 3))
+    b = make_bsdf({"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.3, 0.6, 0.9]}}, texels,
+                  neighbourhood=2.0)
+    si, wo, u = G.queries(1 << 17, 4)
+    for key in (("texel", 1, 1), ("texel", 2, 0)):
+        c = G.check(b, key, si, wo, u, 1e-3, steps=G.STEPS)
+        assert c.agrees(), f"{key}: {c}"
+        assert abs(c.fd) > 4 * c.se, f"{key}: the check must see a derivative ({c})"
+
+
+def test_neighbourhood_must_be_a_number_of_texels():
+    for bad in (-1.0, float("inf"), float("nan")):
+        with pytest.raises(Exception, match="neighbourhood must be a finite number of texels"):
+            bsdf_on(half_smooth_map(8), WHITE, neighbourhood=bad)
