@@ -4,7 +4,7 @@
         [--assets bunny,dragon,rock] [--materials aluminium,plastic,gold,diffuse]
         [--lightings sky_sun,grazing_sun] [--views frontal,limb] [--methods nomap,classic,...]
         [--faces 1000] [--map-size 1024] [--frame mikktspace|mitsuba] [--res 128] [--spp 64]
-        [--ref-factor 4] [--variant llvm_ad_rgb]
+        [--ref-factor 4] [--variant llvm_ad_rgb] [--equal-time]
 
 Each asset (:mod:`validation.assets`: fetched at run time into a cache, never committed) is
 decimated to ``--faces`` triangles (``fast-simplification``), given smooth vertex normals and
@@ -28,6 +28,29 @@ its **bias part**, relMSE of 4 × 4-pixel block means (1/16 of the noise); near-
 floor**: the truth rendered again at the methods' spp and scored like a method. Writes
 ``real_assets.md``, ``real_assets.json`` and the contact sheet ``real_assets.png`` to ``--out``
 (``--quick``: ``real_assets_quick.*``: one small asset, two cells, 32² px).
+
+Equal time (``--equal-time``): the comparison at equal render time instead of equal spp. In
+every cell each method gets the time that the reference, ``classic`` (Mitsuba's ``normalmap``
+with its fixes off; ``classic_fixed`` where ``classic`` is not among ``--methods``, and one of
+them must be), takes at the cell's spp. A method's time is its seconds per render at the cell's
+spp: the median of its timed renders over :data:`TIME_ROUNDS` rounds over the methods, in each
+its scene loaded alone (Dr.Jit traces every live BSDF into each render) and rendered once
+untimed (the kernels' compilation, which Dr.Jit caches), then timed, each render ended by
+``dr.eval`` and ``dr.sync_thread``. The method is then rendered at spp × t_reference / t_method
+with the equal-spp seeds and sampler (``multijitter``: the count nearest to that among those it
+takes as asked, since it rounds other counts up to its strata grid, 5 → 6, 32 → 35, which would
+hand a method time it was not given; the reference keeps the cell's spp and so its equal-spp
+image), and scored as the equal-spp renders. ``--equal-time-sampler independent`` takes any
+count as asked, but it is much noisier than multijitter at these spp (a quick cell's floor
+0.11 against 0.008), so its numbers are not those of the equal-spp table. The noise floor is
+rendered at every equal-time spp that occurs (it falls faster than 1/spp with multijitter), and
+a method is ≤ the reference where its relMSE is at most the reference's plus twice the floor at
+its own spp. Adds the key ``equal_time`` to the JSON and the section "Equal time" to the
+Markdown; without the flag the run is the equal-spp one alone, unchanged. Times depend on the
+machine and on what else runs on it; in small images a fixed cost per render (tracing the
+integrator and the BSDFs' code) is a good part of them.
+
+    nice .venv/bin/python validation/real_assets.py --quick --equal-time --methods classic,classic_fixed,faithful
 """
 
 from __future__ import annotations
@@ -66,6 +89,19 @@ QUICK = dict(assets=["bunny_small"], materials=["aluminium"], lightings=["sky_su
 METHODS = ("nomap", "classic", "classic_fixed", "faithful", "analytic", "separable_specular",
            "separable_same", "nonseparable_specular", "nonseparable_same")
 QUICK_METHODS = ("nomap", "classic", "faithful")
+#: The equal-time reference: the first of these among the methods.
+REFERENCES = ("classic", "classic_fixed")
+#: Timing, per cell: TIME_ROUNDS rounds over the methods, in each every method's scene loaded,
+#: rendered once untimed (Dr.Jit compiles and caches the kernels), then timed over at least one
+#: render and TIME_MIN_S / TIME_ROUNDS seconds (at most TIME_MAX_RENDERS renders); a method's time
+#: is the median of its timed renders. Rounds spread a change in the machine's load over all methods.
+TIME_ROUNDS = 3
+TIME_MIN_S = 0.3
+TIME_MAX_RENDERS = 10
+#: The equal-time renders' sampler: the equal-spp renders' (see :func:`equal_time_spp`).
+EQUAL_TIME_SAMPLER = "multijitter"
+#: The method whose equal-time result gets the ✅/❌ column.
+FAITHFUL = "faithful"
 
 #: Lightings of an object seen from −y: a sun 45° up from the front right with the sky, and a
 #: sun 10° up from +x (skimming the faces the camera sees) with the sky at 0.1.
@@ -111,6 +147,12 @@ def parse_args(argv=None):
     p.add_argument("--frame", choices=B.TANGENT_FRAMES, default="mikktspace")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--variant", default="llvm_ad_rgb")
+    p.add_argument("--equal-time", action="store_true",
+                   help="also compare at equal render time: every method gets the time classic "
+                        "(else classic_fixed) takes at the cell's spp")
+    p.add_argument("--equal-time-sampler", choices=("multijitter", "independent"), default=EQUAL_TIME_SAMPLER,
+                   help="the equal-time renders' sampler (default: the equal-spp renders' multijitter, "
+                        "at counts it takes exactly; independent: any count, but noisier)")
     return p.parse_args(argv)
 
 
@@ -202,20 +244,20 @@ def camera(positions, view: str):
     return (edge - 0.6 * LIMB_HALF) * right + mid * cam_up, LIMB_HALF
 
 
-def sensor(target, half, res: int, spp: int) -> dict:
+def sensor(target, half, res: int, spp: int, sampler: str = "multijitter") -> dict:
     d = H._direction(90.0 - CAMERA_ELEVATION, H.CAMERA_AZIMUTH)
     to_world = mi.ScalarTransform4f().look_at(origin=(target + 10.0 * d).tolist(), target=target.tolist(),
                                               up=[0.0, 0.0, 1.0])
     return {"type": "orthographic", "to_world": to_world @ mi.ScalarTransform4f().scale([half, half, 1.0]),
             "near_clip": 1.0, "far_clip": 100.0,
-            "sampler": {"type": "multijitter", "sample_count": int(spp)},
+            "sampler": {"type": sampler, "sample_count": int(spp)},
             "film": {"type": "hdrfilm", "width": int(res), "height": int(res), "pixel_format": "rgb",
                      "rfilter": {"type": "box"}}}
 
 
-def scene(shape, cell: Cell, target, half, res, spp):
+def scene(shape, cell: Cell, target, half, res, spp, sampler: str = "multijitter"):
     return mi.load_dict({"type": "scene", "integrator": {"type": "path", "max_depth": MAX_DEPTH},
-                         "sensor": sensor(target, half, res, spp), "object": shape,
+                         "sensor": sensor(target, half, res, spp, sampler), "object": shape,
                          **H._emitters(LIGHTINGS[cell.lighting])})
 
 
@@ -267,6 +309,19 @@ def object_metrics(img, truth, mask) -> dict:
             "energy": float(luminance(img)[mask].mean() / max(float(y_truth.mean()), 1e-12))}
 
 
+def method_scene(m, cell: Cell, prepared: dict, frame: str, target, half, res: int, spp: int,
+                 sampler: str = "multijitter"):
+    """The low-poly with the cell's material wrapped by method ``m`` (the classic methods and
+    ``nomap`` on the Mitsuba-frame mesh), loaded."""
+    low_frame = frame if m.key not in ("nomap", "classic", "classic_fixed") else "mitsuba"
+    bsdf = method_bsdf(m, H.MATERIALS[cell.material], prepared["maps"], frame)
+    return scene(low_mesh(prepared["low"], low_frame, bsdf), cell, target, half, res, spp, sampler)
+
+
+def _load_error(exc) -> str:
+    return f"{type(exc).__name__}: {str(exc).strip().splitlines()[-1][:300]}"
+
+
 def render_cell(cell: Cell, prepared: dict, methods, frame: str, res: int, spp: int, ref_factor: int,
                 run_seed: int = 0, log=print) -> dict:
     """Render the truth (at ref_factor × spp, and at spp for the noise floor) and every method."""
@@ -287,13 +342,10 @@ def render_cell(cell: Cell, prepared: dict, methods, frame: str, res: int, spp: 
            "spp": spp, "ref_spp": spp * ref_factor, "mask_px": int(mask.sum()), "errors": {}}
     for m in methods:
         t0 = time.time()
-        low_frame = frame if m.key not in ("nomap", "classic", "classic_fixed") else "mitsuba"
-        bsdf = method_bsdf(m, nested, prepared["maps"], frame)
         try:
-            s = scene(low_mesh(prepared["low"], low_frame, bsdf), cell, target, half,
-                      res, spp)
+            s = method_scene(m, cell, prepared, frame, target, half, res, spp)
         except Exception as exc:   # a candidate model that does not load: report it, go on
-            out["errors"][m.key] = f"{type(exc).__name__}: {str(exc).strip().splitlines()[-1][:300]}"
+            out["errors"][m.key] = _load_error(exc)
             continue
         img = H.render(s, spp, seed * 1000)
         out["images"][m.key] = img
@@ -301,6 +353,126 @@ def render_cell(cell: Cell, prepared: dict, methods, frame: str, res: int, spp: 
         out["times"][m.key] = time.time() - t0
     log(f"{cell.name}: floor {out['floor']['rel_mse']:.3g}, "
         + ", ".join(f"{k} {v['rel_mse']:.3g}" for k, v in out["metrics"].items()))
+    out["mask"] = mask
+    return out
+
+
+# ---------------------------------------------------------------------------
+# Equal time
+# ---------------------------------------------------------------------------
+
+def timed_renders(scene, spp: int, seed: int, min_s: float = 0.0, max_renders: int = TIME_MAX_RENDERS,
+                  pass_spp: int = 64) -> list:
+    """(wall-clock, CPU) seconds of renders of a loaded ``scene`` at ``spp``, each rendered as
+    :func:`H.render` renders it (passes of at most ``pass_spp`` samples, seeds ``seed``,
+    ``seed + 1``, ...) and ended by ``dr.eval`` and ``dr.sync_thread``: one untimed warm-up render
+    (Dr.Jit compiles the kernels and caches them), then at least one timed render, more while
+    they add up to less than ``min_s`` (at most ``max_renders``). CPU: the process's, all threads.
+
+    Only this scene's objects should be alive: Dr.Jit traces a virtual call for every live
+    instance of the BSDF class, so another scene's costly BSDF makes every render slower."""
+    import drjit as dr
+
+    def once():
+        t0, c0 = time.perf_counter(), time.process_time()
+        for i in range(-(-spp // pass_spp)):
+            img = mi.render(scene, spp=min(pass_spp, spp - i * pass_spp), seed=(seed + i) % (1 << 32))
+            dr.eval(img)
+        dr.sync_thread()
+        return time.perf_counter() - t0, time.process_time() - c0
+
+    once()
+    runs = [once()]
+    while sum(r[0] for r in runs) < min_s and len(runs) < max_renders:
+        runs.append(once())
+    return runs
+
+
+def multijitter_count(n: int) -> int:
+    """The sample count Mitsuba's ``multijitter`` takes when asked for ``n``: the strata grid
+    floor(√n) × ceil(n / floor(√n)) (5 → 6, 23 → 24, 32 → 35; tested against Mitsuba's)."""
+    rows = max(1, math.isqrt(int(n)))
+    return rows * -(-int(n) // rows)
+
+
+def samples_taken(sampler: str, spp: int, pass_spp: int = 64) -> int:
+    """The samples per pixel a render at ``spp`` in passes of ``pass_spp`` (:func:`H.render`)
+    really takes with ``sampler``: ``multijitter`` rounds each pass's count up
+    (:func:`multijitter_count`), ``independent`` takes it as it is."""
+    if sampler == "independent":
+        return int(spp)
+    if sampler != "multijitter":
+        raise ValueError(f"unknown sampler '{sampler}'")
+    return sum(multijitter_count(min(pass_spp, spp - i * pass_spp)) for i in range(-(-spp // pass_spp)))
+
+
+def equal_time_spp(spp: int, t_ref: float, t_method: float, sampler: str = EQUAL_TIME_SAMPLER) -> int:
+    """The spp to render a method at so that it takes as long as the reference at ``spp``, where
+    one render at ``spp`` takes ``t_ref`` for the reference and ``t_method`` for the method:
+    the count n (at least 1) whose samples taken (:func:`samples_taken`) are nearest to
+    samples_taken(spp) × t_ref / t_method, among ``spp`` itself and the counts ``sampler``
+    takes exactly (so ``multijitter`` never rounds an equal-time count up); ties go to ``spp``,
+    then to the smaller count. With ``independent``: the nearest integer to spp × t_ref / t_method, at
+    least 1."""
+    target = samples_taken(sampler, spp) * t_ref / t_method
+    candidates = [spp] + [n for n in range(1, int(2 * target) + 2) if samples_taken(sampler, n) == n]
+    return min(candidates, key=lambda n: abs(samples_taken(sampler, n) - target))
+
+
+def render_equal_time(cell: Cell, prepared: dict, methods, frame: str, res: int, cell_result: dict,
+                      reference: str, run_seed: int = 0, sampler: str = EQUAL_TIME_SAMPLER,
+                      log=print) -> dict:
+    """The cell at equal render time, after its equal-spp :func:`render_cell` (``cell_result``:
+    its spp, truth and mask): each method's seconds per render at the cell's spp (the median of
+    its :func:`timed_renders` over :data:`TIME_ROUNDS` rounds, the reference first in each), then
+    in the last round its render at :func:`equal_time_spp` with the equal-spp renders' seed,
+    scored against the same truth over the same mask, and the noise floor (the truth with the
+    floor's seed) at that spp; all with ``sampler``. One method's scene is loaded at a time
+    (:func:`timed_renders`: what else is alive slows a render)."""
+    import gc
+
+    seed = H.cell_seed(cell, run_seed)
+    spp, truth, mask = cell_result["spp"], cell_result["truth"], cell_result["mask"]
+    target, half = camera(B.mesh_arrays(prepared["high"])[0], cell.view)
+    prepared["high"].set_bsdf(mi.load_dict(H.MATERIALS[cell.material]))
+    gc.collect()
+    floors, out = {}, {"cell": cell.name, "reference": reference, "spp": spp, "sampler": sampler,
+                       "methods": {}, "floors": {}, "errors": {}}
+    runs = {}
+    for rnd in range(TIME_ROUNDS):
+        for m in sorted(methods, key=lambda m: m.key != reference):   # the reference first
+            if m.key in out["errors"]:
+                continue
+            try:
+                s = method_scene(m, cell, prepared, frame, target, half, res, spp, sampler)
+            except Exception as exc:   # as in the equal-spp renders
+                if m.key == reference:
+                    raise RuntimeError(f"{cell.name}: the equal-time reference {reference} does not load") from exc
+                out["errors"][m.key] = _load_error(exc)
+                continue
+            runs.setdefault(m.key, []).extend(timed_renders(s, spp, seed * 1000, TIME_MIN_S / TIME_ROUNDS))
+            if rnd == TIME_ROUNDS - 1:   # all timed: the equal-time render, with the scene loaded
+                wall, cpu = (float(x) for x in np.median(np.array(runs[m.key]), axis=0))
+                t_ref = wall if m.key == reference else out["methods"][reference]["seconds"]
+                n = equal_time_spp(spp, t_ref, wall, sampler)
+                out["methods"][m.key] = {
+                    "seconds": wall, "cpu_seconds": cpu, "renders": len(runs[m.key]), "time_ratio": wall / t_ref,
+                    "spp": n, "spp_taken": samples_taken(sampler, n),
+                    "est_time_ratio": wall / t_ref * samples_taken(sampler, n) / samples_taken(sampler, spp),
+                    **object_metrics(H.render(s, n, seed * 1000), truth, mask)}
+            del s
+            gc.collect()
+    truth_scene = scene(prepared["high"], cell, target, half, res, spp, sampler)
+    for r in out["methods"].values():
+        if r["spp"] not in floors:
+            floors[r["spp"]] = object_metrics(H.render(truth_scene, r["spp"], seed * 1000 + 500), truth, mask)
+        r["floor"] = floors[r["spp"]]["rel_mse"]
+    out["floors"] = {str(n): f for n, f in sorted(floors.items())}
+    ref = out["methods"][reference]
+    for r in out["methods"].values():
+        r["le_reference"] = bool(r["rel_mse"] <= ref["rel_mse"] + 2 * r["floor"])
+    log(f"{cell.name} at equal time ({reference}: {ref['seconds'] * 1e3:.1f} ms at {spp} spp): " + ", ".join(
+        f"{k} {r['time_ratio']:.2f}× → {r['spp']} spp, {r['rel_mse']:.3g}" for k, r in out["methods"].items()))
     return out
 
 
@@ -339,6 +511,94 @@ def summarise(results, keys) -> dict:
     return out
 
 
+def summarise_equal_time(results, keys) -> dict:
+    """The equal-time key of the JSON: the settings, every cell's :func:`render_equal_time` and
+    per method the geometric means over the cells of relMSE, its bias part, the time ratio to the
+    reference and the equal-time spp, and the cells where it is ≤ the reference within twice the
+    noise floor at its own spp."""
+    cells = [r["equal_time"] for r in results]
+    reference = cells[0]["reference"]
+    summary = {"cells": len(cells), "floor": TG.geomean([c["methods"][reference]["floor"] for c in cells]),
+               "methods": {}}
+    for k in keys:
+        have = [c["methods"][k] for c in cells if k in c["methods"]]
+        if have:
+            summary["methods"][k] = {
+                "rel_mse": TG.geomean([m["rel_mse"] for m in have]),
+                "bias": TG.geomean([m["bias"] for m in have]),
+                "time_ratio": TG.geomean([m["time_ratio"] for m in have]),
+                "spp": TG.geomean([m["spp"] for m in have]),
+                "le_reference": sum(m["le_reference"] for m in have), "cells": len(have)}
+    return {"reference": reference, "sampler": cells[0]["sampler"], "rounds": TIME_ROUNDS,
+            "min_seconds": TIME_MIN_S, "cells": cells, "summary": summary}
+
+
+def _equal_time_intro(eq, ref_label: str) -> str:
+    ref = eq["reference"]
+    rounding = ("rounded to the nearest count that `multijitter` takes as asked: it rounds other counts up "
+                "to its strata grid, 5 → 6, 32 → 35; the reference keeps the cell's spp"
+                if eq["sampler"] == "multijitter" else "rounded, at least 1")
+    return (f"Every method gets the render time that {ref_label} takes at the cell's spp. A method's time is "
+            f"its seconds per render at the cell's spp: the median of its timed renders in {eq['rounds']} "
+            "rounds over the methods, in each its scene loaded alone and rendered once untimed (compiling "
+            f"the kernels), then timed over at least one render and {eq['min_seconds'] / eq['rounds']:.2g} s. "
+            f"It is then rendered at spp × t({ref}) / t(method) ({rounding}) with the `{eq['sampler']}` "
+            "sampler and the equal-spp seeds, and scored against the same truth. The noise floor is the "
+            f"truth rendered with the same sampler at each equal-time spp. `≤ ref`: the method's relMSE ≤ "
+            f"{ref_label}'s plus twice the noise floor at the method's own spp (lenient where that spp is "
+            "low and its floor high: compare the relMSE too). Times depend on the machine and its load; in "
+            "small images a fixed cost per render (tracing the integrator and the BSDFs' code) is a good "
+            "part of them.")
+
+
+def equal_time_markdown(eq, keys, labels) -> list:
+    """The Markdown section of the equal-time comparison (:func:`summarise_equal_time`)."""
+    ref, summary = eq["reference"], eq["summary"]
+    keys = [k for k in keys if k in summary["methods"]]
+    others = [k for k in keys if k != ref]
+    L = ["", "## Equal time", "", _equal_time_intro(eq, labels[ref]), ""]
+    s = summary["methods"]
+    line = f"**Summary** ({summary['cells']} cells; noise floor at the cell's spp {TG.fmt(summary['floor'])}): "
+    if FAITHFUL in s and FAITHFUL != ref:
+        line += (f"`{FAITHFUL}` ≤ {labels[ref]} in {s[FAITHFUL]['le_reference']}/{s[FAITHFUL]['cells']} cells; ")
+    line += "geometric means: " + "; ".join(
+        f"{labels[k]} relMSE {TG.fmt(s[k]['rel_mse'])}" + ("" if k == ref else (
+            f" at {TG.fmt(s[k]['time_ratio'], 3)}× the time per render, {TG.fmt(s[k]['spp'], 3)} spp"))
+        for k in keys) + "."
+    L += [line, "", "| method | relMSE | bias part | time per render / reference's | equal-time spp | ≤ ref |",
+          "|---|---|---|---|---|---|"]
+    for k in keys:
+        m = s[k]
+        L.append(f"| {labels[k]} | {TG.fmt(m['rel_mse'])} | {TG.fmt(m['bias'])} | {TG.fmt(m['time_ratio'], 3)} | "
+                 f"{TG.fmt(m['spp'], 3)} | {m['le_reference']}/{m['cells']} |")
+    check = FAITHFUL in others
+    L += ["", "Per cell: relMSE at equal time (equal-time spp, time per render / the reference's)"
+          + (f"; ✅: `{FAITHFUL}` ≤ {labels[ref]} within twice the noise floor at its spp." if check else "."), "",
+          f"| cell | floor | {labels[ref]} (reference) | " + "".join(f"{labels[k]} | " for k in others)
+          + (f"{FAITHFUL} ≤ ref |" if check else ""),
+          "|---|---|---|" + "---|" * (len(others) + check)]
+    for c in eq["cells"]:
+        ms = c["methods"]
+        row = (f"| {c['cell']} | {TG.fmt(ms[ref]['floor'])} | {TG.fmt(ms[ref]['rel_mse'])} "
+               f"({ms[ref]['spp']} spp, {ms[ref]['seconds'] * 1e3:.1f} ms) | ")
+        row += "".join((f"{TG.fmt(ms[k]['rel_mse'])} ({ms[k]['spp']} spp, {ms[k]['time_ratio']:.2f}×) | "
+                        if k in ms else "– | ") for k in others)
+        if check:
+            row += (("✅" if ms[FAITHFUL]["le_reference"] else "❌") if FAITHFUL in ms else "–") + " |"
+        L.append(row)
+    L += ["", "Per cell and method:", "",
+          "| cell | method | ms per render at the cell's spp | × reference | equal-time spp (taken) | "
+          "est. time / reference's | relMSE | bias part | near-black | energy | floor at that spp |",
+          "|---|---|---|---|---|---|---|---|---|---|---|"]
+    for c in eq["cells"]:
+        for k, m in c["methods"].items():
+            L.append(f"| {c['cell']} ({c['spp']} spp) | {labels[k]} | {m['seconds'] * 1e3:.2f} | "
+                     f"{m['time_ratio']:.3f} | {m['spp']} ({m['spp_taken']}) | {m['est_time_ratio']:.2f} | "
+                     f"{TG.fmt(m['rel_mse'])} | {TG.fmt(m['bias'])} | {m['near_black'] * 100:.2f} % | "
+                     f"{TG.fmt(m['energy'], 3)} | {TG.fmt(m['floor'])} |")
+    return L
+
+
 def markdown(report, keys, labels) -> str:
     s = report["settings"]
     L = [f"# Normal-mapping methods on real assets{' (quick run)' if s['quick'] else ''}", "",
@@ -371,6 +631,8 @@ def markdown(report, keys, labels) -> str:
     for r in report["cells"]:
         L.append(f"| {r['cell']} | {TG.fmt(r['floor']['rel_mse'])} | " + " | ".join(
             TG.fmt(r["metrics"][k]["rel_mse"]) if k in r["metrics"] else "–" for k in keys) + " |")
+    if "equal_time" in report:
+        L += equal_time_markdown(report["equal_time"], keys, labels)
     return "\n".join(L) + "\n"
 
 
@@ -404,20 +666,31 @@ def main(argv=None):
     methods = [H.method_from_spec(k) for k in (args.methods or (QUICK_METHODS if args.quick else METHODS))]
     keys = [m.key for m in methods]
     labels = {m.key: m.label for m in methods}
+    reference = next((k for k in REFERENCES if k in keys), None)
+    if args.equal_time and reference is None:
+        sys.exit(f"--equal-time needs {' or '.join(REFERENCES)} among --methods (the reference whose "
+                 f"render time every method gets); got {','.join(keys)}")
     t_start = time.time()
     prepared = {a: prepare(a, opts["faces"], opts["map_size"]) for a in opts["assets"]}
     cells = [Cell(*c) for c in itertools.product(opts["assets"], opts["materials"], opts["lightings"],
                                                  opts["views"])]
     results = [render_cell(c, prepared[c.asset], methods, args.frame, opts["res"], opts["spp"],
                            opts["ref_factor"], args.seed) for c in cells]
+    if args.equal_time:   # after the equal-spp renders, which stay as they are without the flag
+        for c, r in zip(cells, results):
+            r["equal_time"] = render_equal_time(c, prepared[c.asset], methods, args.frame, opts["res"], r,
+                                                reference, args.seed, args.equal_time_sampler)
     stem = "real_assets_quick" if args.quick else "real_assets"
     command = "nice .venv/bin/python validation/real_assets.py" + "".join(f" {a}" for a in (argv or sys.argv[1:]))
     report = {"settings": {**opts, "quick": args.quick, "frame": args.frame, "variant": args.variant,
                            "command": command, "elapsed_s": time.time() - t_start, "methods": keys},
               "assets": [{k: v for k, v in p.items() if k not in ("high", "low", "maps")}
                          for p in prepared.values()],
-              "cells": [{k: v for k, v in r.items() if k not in ("truth", "images")} for r in results],
+              "cells": [{k: v for k, v in r.items() if k not in ("truth", "images", "mask", "equal_time")}
+                        for r in results],
               "summary": summarise(results, keys)}
+    if args.equal_time:
+        report["equal_time"] = summarise_equal_time(results, keys)
     args.out.mkdir(parents=True, exist_ok=True)
     md = markdown(report, keys, labels)
     atomic_write(args.out / "ASSETS.md", lambda p: Path(p).write_text(assets_markdown()))
