@@ -135,10 +135,8 @@ class NormalMap:
         current = type(current)(current)            # a copy to restore: the entry aliases the texture's
         if not np.array_equal(np.array(current.matrix, dtype=np.float64), self._uv_matrix):
             return self.texture.eval_3(si, active)
-        m00, m01, m02, m10, m11, m12 = self.uv
-        u, v = si.uv.x, si.uv.y
         si_uv = mi.SurfaceInteraction3f(si)
-        si_uv.uv = mi.Point2f(dr.fma(m01, v, dr.fma(m00, u, m02)), dr.fma(m11, v, dr.fma(m10, u, m12)))
+        si_uv.uv = _affine_uv(self.uv, si.uv)
         si_uv = finite_uv(si_uv)                    # a transform that overflows
         self._uv_params["to_uv"] = type(current)()
         try:
@@ -238,17 +236,14 @@ class NormalMap:
         """The uv at which :meth:`map_rgb` reads the map (its uv transform applied)."""
         si = finite_uv(si)
         if self.uv is not None:
-            m00, m01, m02, m10, m11, m12 = self.uv
-        else:
-            params = mi.traverse(self.texture)
-            if "to_uv" not in params.keys():
-                return si.uv
-            m = np.array(params["to_uv"].matrix, dtype=np.float64)
-            if m.shape != (3, 3) or np.array_equal(m, np.eye(3)):
-                return si.uv
-            m00, m01, m02, m10, m11, m12 = (float(m[i, j]) for i in range(2) for j in range(3))
-        u, v = si.uv.x, si.uv.y
-        return mi.Point2f(dr.fma(m01, v, dr.fma(m00, u, m02)), dr.fma(m11, v, dr.fma(m10, u, m12)))
+            return _affine_uv(self.uv, si.uv)
+        params = mi.traverse(self.texture)
+        if "to_uv" not in params.keys():
+            return si.uv
+        m = np.array(params["to_uv"].matrix, dtype=np.float64)
+        if m.shape != (3, 3) or np.array_equal(m, np.eye(3)):
+            return si.uv
+        return _affine_uv([float(m[i, j]) for i in range(2) for j in range(3)], si.uv)
 
     def _scalar_normal(self, x, y):
         s1 = mi.SurfaceInteraction3f()
@@ -263,3 +258,12 @@ class NormalMap:
 
     def describe(self) -> str:
         return f"  normalmap={self.texture},\n"
+
+
+def _affine_uv(matrix, uv):
+    """The affine uv transform (m00, m01, m02, m10, m11, m12) applied to ``uv`` with the fused
+    multiply-adds of Mitsuba's ``Transform::transform_affine`` (the translation first, then the
+    x and the y column): its values bit for bit."""
+    m00, m01, m02, m10, m11, m12 = matrix
+    u, v = uv.x, uv.y
+    return mi.Point2f(dr.fma(m01, v, dr.fma(m00, u, m02)), dr.fma(m11, v, dr.fma(m10, u, m12)))
