@@ -61,10 +61,10 @@ def test_equal_time_needs_the_reference_among_the_methods(capsys):
 
 def test_quick_cell_at_equal_time(tmp_path):
     """One quick cell (limb, 4 spp) with classic and faithful: classic, the reference, keeps the
-    cell's spp and its equal-spp render (the same relMSE); faithful, slower per render (2.4×–4.4×
-    classic's time measured at this size, most of it the cost of tracing its code per render),
-    gets fewer spp, as the recorded times say; every number in the JSON's new key is finite, and
-    the equal-spp keys are as without the flag."""
+    cell's spp and its equal-spp render (the same relMSE); faithful gets the spp its recorded time
+    per render gives (2.4×–4.4× classic's measured at this size, most of it the cost of tracing its
+    code per render; the rule itself is the test above, so nothing here depends on the timing);
+    every number in the JSON's new key is finite, and the equal-spp keys are as without the flag."""
     _needs()
     from validation import real_assets as R
 
@@ -92,8 +92,7 @@ def test_quick_cell_at_equal_time(tmp_path):
     assert ref["spp"] == spp and ref["time_ratio"] == 1.0
     assert ref["rel_mse"] == equal_spp["metrics"]["classic"]["rel_mse"]
     assert ref["floor"] == equal_spp["floor"]["rel_mse"]
-    assert ms["faithful"]["time_ratio"] > 1.25, ms["faithful"]
-    assert ms["faithful"]["spp"] < spp
+    assert ms["faithful"]["time_ratio"] == ms["faithful"]["seconds"] / ref["seconds"]
     for m in eq["summary"]["methods"].values():
         assert all(math.isfinite(m[k]) for k in ("rel_mse", "bias", "time_ratio", "spp"))
     assert report["equal_time"]["summary"]["methods"]["faithful"]["cells"] == 1
