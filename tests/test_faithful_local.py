@@ -15,7 +15,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 import pytest
-from helpers import WHITE, encode, make_bsdf, make_si, np1, np3, random_hemisphere, sph, vec3
+from helpers import WHITE, bumps_normalmap, encode, make_bsdf, make_si, np1, np3, random_hemisphere, sph, vec3
 
 import gradients as G
 from mfnormal.models import neighbourhood
@@ -128,6 +128,27 @@ def test_white_furnace_with_local_statistics(width):
     w = np3(w)[:, 0].reshape(pairs, per)
     mean, se = w.mean(1), w.std(1) / math.sqrt(per)
     assert np.all(np.abs(mean - 1.0) < 0.01 + 4 * se), (mean.min(), mean.max())
+
+
+@pytest.mark.parametrize("strength, most, least", [(0.12, 0.0, 0.3), (1.0, 0.9, 1.0)])
+def test_only_a_steep_neighbourhood_sends_blocked_light_back(strength, most, least):
+    """The retro-reflected share of the blocked glossy light (Texel.retro_share) at grazing ω_i,
+    where the facet's mirror direction is mostly under the macro plane: a cavity with steep walls
+    sends it back (the bumps map: some queries ≥ 0.9), a mild neighbourhood does not (the same map
+    at strength 0.12, rms slope about a tenth: every query ≤ 0.3), so that at an object's limb
+    the mirror image of a mild texel's lobe skims on instead of coming back toward the camera."""
+    b = bsdf_on(bumps_normalmap(64, 4, 0.45), GLOSSY, neighbourhood=8.0, strength=strength)
+    rng = np.random.default_rng(9)
+    n = 4096
+    z = rng.uniform(0.03, 0.2, n)
+    phi = rng.uniform(0.0, 2.0 * math.pi, n)
+    wi = np.stack([np.sqrt(1 - z * z) * np.cos(phi), np.sqrt(1 - z * z) * np.sin(phi), z], -1)
+    si = make_si(wi, 1)
+    si.uv = mi.Point2f(rng.random(n).astype(np.float32), rng.random(n).astype(np.float32))
+    sp = b.shading_point(mi.BSDFContext(), si)
+    share = np1(b.model.core.texel(sp, sp.wi).retro_share())
+    assert np.all(np.isfinite(share)) and np.all(share >= 0.0)
+    assert share.max() >= most and share.max() <= least, (share.min(), share.max())
 
 
 def test_sample_eval_pdf_are_consistent_with_local_statistics():
