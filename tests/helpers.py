@@ -305,3 +305,20 @@ def assert_deterministic_and_smooth(bsdf, wi, wo, rng, what=""):
     assert np.percentile(rel[1e-4], 99.9) < 1e-2 and rel[1e-4].max() < 3e-2, (what, rel[1e-4].max())
     moved = rel[1e-4] > 1e-3
     assert np.all(rel[1e-5][moved] < 0.2 * rel[1e-4][moved]), what
+
+
+def skip_without_real_assets():
+    """Skip a real-asset test (validation/real_assets.py) without its optional dependencies
+    (``xatlas``, ``fast-simplification``) or, with an empty asset cache, without ``npm`` to fetch
+    the bunny package."""
+    import importlib.util
+    import shutil
+
+    import pytest
+    from validation import assets
+
+    missing = [m for m in ("xatlas", "fast_simplification") if importlib.util.find_spec(m) is None]
+    if missing:
+        pytest.skip(f"needs {', '.join(missing)} (pip install '.[assets]')")
+    if not (assets.cache_dir() / assets.BUNNY).is_file() and shutil.which("npm") is None:
+        pytest.skip("needs npm to fetch the bunny package (or it in the asset cache)")

