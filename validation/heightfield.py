@@ -389,16 +389,17 @@ def displaced_arrays(hf: Heightfield, extent, verts_per_period: int = 32):
 
 
 def triangle_mesh(name, positions, normals, uvs, faces, bsdf):
-    """A Mitsuba mesh of these vertex arrays (positions, unit normals, uvs) and faces, with ``bsdf``
-    (a dict or a loaded BSDF; None: Mitsuba's default)."""
+    """A Mitsuba mesh of these vertex arrays (positions, unit normals or None for flat faces, uvs)
+    and faces, with ``bsdf`` (a dict or a loaded BSDF; None: Mitsuba's default)."""
     props = mi.Properties()
     if bsdf is not None:
         props["bsdf"] = mi.load_dict(bsdf) if isinstance(bsdf, dict) else bsdf
-    mesh = mi.Mesh(name, len(positions), len(faces), props, has_vertex_normals=True,
+    mesh = mi.Mesh(name, len(positions), len(faces), props, has_vertex_normals=normals is not None,
                    has_vertex_texcoords=True)
     params = mi.traverse(mesh)
     params["vertex_positions"] = mi.Float(np.ascontiguousarray(positions, np.float32).ravel())
-    params["vertex_normals"] = mi.Float(np.ascontiguousarray(normals, np.float32).ravel())
+    if normals is not None:
+        params["vertex_normals"] = mi.Float(np.ascontiguousarray(normals, np.float32).ravel())
     params["vertex_texcoords"] = mi.Float(np.ascontiguousarray(uvs, np.float32).ravel())
     params["faces"] = mi.UInt32(np.ascontiguousarray(faces, np.uint32).ravel())
     params.update()
