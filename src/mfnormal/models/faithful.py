@@ -141,6 +141,9 @@ class Texel:
             self.vis = dr.minimum(1.0, proj * g1_i)
         else:
             self.vis = _visible_share(wi, wp, self._camera_side(wm), g1_i)
+        # With transmission, seen from above: the reflected light the neighbours block meets their
+        # interface and sinks below it (Model._transmitted) instead of bouncing back up (None: never).
+        self.sinks = None if self.flip is None else negate(self.flip)
         p_e = self.principal(wp)
         # (atan2's derivative is 0/0 at a flat normal: held there.)
         phi = _held(dr.atan2(dr.abs(p_e.y), dr.abs(p_e.x)), (p_e.x != 0.0) | (p_e.y != 0.0))
@@ -302,6 +305,17 @@ def _mirror_z(w):
 
 
 RADIANCE = mi.TransportMode.Radiance
+
+
+def _crossing_eta(sp, si_f, active):
+    """η of the interface on the facet of ``si_f`` (seen from its ``wi``): the relative index
+    (``bs.eta``) of a transmitted nested sample, 1 where there is none. Light that crosses into
+    the far side carries Mitsuba's radiance scaling 1/η² (:meth:`Model._transmitted`)."""
+    ctx = mi.BSDFContext(RADIANCE, mi.BSDFFlags.Transmission)
+    bs, w = sp.nested.sample(ctx, si_f, mi.Float(0.5), mi.Point2f(0.5, 0.5), active)
+    ok = active & (bs.pdf > 0) & (si_f.wi.z * bs.wo.z < 0) & (bs.eta > 0)
+    return dr.select(ok, bs.eta, 1.0)
+
 # ⟨ω_h, ω_p⟩ of the near-horizon direction at which the diffuse fill reads the facet's lobe.
 HORIZON_MU = 0.2
 # The share of the blocked light's samples that the sampler gives the diffuse fill, for nested
@@ -509,7 +523,7 @@ class Model:
         rare = on_texel & ((pre[1][1] & (pre[1][2] > 0)) | (pre[2][2] > 0))
         value_t, pdf_t = _gated(rare, lambda: self._bounced(q, (1, 2, 3), acc), acc, gated)
         if trans:
-            value_t, pdf_t = self._transmitted(q, wo, either & (wo_g.z < 0), (value_t, pdf_t))
+            value_t, pdf_t = self._transmitted(q, wo, either & (wo_g.z < 0), (value_t, pdf_t), gated)
             active = either
         # The neighbours, where the texel is hidden.
         f_hid, p_hid = _gated(active & (tx.vis < 1.0), lambda: _sided(
@@ -526,21 +540,46 @@ class Model:
             pdf = dr.select(active & dr.isfinite(pdf), dr.maximum(pdf, 0.0), 0.0)
         return value, pdf
 
-    def _transmitted(self, q, wo, down, acc):
+    def _transmitted(self, q, wo, down, acc, gated):
         """``acc`` plus the light the facet transmits toward ω_o, on the far side of the macro
         surface from the camera (``down``): straight from the facet, or folded there from its
         mirror image F(ω_o) (a refracted direction on the camera's side of the macro surface, the
         side classic normal mapping sends it to). The neighbours block transmitted light too;
         it leaves below them (M_T(d) = (d_x, d_y, −|d_z|) in the camera's frame, a piecewise
         isometry: energy exact), so blocked or not, d below the macro plane leaves as d, and
-        S_T cancels: eval gets f_p^T(ω_i, ω_o) + f_p^T(ω_i, F(ω_o)), the pdf likewise."""
+        S_T cancels: eval gets f_p^T(ω_i, ω_o) + f_p^T(ω_i, F(ω_o)), the pdf likewise.
+
+        Seen from above (``tx.sinks``), the reflected light the neighbours block meets their
+        interface and sinks below it by the same map M_T: a reflected d leaves past the neighbours
+        with S(d|ω_i) (0 below the macro plane), else below them, so ω_o also gets the facet's
+        glossy reflection f_p^R(ω_i, ω_o) and f_p^R(ω_i, F(ω_o)), each times 1 − S (every lobe
+        in the pdf), with the radiance scaling 1/η² of light that crosses the interface
+        (:func:`_crossing_eta`); the diffuse part's blocked light stays the fill's. (Skipped by
+        packets with no such lane, ``gated``: :func:`_gated`.)"""
         f_b, p_b = acc
+        tx = q.tx
         full = mi.BSDFContext(RADIANCE)
-        on = down & (q.tx.vis > 0)
+        on = down & (tx.vis > 0)
         for d in (wo, _mirror_z(wo)):
-            f, p = _sided(q.sp, q.tx, full, q.sp.frame_p, q.wi, d, on, q.want_value, q.want_pdf, q.si_p, TRANSMIT)
+            f, p = _sided(q.sp, tx, full, q.sp.frame_p, q.wi, d, on, q.want_value, q.want_pdf, q.si_p, TRANSMIT)
             f_b, p_b = f_b + f, p_b + p
-        return f_b, p_b
+        glossy = mi.BSDFContext(RADIANCE, self.lobes.glossy_mask)
+        pre = [(d, tx.seen(tx.to_camera(d))) for d in (wo, _mirror_z(wo))]
+        sunk = [on & tx.sinks & (s_d < 1.0) for _, s_d in pre]
+
+        def sinking():
+            f_s, p_s = f_b, p_b
+            if q.want_value and self.lobes.glossy:
+                scale = dr.rcp(dr.square(_crossing_eta(q.sp, q.si_p, sunk[0] | sunk[1])))
+            for (d, s_d), on_d in zip(pre, sunk):
+                if q.want_value and self.lobes.glossy:
+                    f, _ = _sided(q.sp, tx, glossy, q.sp.frame_p, q.wi, d, on_d, True, False, q.si_p, REFLECT)
+                    f_s = f_s + f * ((1.0 - s_d) * scale)
+                if q.want_pdf:
+                    _, p = _sided(q.sp, tx, full, q.sp.frame_p, q.wi, d, on_d, False, True, q.si_p, REFLECT)
+                    p_s = p_s + p * (1.0 - s_d)
+            return f_s, p_s
+        return _gated(sunk[0] | sunk[1], sinking, (f_b, p_b), gated)
 
     def _bounced(self, q, ks, acc):
         """``acc`` plus the light the neighbours block toward the preimages ``ks`` of ω_o
@@ -552,6 +591,8 @@ class Model:
             d, on_facet, share = q.pre[k]
             s_d = q.s_o if k == 0 else mi.Float(0.0) if k == 1 else tx.seen(d)
             blocked = q.on_texel & on_facet & (s_d < 1.0) & (share > 0)
+            if tx.sinks is not None:
+                blocked &= negate(tx.sinks)
             d = tx.to_camera(d)
             if self.lobes.glossy and q.want_value:
                 f, _ = _sided(sp, tx, glossy, sp.frame_p, wi, d, blocked, True, False, q.si_p)
@@ -592,7 +633,9 @@ class Model:
             bounced &= negate(through)
         wo = dr.select(bounced, tx.bounce(d, retro), d)
         if trans:
-            wo = dr.select(through, mi.Vector3f(d.x, d.y, -dr.abs(d.z)), wo)
+            # (Blocked reflected light seen from above sinks below the neighbours the same way.)
+            sunk = bounced & tx.sinks
+            wo = dr.select(through | sunk, mi.Vector3f(d.x, d.y, -dr.abs(d.z)), wo)
         # Diffuse fill: a cosine lobe about ω_g.
         wo = dr.select(on_fill, mi.warp.square_to_cosine_hemisphere(sample2), wo)
         # A nested sample counts only if it is one: positive weight, on the upper side of its frame
@@ -609,8 +652,11 @@ class Model:
         share = dr.select(retro, w_retro, 1.0 - w_retro)
         p_exit = dr.select(bounced, (1.0 - s_b) * share, s_b)
         if trans:
-            p_exit = dr.select(through, 1.0, p_exit)
-            bs.eta = dr.select(on_fill, 1.0, bs.eta)
+            p_exit = dr.select(through, 1.0, dr.select(sunk, 1.0 - s_b, p_exit))
+            # (Sunk light crosses the interface: its radiance scaling and η, as the eval's.)
+            eta_s = _crossing_eta(sp, sp.facet_si(sp.frame_p, tx.wi_real), active & sunk)
+            w = dr.select(sunk, w * dr.rcp(dr.square(eta_s)), w)
+            bs.eta = dr.select(on_fill, 1.0, dr.select(sunk, eta_s, bs.eta))
         prob = dr.select(on_tex, b_tex * p_exit, b_hid)
         return _Draw(bs, w, active & ok, delta, on_tex, bounced, prob, b_tex, b_hid, through if trans else None)
 
@@ -654,8 +700,10 @@ class Model:
         a does not cover (their weight depends on the camera side b): the fill (a cosine lobe about
         ω_g) and, for glossy lobes, b sampled on the facet from each preimage d of a under the bounce
         and b sampled on ω_g from a (the hidden texel's neighbours); with transmission, the hidden
-        texel's neighbours always, and b refracted on the facet from F(a) (the fold, where F(a)
-        lies on the facet's side that a refracted camera ray would leave from).
+        texel's neighbours always, b refracted on the facet from F(a) (the fold, where F(a)
+        lies on the facet's side that a refracted camera ray would leave from), and, for a below the
+        macro plane, b reflected on the facet from a and from F(a) (the reflected light that sinks
+        below the neighbours of a texel seen from above: Model._transmitted).
         Returns [(probability, kind, frame, incident direction in the base frame), ...]."""
         sp, a, a_real = tx_a.sp, tx_a.wi, tx_a.wi_real
         branches = [(mi.Float(0.05), "cosine", None, None)]
@@ -670,6 +718,9 @@ class Model:
         if self.lobes.transmission:
             on = dr.dot(_mirror_z(a), tx_a.wp) > 0
             branches.append((dr.select(on, 0.1, 0.0), "fold", sp.frame_p, _mirror_z(a_real)))
+            for inc in (a_real, _mirror_z(a_real)):
+                on = (a_real.z < 0) & (dr.dot(inc, sp.wp) > 0)
+                branches.append((dr.select(on, 0.05, 0.0), "sink", sp.frame_p, inc))
         return branches
 
     def _adjoint_branch_pdf(self, sp, tx_a, kind, frame, inc, b, active):
@@ -679,10 +730,13 @@ class Model:
         trans = self.lobes.transmission
         if kind == "cosine":
             return (dr.maximum(tx_a.to_camera(b).z, 0.0) if trans else b.z) * INV_PI
-        if kind == "fold":
+        if kind in ("fold", "sink"):
             si_f = sp.facet_si(frame, inc)
             b_f = frame.to_local(b)
-            on = active & (si_f.wi.z * b_f.z < 0) & (a.z * b.z < 0)
+            if kind == "fold":
+                on = active & (si_f.wi.z * b_f.z < 0) & (a.z * b.z < 0)
+            else:
+                on = active & (si_f.wi.z > 0) & (b_f.z > 0) & (a.z < 0) & (b.z > 0)
             return dr.select(on, sp.nested.pdf(ctx, si_f, b_f, on), 0.0)
         side = EITHER if kind == "hidden" else REFLECT
         if trans and kind != "hidden":
@@ -700,6 +754,8 @@ class Model:
             return ok & (bs.wo.z != 0)
         if kind == "fold":
             return ok & (side < 0) & (a.z * bs.wo.z < 0)
+        if kind == "sink":
+            return ok & (side > 0) & (a.z < 0) & (bs.wo.z > 0)
         return ok & (side > 0) & (a.z * bs.wo.z > 0)
 
     def eval_pdf_adjoint(self, sp, tx_a, tx_b, active, texel_for, want_value=True, want_pdf=True):
@@ -793,6 +849,12 @@ class Model:
             if kind in ("skim", "retro"):
                 share = share_b if kind == "retro" else 1.0 - share_b
                 c_k = tx_b.vis * share * (1.0 - tx_b.seen(tx_b.to_camera(inc))) * ratio / dr.maximum(p, 1e-30)
+                if tx_b.sinks is not None:
+                    c_k = dr.select(tx_b.sinks, 0.0, c_k)
+            elif kind == "sink":
+                eta_b = _crossing_eta(sp, sp.facet_si(sp.frame_p, b), picked == k)
+                c_k = tx_b.vis * (1.0 - tx_b.seen(tx_b.to_camera(inc))) * ratio / dr.maximum(
+                    p * dr.square(eta_b), 1e-30)
             elif kind == "fold":
                 c_k = tx_b.vis * ratio * dr.abs(dr.dot(inc, sp.wp)) / dr.maximum(
                     dr.abs(dr.dot(b, sp.wp)) * p, 1e-30)
