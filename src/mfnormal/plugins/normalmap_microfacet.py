@@ -53,8 +53,10 @@ Microfacet-based normal mapping (:monosp:`normalmap_microfacet`)
      ``eval``, exact ``pdf``; not reciprocal (light tracing gets its adjoint).
      With a transmitting nested BSDF it refracts: the facet's transmitted
      light leaves on the far side of the macro surface (a refracted direction
-     on the camera's side is folded across it), so a smooth lossless
-     dielectric keeps reflection + transmission = 1.
+     on the camera's side is folded across it), reflected light its
+     neighbours block seen from above sinks below the surface through their
+     interface, and a smooth lossless dielectric keeps reflection +
+     transmission = 1.
      ``analytic``: the paper's default model, paths of up to two
      facet bounces with a mirror tangent facet, deterministic ``eval`` and the
      exact ``pdf`` of its sampler. ``separable``: the main paper's random walk
