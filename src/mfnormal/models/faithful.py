@@ -140,7 +140,10 @@ class Texel:
             proj = dr.maximum(dr.dot(wi, wp), 0.0) / (wp.z * dr.maximum(wi.z, 1e-30))
             self.vis = dr.minimum(1.0, proj * g1_i)
         else:
-            self.vis = _visible_share(wi, wp, self._camera_side(wm), g1_i)
+            # (R on a plane between the texel's own and its neighbourhood's mean plane: OWN_PLANE_K.)
+            t = dr.minimum(self.k * (1.0 / OWN_PLANE_K), 1.0)
+            wt = dr.normalize(dr.fma(t, self._camera_side(wm) - wp, wp))
+            self.vis = _visible_share(wi, wp, wt, g1_i)
         # With transmission, seen from above: the reflected light the neighbours block meets their
         # interface and sinks below it (Model._transmitted) instead of bouncing back up (None: never).
         self.sinks = None if self.flip is None else negate(self.flip)
@@ -235,11 +238,19 @@ RETRO_SLOPE = 0.5
 #: whose cosines with ω_i and ω_p count at least this share of their cosines with ω_g: R stays
 #: finite, and V continuous, where ω_i skims or passes under that plane while it sees the facet.
 MEAN_PLANE_MIN = 0.5
+#: With local statistics, the texel's projected area R is taken on a plane between its own and its
+#: neighbourhood's mean plane, ω_t ∝ ω_p + t·(ω_m − ω_p), t = min(1, k / OWN_PLANE_K): a texel in a
+#: smooth neighbourhood (k → 0) is the surface there and is foreshortened only as that surface is;
+#: one among neighbours as rough as the map's (k ≥ 2) is a facet on their mean plane. Measured
+#: against the mean plane alone (t = 1): real assets relMSE 0.0407 → 0.0398 (at or below classic
+#: normal mapping in 43 → 46 of 48 cells), the periodic grid the same within 1 % (docs/faithful.md §1.1).
+OWN_PLANE_K = 2.0
 
 
 def _visible_share(wi, wp, wm, g1):
     """V = min(1, R·G1) with local statistics: R = ⟨ω_i,ω_p⟩₊/(⟨ω_p,ω_m⟩⟨ω_i,ω_m⟩) the texel's projected
-    area on its neighbourhood's mean plane (normal ω_m), each cosine at least MEAN_PLANE_MIN times
+    area on the plane with normal ``wm`` (its neighbourhood's mean plane, or between that and its own:
+    OWN_PLANE_K), each cosine at least MEAN_PLANE_MIN times
     its cosine with ω_g (so R is the map-wide one where ω_m = ω_g, and V falls continuously to 0 at
     the facet's horizon). (Written so that no derivative is 0·∞ where R is large.)"""
     cos_i = dr.dot(wi, wp)
