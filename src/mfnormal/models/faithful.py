@@ -142,6 +142,11 @@ class Texel:
         else:
             # (R on a plane between the texel's own and its neighbourhood's mean plane: OWN_PLANE_K.)
             t = dr.minimum(self.k * (1.0 / OWN_PLANE_K), 1.0)
+            if model.flat:
+                # (A flat map, e.g. at strength 0: ω_t = ω_p = ω_m = ω_g for every t, so nothing
+                # flows through t; k still carries the texels' derivatives there, and its path
+                # through the nudged normals of strength 0 would not cancel exactly.)
+                t = dr.detach(t)
             wt = dr.normalize(dr.fma(t, self._camera_side(wm) - wp, wp))
             self.vis = _visible_share(wi, wp, wt, g1_i)
         # With transmission, seen from above: the reflected light the neighbours block meets their
@@ -392,6 +397,7 @@ class Model:
         :func:`neighbourhood.local_field`), and the map's uv at a surface interaction; None: every
         texel has the map's neighbourhood about ω_g. The table then has an axis in k."""
         s1, s2, phi_e = (float(x) for x in slopes)
+        self.flat = s1 == 0.0 and s2 == 0.0         # every texel flat (or strength 0)
         self.local, scales = None, None
         if local is not None:
             fields, fields_ad, res, uv_of = local
