@@ -24,6 +24,7 @@ Writes ``furnace_glass.md``, ``.json`` and ``.png`` (one row per material and ti
 
 from __future__ import annotations
 
+import functools
 import math
 import sys
 import time
@@ -101,9 +102,11 @@ def bump_normal_local(theta, phi, amp: float) -> np.ndarray:
     return n / np.linalg.norm(n, axis=-1, keepdims=True)
 
 
+@functools.lru_cache(maxsize=None)
 def bump_amplitude(max_tilt: float) -> float:
     """A such that the bumps' largest tilt from the radial direction is ``max_tilt`` degrees
-    (bisection on a fine grid of one period, θ in [1°, 179°])."""
+    (bisection on a fine grid of one period, θ in [1°, 179°]; 2.6 s, so cached: the map and the
+    mesh of a cell both need it)."""
     theta = np.linspace(math.radians(1.0), math.radians(179.0), 1441)
     phi = np.linspace(0.0, 2 * math.pi / UV_PERIODS[0], 241)
     T, P = np.meshgrid(theta, phi, indexing="ij")
