@@ -35,7 +35,6 @@ def bsdf_on(rgb, nested, **params):
 
 def half_smooth_map(size=64, tilt=25.0):
     """Left half (u < ½): one constant tilt; right half: steep bumps. RGB in [0, 1], H×W×3."""
-    from helpers import bumps_normalmap
     rgb = bumps_normalmap(size, 8, 0.45)
     rgb[:, : size // 2] = encode(sph(tilt, 0.5)[None])[0]
     return rgb
@@ -117,7 +116,6 @@ def test_a_texel_in_a_smooth_neighbourhood_keeps_its_footprint_at_grazing_views(
     own as k → 0: OWN_PLANE_K). Taken on the mean plane, a small deviation from it foreshortens the
     texel at grazing views: 27 % of the same queries had V < 0.9·G1 (1st percentile 0.58), and the
     low-poly's own lobe showed through at real assets' limbs (docs/faithful.md §1.1)."""
-    from helpers import bumps_normalmap
     size = 128
     rgb = bumps_normalmap(size, 8, 0.45)
     x, y = np.meshgrid((np.arange(size) + 0.5) / size, (np.arange(size) + 0.5) / size)
