@@ -522,19 +522,18 @@ class Model:
         # caller's mask, so that the eval_pdf and sample of one path vertex share it; the lanes
         # it adds are masked out below).
         fill = self._fill(sp, tx) if want_value else None
-        # Lit directly past the neighbours.
+        # Lit directly past the neighbours, and the light the neighbours block that skims on
+        # toward ω_o (the first preimage, d = ω_o: one nested query serves both).
         s_o = tx.seen(wo_g)
         si_p = sp.facet_si(sp.frame_p, tx.wi_real)
-        f_dir, p_dir = _sided(sp, tx, full, sp.frame_p, tx.wi_real, wo, on_texel & (s_o > 0), want_value, want_pdf,
-                              si_p)
-        value_t, pdf_t = f_dir * s_o, p_dir * s_o
+        pre = tx.preimages(wo_g)
+        q = _Query(sp, tx, tx.wi_real, pre, s_o, on_texel, si_p, want_value, want_pdf)
+        value_t, pdf_t = self._direct(q, wo)
         # Light the neighbours block, bounced toward ω_o: the glossy part in eval (the diffuse
         # part is the fill), every lobe in the sampler's pdf. A preimage below the macro plane
         # is never seen past the neighbours (S = 0: ω_o is above it here). The retro-reflected
         # pair (share w > 0) and the one below the plane are skipped by packets that need neither.
-        pre = tx.preimages(wo_g)
-        q = _Query(sp, tx, tx.wi_real, pre, s_o, on_texel, si_p, want_value, want_pdf)
-        acc = self._bounced(q, (0,), (value_t, pdf_t))
+        acc = (value_t, pdf_t)
         # (One branch for the three: each branch's scope repeats the nested BSDF's own ω_i terms,
         # 3 % more kernel operations with two.)
         rare = on_texel & ((pre[1][1] & (pre[1][2] > 0)) | (pre[2][2] > 0))
@@ -598,25 +597,71 @@ class Model:
             return f_s, p_s
         return _gated(sunk[0] | sunk[1], sinking, (f_b, p_b), gated)
 
+    def _fused(self, want_value):
+        """Whether one nested query (every lobe) gives both a blocked preimage's glossy value and
+        its pdf: a nested BSDF without a diffuse lobe, whose glossy part is all of it."""
+        return want_value and self.lobes.glossy and not self.lobes.diffuse
+
+    def _preimage_blocked(self, q, k, s_d):
+        """Where the light blocked toward the preimage ``k`` is bounced toward ω_o."""
+        _, on_facet, share = q.pre[k]
+        blocked = q.on_texel & on_facet & (s_d < 1.0) & (share > 0)
+        if q.tx.sinks is not None:
+            blocked &= negate(q.tx.sinks)
+        return blocked
+
+    def _direct(self, q, wo):
+        """(eval, pdf) of the facet lit directly past the neighbours, S(ω_o)·f_p(ω_i, ω_o), plus the
+        light blocked toward the first preimage d = ω_o that skims on toward ω_o (:meth:`_bounced`'s
+        term for it). Both read the facet's nested BSDF at ω_o: every lobe for the direct light and
+        the pdfs, the glossy ones for the blocked light's value. One nested query gives what they
+        share (for a nested BSDF without a diffuse lobe, all of it)."""
+        sp, tx, s_o = q.sp, q.tx, q.s_o
+        _, _, share = q.pre[0]
+        full = mi.BSDFContext(RADIANCE)
+        lit = q.on_texel & (s_o > 0)
+        blocked = self._preimage_blocked(q, 0, s_o)
+        fused = self._fused(q.want_value)
+        pdf_both = q.want_pdf or fused
+        f, p = _sided(sp, tx, full, sp.frame_p, q.wi, wo, (lit | blocked) if pdf_both else lit, q.want_value,
+                      pdf_both, q.si_p)
+        weight = share * (1.0 - s_o)
+        value = dr.select(lit, f, 0.0) * s_o
+        pdf = dr.select(lit, p, 0.0) * s_o
+        if self.lobes.glossy and q.want_value:
+            if not fused:
+                glossy = mi.BSDFContext(RADIANCE, self.lobes.glossy_mask)
+                f, _ = _sided(sp, tx, glossy, sp.frame_p, q.wi, wo, blocked, True, False, q.si_p)
+            value = value + dr.select(blocked, f, 0.0) * weight
+        if q.want_pdf:
+            pdf = pdf + dr.select(blocked, p, 0.0) * weight
+        return value, pdf
+
     def _bounced(self, q, ks, acc):
-        """``acc`` plus the light the neighbours block toward the preimages ``ks`` of ω_o
-        (:meth:`Texel.preimages`), bounced toward ω_o: the glossy part in eval, every lobe in the pdf."""
+        """``acc`` plus the light the neighbours block toward the preimages ``ks`` (not the first:
+        :meth:`_direct`) of ω_o (:meth:`Texel.preimages`), bounced toward ω_o: the glossy part in
+        eval, every lobe in the pdf."""
         f_b, p_b = acc
         sp, tx, wi = q.sp, q.tx, q.wi
         full, glossy = mi.BSDFContext(RADIANCE), mi.BSDFContext(RADIANCE, self.lobes.glossy_mask)
         for k in ks:
-            d, on_facet, share = q.pre[k]
-            s_d = q.s_o if k == 0 else mi.Float(0.0) if k == 1 else tx.seen(d)
-            blocked = q.on_texel & on_facet & (s_d < 1.0) & (share > 0)
-            if tx.sinks is not None:
-                blocked &= negate(tx.sinks)
+            d, _, share = q.pre[k]
+            s_d = mi.Float(0.0) if k == 1 else tx.seen(d)
+            blocked = self._preimage_blocked(q, k, s_d)
             d = tx.to_camera(d)
+            weight = share * (1.0 - s_d)
+            if self._fused(q.want_value):
+                f, p = _sided(sp, tx, full, sp.frame_p, wi, d, blocked, True, q.want_pdf, q.si_p)
+                f_b = f_b + f * weight
+                if q.want_pdf:
+                    p_b = p_b + p * weight
+                continue
             if self.lobes.glossy and q.want_value:
                 f, _ = _sided(sp, tx, glossy, sp.frame_p, wi, d, blocked, True, False, q.si_p)
-                f_b = f_b + f * (share * (1.0 - s_d))
+                f_b = f_b + f * weight
             if q.want_pdf:
                 _, p = _sided(sp, tx, full, sp.frame_p, wi, d, blocked, False, True, q.si_p)
-                p_b = p_b + p * (share * (1.0 - s_d))
+                p_b = p_b + p * weight
         return f_b, p_b
 
     def _draw(self, sp, tx, sample1, sample2, active):
