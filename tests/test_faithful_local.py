@@ -138,6 +138,40 @@ def test_a_texel_in_a_smooth_neighbourhood_keeps_its_footprint_at_grazing_views(
     assert np.min(vis[facing] / g1[facing]) >= 0.95, np.percentile(vis[facing] / g1[facing], [0, 1])
 
 
+def test_a_mild_neighbourhood_is_measured_in_the_finer_window():
+    """A mild map's slopes that vary across the window (a long wave, 16 texels per period, max tilt
+    8°, rms slope 0.1) hold the surface's shape, which masks nothing at the texel's scale: the
+    texel's k is moved to the finer window's (neighbourhood.FINE_WINDOW; at most the window's), well
+    below the window's (measured: mean 0.58 against 0.96). A steep map's neighbourhood (the bumps map,
+    where the window's rms slope k·σ ≥ MILD_SLOPE) keeps the window's k."""
+    from mfnormal.models.faithful import MILD_SLOPE
+    size = 64
+    x, _ = np.meshgrid((np.arange(size) + 0.5) / size, (np.arange(size) + 0.5) / size)
+    sx = math.tan(math.radians(8.0)) * np.sin(2 * np.pi * 4 * x)
+    n = np.stack([-sx, np.zeros_like(sx), np.ones_like(sx)], -1)
+    wave = encode(n / np.linalg.norm(n, axis=-1, keepdims=True))
+    rng = np.random.default_rng(11)
+    count = 4096
+    for rgb, mild in ((wave, True), (bumps_normalmap(size, 4, 0.45), False)):
+        b = bsdf_on(rgb, GLOSSY)
+        si = make_si(random_hemisphere(rng, count, z_min=0.1), 1)
+        si.uv = mi.Point2f(rng.random(count).astype(np.float32), rng.random(count).astype(np.float32))
+        sp = b.shading_point(mi.BSDFContext(), si)
+        core = b.model.core
+        k = np1(core.texel(sp, sp.wi).k)
+        fields, res, uv_of = core.local
+        uv = uv_of(sp.si)
+        window, fine = (np1(dr.minimum(f, core.k_max)) for f in neighbourhood.field_lookup(
+            [fields[0], fields[3]], res, uv.x, uv.y))
+        rms = window * np1(dr.sqrt(0.5 * (core.sigma1 ** 2 + core.sigma2 ** 2)))
+        assert np.all(k <= window + 1e-6) and np.all(k >= np.minimum(fine, window) - 1e-6)
+        if mild:
+            assert np.all(rms < MILD_SLOPE) and np.mean(k) < 0.7 * np.mean(window), (np.mean(k), np.mean(window))
+        else:
+            steep = rms >= MILD_SLOPE
+            assert np.mean(steep) > 0.5 and np.allclose(k[steep], window[steep], rtol=1e-5, atol=1e-6)
+
+
 @pytest.mark.parametrize("width", [2.0, 8.0])
 def test_white_furnace_with_local_statistics(width):
     """White Lambertian facets on a map whose neighbourhood varies from none to several times the

@@ -328,6 +328,9 @@ def rms_slope(normals: np.ndarray) -> float:
 
 #: The scales k of the local table: u = k/(1 + k) in LOCAL_STEPS steps from 0 to LOCAL_U_MAX (k ≤ 4).
 LOCAL_STEPS = 9
+#: The width of the finer window, in which a mild neighbourhood's scale k is measured, as a share
+#: of the window's (``neighbourhood``): 3 of the default 8 texels (faithful.Model.local_stats).
+FINE_WINDOW = 0.375
 LOCAL_U_MAX = 0.8
 
 

@@ -199,37 +199,41 @@ class NormalMap:
         return slopes, attached_slopes(decode_normal(rgb, 1.0, self.directx), self.strength.value)
 
     def local(self, width: float, attached=False):
-        """Local statistics (docs/faithful.md §5): ((k, m_x, m_y), the same as Dr.Jit values that
-        carry the map's and ``strength``'s derivatives or None, res, uv_of) for a Gaussian window
-        ``width`` texels of the map wide (two standard deviations): the neighbourhood's scale and
-        mean slope on the grid of :meth:`_sampled` (neighbourhood.local_field), and the function
-        that gives the map's uv at a surface interaction (:meth:`map_uv`)."""
+        """Local statistics (docs/faithful.md §5): ((k, m_x, m_y, k_fine), the same as Dr.Jit values
+        that carry the map's and ``strength``'s derivatives or None, res, uv_of) for a Gaussian
+        window ``width`` texels of the map wide (two standard deviations): the neighbourhood's scale
+        and mean slope on the grid of :meth:`_sampled` (neighbourhood.local_field), its scale in a
+        window FINE_WINDOW times as wide (what a mild neighbourhood's k is read from:
+        faithful.Model.local_stats), and the function that gives the map's uv at a surface
+        interaction (:meth:`map_uv`)."""
         from mfnormal.models import neighbourhood as nb
         res, rgb, wp = self._sampled(LOCAL_RES)
         params = mi.traverse(self.texture)
         texels = max(params["data"].shape[:2]) if "data" in params.keys() else res
         taps = nb.window_taps(width * res / texels, res)
+        fine = nb.window_taps(nb.FINE_WINDOW * width * res / texels, res)
 
         def field(wp, attached):
             normals = wp if rgb is None else np.stack([np.array(wp.x), np.array(wp.y), np.array(wp.z)], -1)
             s1, s2, _ = nb.principal_slopes(normals)
             sx, sy = nb.winsorised_slopes(normals)
-            out = nb.local_field(sx, sy, res, taps, s1 * s1 + s2 * s2)
+            out = nb.local_field(sx, sy, res, taps, s1 * s1 + s2 * s2) + \
+                nb.local_field(sx, sy, res, fine, s1 * s1 + s2 * s2)[:1]
             if not (attached and rgb is not None and dr.grad_enabled(wp)):
                 return out, None
             a1, a2, _ = nb.attached_slopes(wp)
             ax, ay = nb.attached_winsorised(wp)
-            return out, nb.attached_field(ax, ay, res, taps, a1, a2)
+            return out, nb.attached_field(ax, ay, res, taps, a1, a2) + nb.attached_field(ax, ay, res, fine, a1, a2)[:1]
         values, values_ad = field(wp, attached)
         if rgb is not None and max(self.strength.ok) == 0:
             # k is the ratio of two variances that both scale with strength²: at strength 0 (no
             # slopes, no mean slope), k of the map at strength 1, which is its limit there.
             k1, k1_ad = field(decode_normal(rgb, 1.0, self.directx), attached)
-            values = (k1[0],) + tuple(values[1:])
+            values = (k1[0],) + tuple(values[1:3]) + (k1[3],)
             if values_ad is not None:
                 # (k1 carries the texels' derivatives, if they have any; strength's is 0.)
-                k1_ad = mi.Float(np.asarray(k1[0], np.float32)) if k1_ad is None else k1_ad[0]
-                values_ad = (k1_ad,) + tuple(values_ad[1:])
+                k1_ad = [mi.Float(np.asarray(k1[i], np.float32)) if k1_ad is None else k1_ad[i] for i in (0, 3)]
+                values_ad = (k1_ad[0],) + tuple(values_ad[1:3]) + (k1_ad[1],)
         return values, values_ad, res, self.map_uv
 
     def map_uv(self, si):
