@@ -543,12 +543,11 @@ class Model:
         si_p = sp.facet_si(sp.frame_p, tx.wi_real)
         pre = tx.preimages(wo_g)
         q = _Query(sp, tx, tx.wi_real, pre, s_o, on_texel, si_p, want_value, want_pdf)
-        value_t, pdf_t = self._direct(q, wo)
+        acc = self._direct(q, wo)
         # Light the neighbours block, bounced toward ω_o: the glossy part in eval (the diffuse
         # part is the fill), every lobe in the sampler's pdf. A preimage below the macro plane
         # is never seen past the neighbours (S = 0: ω_o is above it here). The retro-reflected
         # pair (share w > 0) and the one below the plane are skipped by packets that need neither.
-        acc = (value_t, pdf_t)
         # (One branch for the three: each branch's scope repeats the nested BSDF's own ω_i terms,
         # 3 % more kernel operations with two.)
         rare = on_texel & ((pre[1][1] & (pre[1][2] > 0)) | (pre[2][2] > 0))
@@ -637,9 +636,8 @@ class Model:
         lit = q.on_texel & (s_o > 0)
         blocked = self._preimage_blocked(q, 0, s_o)
         fused = self._fused(q.want_value)
-        pdf_both = q.want_pdf or fused
-        f, p = _sided(sp, tx, full, sp.frame_p, q.wi, wo, (lit | blocked) if pdf_both else lit, q.want_value,
-                      pdf_both, q.si_p)
+        f, p = _sided(sp, tx, full, sp.frame_p, q.wi, wo, (lit | blocked) if q.want_pdf or fused else lit,
+                      q.want_value, q.want_pdf, q.si_p)
         weight = share * (1.0 - s_o)
         value = dr.select(lit, f, 0.0) * s_o
         pdf = dr.select(lit, p, 0.0) * s_o
