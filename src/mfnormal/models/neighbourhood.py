@@ -331,6 +331,11 @@ LOCAL_STEPS = 9
 #: The width of the finer window, in which a mild neighbourhood's scale k is measured, as a share
 #: of the window's (``neighbourhood``): 3 of the default 8 texels (faithful.Model.local_stats).
 FINE_WINDOW = 0.375
+#: The finer window's least width in cells of the grid the statistics are computed on (up to
+#: LOCAL_RES² samples of the map): on a map with more texels than that grid, 3 of 8 texels may be
+#: less than a cell, where the grid sees no variation and k would be 0 by construction, not by
+#: measurement. (Never wider than the window: there the two are the same.)
+FINE_MIN_CELLS = 1.5
 LOCAL_U_MAX = 0.8
 
 

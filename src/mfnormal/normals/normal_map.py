@@ -211,7 +211,8 @@ class NormalMap:
         params = mi.traverse(self.texture)
         texels = max(params["data"].shape[:2]) if "data" in params.keys() else res
         taps = nb.window_taps(width * res / texels, res)
-        fine = nb.window_taps(nb.FINE_WINDOW * width * res / texels, res)
+        cells = width * res / texels
+        fine = nb.window_taps(min(max(nb.FINE_WINDOW * cells, nb.FINE_MIN_CELLS), cells), res)
 
         def field(wp, attached):
             normals = wp if rgb is None else np.stack([np.array(wp.x), np.array(wp.y), np.array(wp.z)], -1)
