@@ -207,8 +207,7 @@ class Texel:
         # And a cavity sends light back only if its walls are steep: the share also fades with the
         # neighbourhood's rms slope k·σ below RETRO_SLOPE (a mild neighbourhood's blocked light, e.g.
         # a facet's mirror direction under the macro plane at an object's limb, skims on).
-        s1, s2 = self.model.sigma1, self.model.sigma2
-        rms = self.k * dr.sqrt(0.5 * dr.fma(s1, s1, s2 * s2))
+        rms = self.k * self.model.rms_slope()
         return blocked * dr.minimum(self.k * (1.0 / RETRO_K), 1.0) * dr.minimum(rms * (1.0 / RETRO_SLOPE), 1.0)
 
     def bounce(self, d, retro):
@@ -374,6 +373,12 @@ class Model:
         self.cos_min = cos_min
         self.set_slopes(slopes, local=local)
 
+    def rms_slope(self):
+        """The map's rms slope σ = ((σ1² + σ2²)/2)^½ (a neighbourhood's is k·σ), with σ1's and
+        σ2's derivatives."""
+        s1, s2 = self.sigma1, self.sigma2
+        return dr.sqrt(0.5 * dr.fma(s1, s1, s2 * s2))
+
     def local_stats(self, sp):
         """(k, ω_m) at the shading point with local statistics: the scale of its neighbourhood's
         slopes and the neighbourhood's mean normal (the local macro surface, base frame); (None,
@@ -391,8 +396,7 @@ class Model:
             # is read from the finer window (where that is lower: at a crease the finer window can
             # see more), a steep one's (rms slope k·σ at least MILD_SLOPE) from the window, and one
             # between from both, in proportion.
-            s1, s2 = self.sigma1, self.sigma2
-            steep = dr.minimum(k * dr.sqrt(0.5 * dr.fma(s1, s1, s2 * s2)) * (1.0 / MILD_SLOPE), 1.0)
+            steep = dr.minimum(k * self.rms_slope() * (1.0 / MILD_SLOPE), 1.0)
             k = dr.lerp(dr.minimum(fine[0], k), k, steep)
         wm = dr.normalize(mi.Vector3f(-mx, -my, 1.0))
         if sp.map_rotation is not None:

@@ -210,16 +210,16 @@ class NormalMap:
         res, rgb, wp = self._sampled(LOCAL_RES)
         params = mi.traverse(self.texture)
         texels = max(params["data"].shape[:2]) if "data" in params.keys() else res
-        taps = nb.window_taps(width * res / texels, res)
         cells = width * res / texels
+        taps = nb.window_taps(cells, res)
         fine = nb.window_taps(min(max(nb.FINE_WINDOW * cells, nb.FINE_MIN_CELLS), cells), res)
 
         def field(wp, attached):
             normals = wp if rgb is None else np.stack([np.array(wp.x), np.array(wp.y), np.array(wp.z)], -1)
             s1, s2, _ = nb.principal_slopes(normals)
             sx, sy = nb.winsorised_slopes(normals)
-            out = nb.local_field(sx, sy, res, taps, s1 * s1 + s2 * s2) + \
-                nb.local_field(sx, sy, res, fine, s1 * s1 + s2 * s2)[:1]
+            total = s1 * s1 + s2 * s2
+            out = nb.local_field(sx, sy, res, taps, total) + nb.local_field(sx, sy, res, fine, total)[:1]
             if not (attached and rgb is not None and dr.grad_enabled(wp)):
                 return out, None
             a1, a2, _ = nb.attached_slopes(wp)
