@@ -216,3 +216,25 @@ def test_the_cells_views_and_floor_are_where_the_names_say():
     assert above.name.endswith("/floor0.25") and "floor" not in inside.name
     plain = H.Cell("eggcrate", "mild", "diffuse", "sky_sun", "frontal", "magnified")
     assert plain.name == "eggcrate/mild/diffuse/sky_sun/frontal/magnified"
+
+
+def test_registering_the_map_for_the_camera_takes_away_the_parallax_error():
+    """``--registered``: every method renders the normal map registered for the camera (4× its
+    resolution; the height map stays the baked one), and the report says so. Registered, classic
+    normal mapping's error from inside steep water (mostly where each texel is seen: the truth's
+    bands of total internal reflection lie beside the texels that make them) falls to under half
+    of what it is on the baked map (measured at 96² px, 256 spp: 0.30 → 0.12); without the
+    registration (or with the baked map passed through) it would not."""
+    c = D.cell("water", "steep", "inside40")
+    baked, reg = c.maps(), c.maps(registered=True)
+    assert np.array(reg["normalmap"]["bitmap"]).shape[0] == 4 * np.array(baked["normalmap"]["bitmap"]).shape[0]
+    assert np.array_equal(np.array(reg["heightmap"]["bitmap"]), np.array(baked["heightmap"]["bitmap"]))
+    classic = [D.method("classic")]
+    plain = D.measure_cell(c, classic, res=32, spp=16, ref_factor=4, seed=3)
+    registered = D.measure_cell(c, classic, res=32, spp=16, ref_factor=4, seed=3, registered=True)
+    assert registered["metrics"]["classic"]["rel_mse"] < 0.5 * plain["metrics"]["classic"]["rel_mse"]
+    settings = {"command": "python -m validation.dielectric --registered", "elapsed_s": 1.0, "cells": 0,
+                "res": 32, "spp": 16, "ref_factor": 4, "methods": ["classic"], "stem": "dielectric_registered",
+                "registered": True}
+    assert "**Registered** (`--registered`)" in D.markdown({"settings": settings}, {})
+    assert "**Registered**" not in D.markdown({"settings": {**settings, "registered": False}}, {})

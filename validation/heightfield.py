@@ -321,6 +321,73 @@ def height_map(hf: Heightfield, res: int, relative: bool = True) -> np.ndarray:
     return h.astype(np.float32)
 
 
+#: Steps of :func:`first_hit`'s march across the heights' slab (then bisection).
+HIT_STEPS = 2000
+HIT_BISECTIONS = 40
+
+
+def first_hit(hf: Heightfield, x, y, z0: float, d) -> np.ndarray:
+    """Where the ray that crosses the plane z = ``z0`` at (``x``, ``y``) along −``d`` (``d``: the
+    unit direction toward the camera, either side of the plane) first meets the heightfield:
+    the parameter t of the point (x, y, z0) + t·d, for arrays ``x``, ``y``. A march from the
+    camera's side of the heights' slab in :data:`HIT_STEPS` steps (far finer than the egg crate's
+    features at any view of the harnesses), refined by bisection. 0 where ``d`` is parallel to the
+    plane (no camera there)."""
+    x, y = np.asarray(x, np.float64), np.asarray(y, np.float64)
+    d = np.asarray(d, np.float64)
+    if abs(d[2]) < 1e-9:
+        return np.zeros_like(x)
+    lo, hi = hf.height_range
+    t_near, t_far = sorted([(lo - z0) / d[2], (hi - z0) / d[2]], reverse=True)
+    side = 1.0 if d[2] > 0 else -1.0
+
+    def above(t):      # > 0 on the camera's side of the surface
+        return side * ((z0 + t * d[2]) - hf.height(x + t * d[0], y + t * d[1]))
+
+    span = (t_near - t_far) * (1 + 1e-6)
+    t_in, t_out = np.full(x.shape, np.nan), np.full(x.shape, np.nan)
+    prev_t, prev_g = t_near + 1e-9 * span, above(t_near + 1e-9 * span)
+    for i in range(1, HIT_STEPS + 1):
+        t = t_near + 1e-9 * span - span * i / HIT_STEPS
+        g = above(t)
+        new = np.isnan(t_in) & (prev_g > 0) & (g <= 0)
+        t_in[new], t_out[new] = prev_t, t
+        prev_t, prev_g = t, g
+    t_in, t_out = np.where(np.isnan(t_in), 0.0, t_in), np.where(np.isnan(t_out), 0.0, t_out)
+    for _ in range(HIT_BISECTIONS):
+        mid = 0.5 * (t_in + t_out)
+        outside = above(mid) > 0
+        t_in, t_out = np.where(outside, mid, t_in), np.where(outside, t_out, mid)
+    return 0.5 * (t_in + t_out)
+
+
+def bilinear(img: np.ndarray, x, y) -> np.ndarray:
+    """A map in :func:`texel_centres`' layout (H × W × C, periodic) read bilinearly, as Mitsuba's
+    ``bitmap`` with ``wrap_mode="repeat"`` reads it, at world points (``x``, ``y``)."""
+    res_y, res_x = img.shape[:2]
+    u, v = np.asarray(x) * res_x - 0.5, (1.0 - np.asarray(y)) * res_y - 0.5
+    i0, j0 = np.floor(u).astype(np.int64), np.floor(v).astype(np.int64)
+    fu, fv = (u - i0)[..., None], (v - j0)[..., None]
+
+    def at(j, i):
+        return img[j % res_y, i % res_x]
+    return ((at(j0, i0) * (1 - fu) + at(j0, i0 + 1) * fu) * (1 - fv)
+            + (at(j0 + 1, i0) * (1 - fu) + at(j0 + 1, i0 + 1) * fu) * fv)
+
+
+def registered_map(hf: Heightfield, img: np.ndarray, d, upsample: int = 4) -> np.ndarray:
+    """``img`` (a map over [0, 1]², e.g. :func:`normal_map`) registered for a camera in direction
+    ``d`` (unit, toward the camera; orthographic): at each point of the plane z = mean height, the
+    texel where the camera ray through that point meets the true surface (:func:`first_hit`),
+    read bilinearly; at ``upsample`` × the map's resolution, so the occlusion edges stay sharp.
+    Rendering the plane with it puts every camera ray's texel where the true geometry has it:
+    what a perfect parallax (relief) lookup would give the camera rays."""
+    res = img.shape[0] * int(upsample)
+    x, y = texel_centres(res)
+    t = first_hit(hf, x, y, hf.mean_height, d)
+    return bilinear(np.asarray(img, np.float64), x + t * d[0], y + t * d[1]).astype(np.float32)
+
+
 def bitmap_texture(img: np.ndarray, filter_type: str = "bilinear") -> dict:
     """A raw, repeating Mitsuba ``bitmap`` texture dict of an array (H×W or H×W×3)."""
     arr = np.ascontiguousarray(img, np.float32)
@@ -848,10 +915,19 @@ class Cell:
     def nested(self) -> dict:
         return dict(self.material_dict) if self.material_dict else MATERIALS[self.material]
 
-    def maps(self) -> dict:
+    def camera_direction(self) -> np.ndarray:
+        """The unit direction from the plane toward the camera (orthographic: the same everywhere)."""
+        return _direction(VIEWS[self.view].theta, CAMERA_AZIMUTH)
+
+    def maps(self, registered: bool = False) -> dict:
+        """The baked maps; ``registered``: the normal map :func:`registered_map` for the camera
+        (the height map, the exact normals and ``res`` stay the baked ones)."""
         hf, mag = self.hf(), MAGNIFICATIONS[self.magnification]
         res = mag.periods * mag.texels_per_period
-        return {"normalmap": bitmap_texture(normal_map(hf, res)),
+        nmap = normal_map(hf, res)
+        if registered:
+            nmap = registered_map(hf, nmap, self.camera_direction())
+        return {"normalmap": bitmap_texture(nmap),
                 "heightmap": bitmap_texture(height_map(hf, res)),
                 "normals": texel_normals(hf, res), "res": res}
 
@@ -935,8 +1011,9 @@ def cell_seed(cell: Cell, run_seed: int = 0) -> int:
 
 def render_cell(cell: Cell, methods, res: int = 96, spp: int = 64, ref_factor: int = 4,
                 max_depth: int = 8, seed: int | None = None, pass_spp: int = 64,
-                method_noise: bool = False, log=None) -> dict:
-    """Render one cell and measure every method against the truth.
+                method_noise: bool = False, log=None, registered: bool = False) -> dict:
+    """Render one cell and measure every method against the truth (``registered``: every method
+    on the normal map registered for the camera, :meth:`Cell.maps`).
 
     ``spp`` is per method render (times ``cell.spp_factor``). The truth is rendered at
     ``ref_factor × spp`` (the reference every metric compares with) and once more at ``spp``
@@ -966,7 +1043,7 @@ def render_cell(cell: Cell, methods, res: int = 96, spp: int = 64, ref_factor: i
     spp = int(spp) * cell.spp_factor
     block = cell.metric_block
     hf = cell.hf()
-    maps = cell.maps()
+    maps = cell.maps(registered)
     out = {"cell": cell.name, "images": {}, "metrics": {}, "times": {}, "errors": {}, "invalid": {},
            "tilts": tilt_stats(hf), "spp": spp, "ref_spp": spp * ref_factor, "block": block,
            "self_noise": {}, "seed": seed}
