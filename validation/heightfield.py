@@ -926,7 +926,8 @@ class Cell:
         res = mag.periods * mag.texels_per_period
         nmap = normal_map(hf, res)
         if registered:
-            nmap = registered_map(hf, nmap, self.camera_direction())
+            # (4× the magnified map's resolution; a minified map, 384 texels wide, as it is.)
+            nmap = registered_map(hf, nmap, self.camera_direction(), upsample=max(1, 192 // res))
         return {"normalmap": bitmap_texture(nmap),
                 "heightmap": bitmap_texture(height_map(hf, res)),
                 "normals": texel_normals(hf, res), "res": res}

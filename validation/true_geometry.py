@@ -104,6 +104,10 @@ def parse_args(argv=None):
     p.add_argument("--no-scenes", action="store_true", help="skip the two stand-alone scenes")
     p.add_argument("--no-grid", action="store_true", help="only the two stand-alone scenes")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--registered", action="store_true",
+                   help="every method on the normal map registered for the camera (each camera ray reads "
+                        "the texel where it meets the true surface: a perfect parallax lookup); writes "
+                        "true_geometry_registered.*")
     p.add_argument("--sheet", choices=["auto", "all"], default="auto",
                    help=f"contact sheet rows: every cell (all; auto when ≤ {SHEET_MAX_ROWS} cells) or the "
                         "SHEET_SETTINGS selection")
@@ -296,6 +300,13 @@ def markdown(report, labels, settings, quick):
              "another, found by a BSDF sample and then next-event estimation): there the floor itself "
              "fluctuates and a deterministic method can score below it.")
     L.append("")
+    if settings.get("registered"):
+        L.append("**Registered** (`--registered`): every method renders the plane with the normal map "
+                 "registered for the camera (`validation.heightfield.registered_map`): at each point of the "
+                 "plane, the texel where the camera ray through it meets the true surface, as a perfect "
+                 "parallax (relief) lookup would give the camera rays; the light's rays read the same map, "
+                 "and every ray still leaves from the plane.")
+        L.append("")
     L.append("Magnified: 2 periods across the image, 24 texels per period (a texel ≈ 2×2 px frontal), "
              "64 mesh vertices per period. Minified: 24 periods across, 16 texels and 32 vertices per "
              "period (4×4 texels per pixel frontal; the truth at 48 vertices per period differs by 2.3 % "
@@ -406,7 +417,7 @@ def main(argv=None):
     if len(set(keys)) != len(keys):
         sys.exit(f"duplicate method keys: {keys}")
     labels = {"truth": "truth", **{m.key: m.label for m in methods}}
-    stem = "true_geometry_quick" if args.quick else "true_geometry"
+    stem = ("true_geometry_quick" if args.quick else "true_geometry") + ("_registered" if args.registered else "")
     args.out.mkdir(parents=True, exist_ok=True)
 
     # Material innermost: consecutive cells share the truth scene (its BVH is built once).
@@ -421,7 +432,8 @@ def main(argv=None):
     for i, cell in enumerate(cells):
         t0 = time.time()
         r = H.render_cell(cell, methods, res=res, spp=spp, ref_factor=rf,
-                          seed=H.cell_seed(cell, args.seed), method_noise=args.method_noise)
+                          seed=H.cell_seed(cell, args.seed), method_noise=args.method_noise,
+                          registered=args.registered)
         results.append(r)
         best = min(r["metrics"].items(), key=lambda kv: kv[1]["rel_mse"])[0] if r["metrics"] else "-"
         print(f"[{i + 1}/{len(cells)}] {cell.name}: {time.time() - t0:.1f} s, floor "
@@ -436,7 +448,8 @@ def main(argv=None):
         for name, cell in (("relief", RELIEF), ("eggcrate", EGGCRATE)):
             t0 = time.time()
             r = H.render_cell(cell, methods, res=res, spp=spp, ref_factor=rf,
-                              seed=H.cell_seed(cell, args.seed), method_noise=args.method_noise)
+                              seed=H.cell_seed(cell, args.seed), method_noise=args.method_noise,
+                              registered=args.registered)
             scenes[name] = r
             report[name] = strip_images(r)
             print(f"[scene {name}] {time.time() - t0:.1f} s", flush=True)
@@ -444,7 +457,7 @@ def main(argv=None):
     elapsed = time.time() - t_start
     cmd = "nice .venv/bin/python validation/true_geometry.py" + (" " + " ".join(sys.argv[1:]) if sys.argv[1:] else "")
     settings = {"command": cmd, "elapsed_s": elapsed, "cells": len(cells), "res": res, "spp": spp,
-                "ref_factor": rf, "methods": keys, "seed": args.seed,
+                "ref_factor": rf, "methods": keys, "seed": args.seed, "registered": args.registered,
                 "method_about": {m.key: m.about for m in methods},
                 "thresholds": {"rel_mse_eps": H.REL_MSE_EPS, "exposure_mean": H.EXPOSURE_MEAN,
                                "ln_floor": H.LN_FLOOR, "black_fraction": H.BLACK_FRACTION}}
