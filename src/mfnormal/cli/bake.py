@@ -1,8 +1,9 @@
-"""``mfnormal bake HIGH LOW -o MAP.png``: a tangent-space normal map of a high-poly mesh baked
-onto a low-poly mesh's UVs (:mod:`mfnormal.io.bake`).
+"""``mfnormal bake HIGH LOW -o MAP.png [--heights HEIGHTS.exr]``: a tangent-space normal map of a
+high-poly mesh baked onto a low-poly mesh's UVs, and the high-poly's heights over the low-poly
+(:mod:`mfnormal.io.bake`).
 
-Every argument, both files and the output folder are checked before the meshes are loaded;
-the meshes (and the low-poly's UVs) before the bake; the map is written atomically.
+Every argument, both files and the output folders are checked before the meshes are loaded;
+the meshes (and the low-poly's UVs) before the bake; the files are written atomically.
 """
 
 from __future__ import annotations
@@ -12,7 +13,7 @@ import time
 from pathlib import Path
 
 from mfnormal.io.bake import (BakeError, HIGH_NORMALS, MESH_SUFFIXES, SIZE_RANGE, TANGENT_FRAMES,
-                              bake, check_low_poly, load_mesh, mesh_arrays, unwrap, write_map)
+                              bake, check_low_poly, load_mesh, mesh_arrays, unwrap, write_baked)
 from mfnormal.io.inputs import CLIError, check_output
 
 __all__ = ["add_bake", "cmd_bake"]
@@ -44,6 +45,11 @@ def _check_bake(args) -> Path:
     if output.suffix.lower() != ".png":
         raise CLIError(f"-o {args.output}: the map is a PNG; give a name ending in .png")
     check_output(output.with_suffix(""))
+    if args.heights is not None:
+        if Path(args.heights).suffix.lower() != ".exr":
+            raise CLIError(f"--heights {args.heights}: the heights are a float OpenEXR; give a name "
+                           "ending in .exr")
+        check_output(Path(args.heights).with_suffix(""), "--heights")
     if args.unwrap is not None:
         if Path(args.unwrap).suffix.lower() != ".ply":
             raise CLIError(f"--unwrap {args.unwrap}: the unwrapped mesh is written as PLY; give a "
@@ -91,12 +97,14 @@ def cmd_bake(args) -> int:
     if baked.missed > MISSED_WARN * max(covered, 1):
         print(f"mfnormal: warning: {baked.missed} of {covered} texels found no high-poly surface "
               "within the cage and are flat; raise --cage", flush=True)
-    write_map(output, baked.normals, args.bits)
+    write_baked(output, baked.normals, args.bits, args.heights, baked.heights)
     print(f"baked {args.size}x{args.size} ({args.tangents} frame, {covered} texels covered) "
           f"in {time.time() - started:.1f}s")
     if args.unwrap:
         print(f"wrote {args.unwrap}")
     print(f"wrote {output}")
+    if args.heights:
+        print(f"wrote {args.heights}")
     return 0
 
 
@@ -122,6 +130,10 @@ def add_bake(sub):
                         "tangents=vertex_tangent) or mitsuba (Mitsuba's si.sh_frame, as Mitsuba's "
                         "normalmap and tangents=mitsuba decode)")
     b.add_argument("--bits", type=int, choices=(8, 16), default=8, help="bits per channel (default 8)")
+    b.add_argument("--heights", metavar="HEIGHTS.exr",
+                   help="also write the high-poly's heights over the low-poly: per texel the signed "
+                        "distance along the low-poly's interpolated normal (world units, positive "
+                        "outside), a one-channel float OpenEXR"),
     b.add_argument("--high-normals", choices=HIGH_NORMALS, default="shading",
                    help="the high-poly's interpolated (shading, default) or triangle (geometric) normal")
     b.add_argument("--unwrap", metavar="MESH.ply",

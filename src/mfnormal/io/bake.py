@@ -16,11 +16,14 @@ For each texel of the map, :func:`bake`
 3. finds the high-poly surface nearest to p on the segment p ± cage·N with Mitsuba's ray
    tracer (a scene holding only the high-poly mesh; a ray from p each way along N);
 4. writes the high-poly's normal there (its shading normal, or ``high_normals="geometric"``)
-   in the texel's frame, (x, y, z) = (⟨n, T⟩, ⟨n, B⟩, ⟨n, N⟩).
+   in the texel's frame, (x, y, z) = (⟨n, T⟩, ⟨n, B⟩, ⟨n, N⟩), and the height there: the signed
+   distance from p along N to that surface (positive outside, where N points; world units).
 
-Texels no triangle covers, and those whose rays miss, hold the flat normal (0, 0, 1); the
-covered texels' normals are then spread ``padding`` texels outwards (each new texel the mean
-of its covered neighbours), so that bilinear lookups along UV seams read no background.
+Texels no triangle covers, and those whose rays miss, hold the flat normal (0, 0, 1) and height
+0; the covered texels' normals and heights are then spread ``padding`` texels outwards (each new
+texel the mean of its covered neighbours), so that bilinear lookups along UV seams read no
+background. The heights are the map of displacement a renderer would apply along the low-poly's
+interpolated normal to get the high-poly back (:func:`write_heights`: a one-channel float EXR).
 :func:`encode_map` turns normals into 8- or 16-bit RGB = (n + 1)/2, and :func:`write_map`
 writes the PNG atomically. Meshes are read as Mitsuba reads them (PLY, OBJ), so the map fits
 the UVs Mitsuba renders with.
@@ -36,7 +39,8 @@ import numpy as np
 from mfnormal.normals.mikktspace import mikktspace, split_vertices
 
 __all__ = ["BakeError", "Baked", "MESH_SUFFIXES", "TANGENT_FRAMES", "SIZE_RANGE", "load_mesh",
-           "mesh_arrays", "unwrap", "bake", "encode_map", "write_map", "tangent_mesh"]
+           "mesh_arrays", "unwrap", "bake", "encode_map", "write_map", "write_heights", "write_baked",
+           "tangent_mesh"]
 
 MESH_SUFFIXES = {".ply": "ply", ".obj": "obj"}
 TANGENT_FRAMES = ("mikktspace", "mitsuba")
@@ -57,10 +61,12 @@ class BakeError(ValueError):
 @dataclass
 class Baked:
     """A baked map: ``normals`` (H, W, 3) unit tangent-space normals, ``covered`` (H, W) the
-    texels a low-poly triangle covers, ``hit`` (H, W) those whose rays found the high-poly."""
+    texels a low-poly triangle covers, ``hit`` (H, W) those whose rays found the high-poly,
+    ``heights`` (H, W) the high-poly's signed distance along the low-poly's normal (world units)."""
     normals: np.ndarray
     covered: np.ndarray
     hit: np.ndarray
+    heights: np.ndarray
 
     @property
     def missed(self) -> int:
@@ -264,9 +270,10 @@ def _trace(scene, origins, directions, maxt: float, geometric: bool):
     return np.array(si.t, np.float64), np.array(normal, np.float64).reshape(3, -1).T, hit
 
 
-def high_normals_at(high_mesh, p, n, cage: float, geometric: bool = False):
+def high_surface_at(high_mesh, p, n, cage: float, geometric: bool = False):
     """The high-poly's unit normal at the surface point nearest to ``p`` on the segment
-    p ± cage·``n``, (K, 3), and whether there is one, (K,).
+    p ± cage·``n``, (K, 3), that point's signed distance from p along ``n``, (K,), and whether
+    there is one, (K,).
 
     Two rays leave p, one along +n and one along −n, each from RAY_START·cage behind p (so that
     a surface through p itself is met, not skipped) up to cage beyond it; each meets the first
@@ -279,14 +286,17 @@ def high_normals_at(high_mesh, p, n, cage: float, geometric: bool = False):
     t_down, n_down, hit_down = _trace(scene, p + eps * n, -n, cage + eps, geometric)
     use_up = hit_up & (~hit_down | (np.abs(t_up - eps) <= np.abs(t_down - eps)))
     normal = np.where(use_up[:, None], n_up, n_down)
-    return _unit(normal), hit_up | hit_down
+    hit = hit_up | hit_down
+    distance = np.where(hit, np.where(use_up, t_up - eps, eps - t_down), 0.0)
+    return _unit(normal), distance, hit
 
 
 # -- Padding and encoding ------------------------------------------------------------------------
 
-def dilate(normals, known, padding: int):
-    """``normals`` (H, W, 3) with the texels outside ``known`` within ``padding`` texels (8-
-    neighbourhood rings) set to the normalised mean of their known neighbours, ring by ring."""
+def dilate(normals, known, padding: int, unit: bool = True):
+    """``normals`` (H, W, C) with the texels outside ``known`` within ``padding`` texels (8-
+    neighbourhood rings) set to the mean of their known neighbours (normalised where ``unit``),
+    ring by ring."""
     normals, known = normals.copy(), known.copy()
     for _ in range(padding):
         total = np.zeros_like(normals)
@@ -301,7 +311,7 @@ def dilate(normals, known, padding: int):
         ring = ~known & (count > 0)
         if not ring.any():
             break
-        normals[ring] = _unit(total[ring])
+        normals[ring] = _unit(total[ring]) if unit else total[ring] / count[ring][:, None]
         known |= ring
     return normals
 
@@ -313,14 +323,47 @@ def encode_map(normals, bits: int = 8):
     return rgb.astype(np.uint8 if bits == 8 else np.uint16)
 
 
-def write_map(path, normals, bits: int = 8):
-    """Write the normal map PNG (8- or 16-bit) atomically; returns the path."""
+def _map_bytes(normals, bits: int) -> bytes:
     import mitsuba as mi
-    from mfnormal.io.images import atomic_write, encode, write_bytes
+    from mfnormal.io.images import encode
 
     bitmap = mi.Bitmap(np.ascontiguousarray(encode_map(normals, bits)), mi.Bitmap.PixelFormat.RGB)
-    data = encode(bitmap, mi.Bitmap.FileFormat.PNG)
+    return encode(bitmap, mi.Bitmap.FileFormat.PNG)
+
+
+def _heights_bytes(heights) -> bytes:
+    import mitsuba as mi
+    from mfnormal.io.images import encode
+
+    bitmap = mi.Bitmap(np.ascontiguousarray(heights, np.float32)[..., None], mi.Bitmap.PixelFormat.Y)
+    return encode(bitmap, mi.Bitmap.FileFormat.OpenEXR)
+
+
+def write_map(path, normals, bits: int = 8):
+    """Write the normal map PNG (8- or 16-bit) atomically; returns the path."""
+    return write_baked(path, normals, bits)[0]
+
+
+def write_heights(path, heights):
+    """Write the heights (H, W, world units) as a one-channel 32-bit float OpenEXR, atomically
+    (what Mitsuba's ``bitmap`` reads with ``raw=True``); returns the path."""
+    from mfnormal.io.images import atomic_write, write_bytes
+
+    data = _heights_bytes(heights)
     return atomic_write(path, lambda p: write_bytes(p, data))
+
+
+def write_baked(path, normals, bits: int = 8, heights_path=None, heights=None) -> list:
+    """The normal map PNG at ``path`` and, with ``heights_path``, the ``heights`` EXR there, written
+    as one (both or neither: :func:`mfnormal.io.images.atomic_write_all`); returns the paths."""
+    from mfnormal.io.images import atomic_write_all, write_bytes
+
+    map_data = _map_bytes(normals, bits)
+    items = [(path, lambda p: write_bytes(p, map_data))]
+    if heights_path is not None:
+        heights_data = _heights_bytes(heights)
+        items.append((heights_path, lambda p: write_bytes(p, heights_data)))
+    return atomic_write_all(items)
 
 
 # -- The baker ---------------------------------------------------------------------------------
@@ -351,7 +394,8 @@ def default_cage(positions) -> float:
 def bake(high, low, size: int = 1024, cage: float | None = None, frame: str = "mikktspace",
          padding: int = 4, high_normals: str = "shading") -> Baked:
     """Bake the tangent-space normal map of ``high`` onto ``low`` (Mitsuba meshes or paths of PLY
-    or OBJ files; the low-poly needs UVs and vertex normals): a ``size``² :class:`Baked`.
+    or OBJ files; the low-poly needs UVs and vertex normals), and its heights over ``low``: a
+    ``size``² :class:`Baked`.
 
     ``cage``: how far from the low-poly surface rays look for the high-poly (default:
     CAGE_FRACTION of the low-poly's bounding-box diagonal); ``frame``: ``mikktspace`` or
@@ -371,13 +415,16 @@ def bake(high, low, size: int = 1024, cage: float | None = None, frame: str = "m
         raise BakeError(f"cage {cage}: expected a distance above 0")
     texel, tri, bary = rasterise(arrays[2], arrays[3], size)
     p, tangent, bitangent, n = texel_frames(arrays, tri, bary, frame)
-    normal, hit = high_normals_at(high_mesh, p, n, cage, high_normals == "geometric")
+    normal, distance, hit = high_surface_at(high_mesh, p, n, cage, high_normals == "geometric")
     local = np.stack([np.sum(normal * v, axis=1) for v in (tangent, bitangent, n)], axis=1)
     normals = np.zeros((size * size, 3))
     normals[:, 2] = 1.0
     normals[texel[hit]] = local[hit]
+    heights = np.zeros((size * size, 1))
+    heights[texel[hit], 0] = distance[hit]
     covered, hits = np.zeros(size * size, bool), np.zeros(size * size, bool)
     covered[texel], hits[texel[hit]] = True, True
     shape = (size, size)
     normals = dilate(normals.reshape(size, size, 3), covered.reshape(shape), padding)
-    return Baked(normals, covered.reshape(shape), hits.reshape(shape))
+    heights = dilate(heights.reshape(size, size, 1), covered.reshape(shape), padding, unit=False)
+    return Baked(normals, covered.reshape(shape), hits.reshape(shape), heights[..., 0])
