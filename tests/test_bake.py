@@ -52,15 +52,33 @@ def low_mesh(arrays, tangents: bool):
     return mitsuba_mesh("low", mi.load_dict({"type": "diffuse"}), *arrays[:3], None, arrays[3])
 
 
-def read_back(map_path, mesh, frame: str, n: int = 4000, seed: int = 1):
-    """(decoded world normal, low-poly point, low-poly shading normal) at ``n`` points of ``mesh``
-    hit by rays towards the origin from random directions, the map read as renderers read it."""
+def bumpy_sphere():
+    """The high-poly: a 40 × 80 UV sphere whose radius varies by ±5 % (slopes up to about 20°)."""
+    pos, _, uv, faces = uv_sphere(40, 80)
+    bumpy = pos * (1.0 + 0.05 * np.sin(8 * np.pi * uv[:, :1]) * np.sin(4 * np.pi * uv[:, 1:]))
+    high = mitsuba_mesh("high", mi.load_dict({"type": "diffuse"}), bumpy, pos, uv, None, faces)
+    high.recompute_vertex_normals()
+    return high
+
+
+def as_np(v):
+    return np.array(v, np.float64).reshape(3, -1).T
+
+
+def hits_on(mesh, n: int = 4000, seed: int = 1):
+    """The interactions of ``n`` rays towards the origin from random directions with ``mesh``."""
     rng = np.random.default_rng(seed)
     d = rng.normal(size=(n, 3))
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     scene = mi.load_dict({"type": "scene", "low": mesh})
-    ray = mi.Ray3f(mi.Point3f(*(mi.Float(3.0 * c) for c in d.T)), mi.Vector3f(*(mi.Float(-c) for c in d.T)))
-    si = scene.ray_intersect(ray)
+    return scene.ray_intersect(mi.Ray3f(mi.Point3f(*(mi.Float(3.0 * c) for c in d.T)),
+                                        mi.Vector3f(*(mi.Float(-c) for c in d.T))))
+
+
+def read_back(map_path, mesh, frame: str, n: int = 4000, seed: int = 1):
+    """(decoded world normal, low-poly point, low-poly shading normal) at ``n`` points of ``mesh``
+    hit by rays towards the origin from random directions, the map read as renderers read it."""
+    si = hits_on(mesh, n, seed)
     texture = mi.load_dict({"type": "bitmap", "filename": str(map_path), "raw": True})
     rgb = texture.eval(si)
     wp = dr.normalize(mi.Vector3f(2 * rgb[0] - 1, 2 * rgb[1] - 1, 2 * rgb[2] - 1))
@@ -70,7 +88,6 @@ def read_back(map_path, mesh, frame: str, n: int = 4000, seed: int = 1):
     world = si.sh_frame.to_world(wp)
     valid = np.array(si.is_valid())
     assert valid.all()
-    as_np = (lambda v: np.array(v, np.float64).reshape(3, -1).T)
     return as_np(world), as_np(si.p), as_np(si.sh_frame.n)
 
 
@@ -139,14 +156,8 @@ def test_the_heights_are_the_high_polys_distance_along_the_low_polys_normal(tmp_
     mesh = low_mesh(arrays, False)
     baked = B.bake(mi.load_dict({"type": "sphere"}), mesh, 512, frame="mitsuba")
     path = str(B.write_heights(tmp_path / "heights.exr", baked.heights))
-    rng = np.random.default_rng(2)
-    d = rng.normal(size=(4000, 3))
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
-    scene = mi.load_dict({"type": "scene", "low": mesh})
-    si = scene.ray_intersect(mi.Ray3f(mi.Point3f(*(mi.Float(3.0 * c) for c in d.T)),
-                                      mi.Vector3f(*(mi.Float(-c) for c in d.T))))
+    si = hits_on(mesh, seed=2)
     got = np.array(mi.load_dict({"type": "bitmap", "filename": str(path), "raw": True}).eval_1(si))
-    as_np = (lambda v: np.array(v, np.float64).reshape(3, -1).T)
     want = sphere_distance_along(as_np(si.p), as_np(si.sh_frame.n))
     span = want.max() - want.min()
     assert want.max() > 0.01 and span > 0.01
@@ -165,25 +176,16 @@ def test_the_heights_as_a_height_map_give_the_baked_normals_on_a_fine_low_poly()
     the normal in the interpolated shading frame and leaves out the flat triangles' own tilt
     against it; docs/cli.md.)"""
     low = low_mesh(uv_sphere(20, 40), False)
-    pos, _, uv, faces = uv_sphere(40, 80)
-    bumpy = pos * (1.0 + 0.05 * np.sin(8 * np.pi * uv[:, :1]) * np.sin(4 * np.pi * uv[:, 1:]))
-    high = mitsuba_mesh("high", mi.load_dict({"type": "diffuse"}), bumpy, pos, uv, None, faces)
-    high.recompute_vertex_normals()
-    baked = B.bake(high, low, 256, frame="mitsuba")
+    baked = B.bake(bumpy_sphere(), low, 256, frame="mitsuba")
     normalmap = {"type": "bitmap", "raw": True, "bitmap": mi.Bitmap(
         np.ascontiguousarray(B.encode_map(baked.normals, 16) / 65535.0, np.float32))}
     heightmap = {"type": "bitmap", "raw": True, "bitmap": mi.Bitmap(
         np.ascontiguousarray(baked.heights, np.float32)[..., None])}
-    rng = np.random.default_rng(2)
-    d = rng.normal(size=(4000, 3))
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
-    scene = mi.load_dict({"type": "scene", "low": low})
-    si = scene.ray_intersect(mi.Ray3f(mi.Point3f(*(mi.Float(3.0 * c) for c in d.T)),
-                                      mi.Vector3f(*(mi.Float(-c) for c in d.T))))
+    si = hits_on(low, seed=2)
 
     def wp(**params):
         bsdf = mi.load_dict({"type": "normalmap_microfacet", "bsdf": {"type": "diffuse"}, **params})
-        return np.array(bsdf.shading_point(mi.BSDFContext(), si).wp, np.float64).reshape(3, -1).T
+        return as_np(bsdf.shading_point(mi.BSDFContext(), si).wp)
     want = wp(normalmap=normalmap)
     median = {scale: np.median(angles_deg(wp(heightmap=heightmap, height_scale=scale), want))
               for scale in (1.0, 0.5, 2.0, -1.0)}
@@ -243,11 +245,7 @@ def meshes(tmp_path_factory):
     low_mesh(arrays, False).write_ply(str(d / "low.ply"))
     mitsuba_mesh("nouv", mi.load_dict({"type": "diffuse"}), arrays[0], arrays[1], None, None,
                  arrays[3]).write_ply(str(d / "nouv.ply"))
-    pos, _, uv, faces = uv_sphere(40, 80)
-    bumpy = pos * (1.0 + 0.05 * np.sin(8 * np.pi * uv[:, :1]) * np.sin(4 * np.pi * uv[:, 1:]))
-    high = mitsuba_mesh("high", mi.load_dict({"type": "diffuse"}), bumpy, pos, uv, None, faces)
-    high.recompute_vertex_normals()
-    high.write_ply(str(d / "high.ply"))
+    bumpy_sphere().write_ply(str(d / "high.ply"))
     (d / "file.txt").write_text("not a folder")
     return d
 
