@@ -388,6 +388,14 @@ def registered_map(hf: Heightfield, img: np.ndarray, d, upsample: int = 4) -> np
     return bilinear(np.asarray(img, np.float64), x + t * d[0], y + t * d[1]).astype(np.float32)
 
 
+@lru_cache(maxsize=4)
+def _registered_normal_map(hf: Heightfield, res: int, theta: float) -> np.ndarray:
+    """:func:`normal_map` registered for the harness's camera at ``theta``: 4× the magnified map's
+    resolution, a minified map (384 texels wide) as it is. Cached: the cells that differ only in
+    material or lighting share it (the march is the slow part)."""
+    return registered_map(hf, normal_map(hf, res), _direction(theta, CAMERA_AZIMUTH), upsample=max(1, 192 // res))
+
+
 def bitmap_texture(img: np.ndarray, filter_type: str = "bilinear") -> dict:
     """A raw, repeating Mitsuba ``bitmap`` texture dict of an array (H×W or H×W×3)."""
     arr = np.ascontiguousarray(img, np.float32)
@@ -915,19 +923,12 @@ class Cell:
     def nested(self) -> dict:
         return dict(self.material_dict) if self.material_dict else MATERIALS[self.material]
 
-    def camera_direction(self) -> np.ndarray:
-        """The unit direction from the plane toward the camera (orthographic: the same everywhere)."""
-        return _direction(VIEWS[self.view].theta, CAMERA_AZIMUTH)
-
     def maps(self, registered: bool = False) -> dict:
         """The baked maps; ``registered``: the normal map :func:`registered_map` for the camera
         (the height map, the exact normals and ``res`` stay the baked ones)."""
         hf, mag = self.hf(), MAGNIFICATIONS[self.magnification]
         res = mag.periods * mag.texels_per_period
-        nmap = normal_map(hf, res)
-        if registered:
-            # (4× the magnified map's resolution; a minified map, 384 texels wide, as it is.)
-            nmap = registered_map(hf, nmap, self.camera_direction(), upsample=max(1, 192 // res))
+        nmap = _registered_normal_map(hf, res, VIEWS[self.view].theta) if registered else normal_map(hf, res)
         return {"normalmap": bitmap_texture(nmap),
                 "heightmap": bitmap_texture(height_map(hf, res)),
                 "normals": texel_normals(hf, res), "res": res}

@@ -169,17 +169,7 @@ def bilinear_normals(texels, x, y):
     """The map's normals at world points (x, y) the way the plane shades with them: the bitmap's
     bilinear filter on the stored rgb (repeat wrap; uv = (x, 1 − y), row 0 at y ≈ 1, texel
     centres at heightfield.texel_centres), then decoded and normalised."""
-    t = np.asarray(texels, np.float64)[..., :3]
-    rows, cols = t.shape[:2]
-    c, r = np.asarray(x) * cols - 0.5, (1.0 - np.asarray(y)) * rows - 0.5
-    c0, r0 = np.floor(c).astype(int), np.floor(r).astype(int)
-    wc, wr = (c - c0)[..., None], (r - r0)[..., None]
-
-    def at(i, j):
-        return t[i % rows, j % cols]
-    rgb = ((1 - wr) * ((1 - wc) * at(r0, c0) + wc * at(r0, c0 + 1))
-           + wr * ((1 - wc) * at(r0 + 1, c0) + wc * at(r0 + 1, c0 + 1)))
-    return _decode(rgb)
+    return _decode(H.bilinear(np.asarray(texels, np.float64)[..., :3], x, y))
 
 
 def surface_error(setup, texels, per_texel: int = 16):

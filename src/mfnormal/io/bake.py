@@ -424,7 +424,7 @@ def bake(high, low, size: int = 1024, cage: float | None = None, frame: str = "m
     heights[texel[hit], 0] = distance[hit]
     covered, hits = np.zeros(size * size, bool), np.zeros(size * size, bool)
     covered[texel], hits[texel[hit]] = True, True
-    shape = (size, size)
-    normals = dilate(normals.reshape(size, size, 3), covered.reshape(shape), padding)
-    heights = dilate(heights.reshape(size, size, 1), covered.reshape(shape), padding, unit=False)
-    return Baked(normals, covered.reshape(shape), hits.reshape(shape), heights[..., 0])
+    covered, hits = covered.reshape(size, size), hits.reshape(size, size)
+    normals = dilate(normals.reshape(size, size, 3), covered, padding)
+    heights = dilate(heights.reshape(size, size, 1), covered, padding, unit=False)
+    return Baked(normals, covered, hits, heights[..., 0])
