@@ -1,4 +1,4 @@
-"""BSDFs that measure the plugin from the outside: call counters and a closed-form stub.
+"""BSDFs that measure the plugin from the outside: call counters, a closed-form stub and shells.
 
 The benchmark wraps the nested BSDF of ``normalmap_microfacet`` instead of patching
 the package: ``bench_counting`` counts, per query lane, the calls that reach the
@@ -6,8 +6,11 @@ nested BSDF and the call sites each lane passes (masked or not); ``bench_stub`` 
 a grey Lambertian in closed form (no texture, no Fresnel), so that timing the plugin
 around it times the model's own logic; ``bench_total`` (:func:`wrap_totals`,
 :func:`count_calls`) adds every call's active lanes to one total per BSDF, for the path
-tracer's work per camera sample (:func:`path_vertices`). Call :func:`register` once the
-variant is set (``mi.BSDF`` is the variant's class).
+tracer's work per camera sample (:func:`path_vertices`); ``bench_shell_classic`` and
+``bench_shell_hidden`` (:func:`shell_class`) keep ``normalmap_microfacet``'s normal decoding
+and frames and replace its model by the least a model does (the cost floor,
+``benchmarks/cost_floor.py``). Call :func:`register` once the variant is set (``mi.BSDF`` is
+the variant's class).
 """
 
 from __future__ import annotations
@@ -145,11 +148,82 @@ def total_class():
     return Total
 
 
+def shell_class(hidden: bool):
+    """``normalmap_microfacet`` (the same properties, its normal decoding and shading frames) with
+    its model replaced by the least one does, to time what any model must pay:
+
+    - ``hidden`` False (``bench_shell_classic``): classic normal mapping, the nested BSDF on the
+      texel's facet, below its horizon nothing (paths end there as the built-in's do);
+    - ``hidden`` True (``bench_shell_hidden``): the texel seen with a share V and, where it is hidden,
+      its neighbours (the nested BSDF on the macro surface): V·f_p + (1 − V)·f_g, a mixture pdf that is
+      exact and a sampler that picks a frame, draws the nested BSDF there and evaluates both frames
+      for its weight eval/pdf (as any model must whose pdf is exact). V = cos θ_p stands in for a
+      model's V: none of the model's own arithmetic (Smith Λ, shadowing, the fill, the
+      neighbourhood) is there."""
+    import drjit as dr
+    import mitsuba as mi
+    from mfnormal.models.faithful import _select_frame, macro_frame
+    from mfnormal.models.rng import ONE_MINUS_EPS
+    from mfnormal.plugins.normalmap_microfacet import bsdf_class
+
+    plugin_class = bsdf_class()
+
+    class Shell(mi.BSDF):
+        def __init__(self, props):
+            mi.BSDF.__init__(self, props)
+            self.plugin = plugin_class(props)
+            self.m_flags = self.plugin.m_flags
+            self.m_components = list(self.plugin.m_components)
+
+        @staticmethod
+        def _eval_pdf(sp, wo, active):
+            active = mi.Bool(active) & (wo.z > 0)
+            value, pdf = sp.eval_pdf(sp.frame_p, sp.wi, wo, active)
+            if not hidden:
+                return value, pdf
+            vis = dr.clip(sp.wp.z, 0.0, 1.0)
+            value_g, pdf_g = sp.eval_pdf(macro_frame(), sp.wi, wo, active)
+            return dr.lerp(value_g, value, vis), dr.lerp(pdf_g, pdf, vis)
+
+        def eval_pdf(self, ctx, si, wo, active=True):
+            return self._eval_pdf(self.plugin.shading_point(ctx, si, active), wo, active)
+
+        def eval(self, ctx, si, wo, active=True):
+            return self.eval_pdf(ctx, si, wo, active)[0]
+
+        def pdf(self, ctx, si, wo, active=True):
+            return self.eval_pdf(ctx, si, wo, active)[1]
+
+        def sample(self, ctx, si, sample1, sample2, active=True):
+            sp = self.plugin.shading_point(ctx, si, active)
+            active = mi.Bool(active)
+            if not hidden:
+                bs, weight = sp.sample(sp.frame_p, sp.wi, sample1, sample2, active)
+                return bs, dr.select(active & (bs.wo.z > 0), weight, 0.0)
+            vis = dr.clip(sp.wp.z, 0.0, 1.0)
+            on_texel = sample1 < vis
+            s1 = dr.select(on_texel, sample1 / dr.maximum(vis, 1e-30),
+                           (sample1 - vis) / dr.maximum(1.0 - vis, 1e-30))
+            frame = _select_frame(on_texel, sp.frame_p, macro_frame())
+            bs, _ = sp.sample(frame, sp.wi, dr.clip(s1, 0.0, ONE_MINUS_EPS), sample2, active)
+            ok = active & (bs.wo.z > 0)
+            value, pdf = self._eval_pdf(sp, bs.wo, ok)
+            bs.pdf = pdf
+            return bs, dr.select(ok & (pdf > 0), value / dr.select(pdf > 0, pdf, 1.0), 0.0)
+
+        def to_string(self):
+            return f"Shell[{'hidden texel' if hidden else 'classic'}: {self.plugin.nested}]"
+
+    return Shell
+
+
 def register():
-    """Register ``bench_counting``, ``bench_stub`` and ``bench_total`` in the current variant."""
+    """Register ``bench_counting``, ``bench_stub``, ``bench_total``, ``bench_shell_classic`` and
+    ``bench_shell_hidden`` in the current variant."""
     import mitsuba as mi
     for name, cls in (("bench_counting", counting_class()), ("bench_stub", stub_class()),
-                      ("bench_total", total_class())):
+                      ("bench_total", total_class()), ("bench_shell_classic", shell_class(False)),
+                      ("bench_shell_hidden", shell_class(True))):
         mi.register_bsdf(name, lambda props, cls=cls: cls(props))
 
 
