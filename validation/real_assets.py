@@ -9,10 +9,13 @@
 Each asset (:mod:`validation.assets`: fetched at run time into a cache, never committed) is
 decimated to ``--faces`` triangles (``fast-simplification``), given smooth vertex normals and
 unwrapped with xatlas; its tangent-space normal map is baked from the high-poly with
-:func:`mfnormal.io.bake.bake` (``--map-size``²) and verified by a re-bake: baking the low-poly onto
-itself must give the flat map. Then for every cell (asset × material × lighting × view) the
-high-poly with the material (the truth) and the low-poly with the material wrapped by each
-method around the map are rendered and compared over the object.
+:func:`mfnormal.io.bake.bake` (``--map-size``²) and verified twice: by a re-bake (baking the
+low-poly onto itself must give the flat map) and by decoding (at the pixels of both views, the
+normal the plugin decodes from each map, in its frame, against the high-poly's normal where the
+bake's ray along the low-poly's normal meets it: :func:`decode_error`). Then for every cell
+(asset × material × lighting × view) the high-poly with the material (the truth) and the
+low-poly with the material wrapped by each method around the map are rendered and compared
+over the object.
 
 Frames: Mitsuba's ``normalmap`` decodes in Mitsuba's per-triangle shading frame, so the classic
 methods always get a map baked in that frame (``--frame`` does not change them); the
@@ -113,6 +116,7 @@ BLOCK = 4                   # the bias part: relMSE of BLOCK × BLOCK pixel mean
 MASK_SUB = 3                # sub-pixel rays per axis for the object mask
 MAX_DEPTH = 8
 SHEET_MAX_THUMB = 64        # contact-sheet thumbnails: the render shrunk by a whole factor to at most this
+DECODE_RES = 64             # the decoding check's pixels per view axis (decode_error)
 
 
 @dataclass(frozen=True)
@@ -187,7 +191,7 @@ def prepare(asset: str, faces: int, map_size: int, log=print) -> dict:
     folder = cache_dir() / "prepared"
     folder.mkdir(parents=True, exist_ok=True)
     out = {"asset": asset, "high": high, "low": low, "high_faces": len(hf), "low_faces": len(low[3]),
-           "maps": {}, "tilt": {}, "rebake": {}}
+           "maps": {}, "tilt": {}, "rebake": {}, "decode": {}}
     for frame in B.TANGENT_FRAMES:
         mesh = low_mesh(low, frame)
         baked = B.bake(high, mesh, map_size, frame=frame)
@@ -198,9 +202,11 @@ def prepare(asset: str, faces: int, map_size: int, log=print) -> dict:
         out["tilt"][frame] = {"median": float(np.median(tilt)), "p99": float(np.percentile(tilt, 99)),
                               "missed": baked.missed, "covered": int(baked.covered.sum())}
         out["rebake"][frame] = rebake_error(mesh, map_size, frame)
+        out["decode"][frame] = decode_error(high, low, path, frame)
     log(f"{asset}: {len(hf)} → {out['low_faces']} triangles, maps {map_size}², tilt median "
         f"{out['tilt']['mikktspace']['median']:.1f}°, p99 {out['tilt']['mikktspace']['p99']:.1f}°, "
-        f"re-bake {out['rebake']['mikktspace']:.2f} steps ({time.time() - t0:.1f} s)")
+        f"re-bake {out['rebake']['mikktspace']:.2f} steps, decoded normals {out['decode']['mikktspace']['median']:.2f}° "
+        f"from the high-poly's (median) ({time.time() - t0:.1f} s)")
     return out
 
 
@@ -219,6 +225,43 @@ def rebake_error(mesh, size: int, frame: str) -> float:
     baked = B.bake(mesh, mesh, size, frame=frame)
     rgb = B.encode_map(baked.normals).astype(float)[baked.covered & baked.hit]
     return float(np.max(np.abs(rgb - [127.5, 127.5, 255.0]))) if len(rgb) else float("nan")
+
+
+def decode_error(high, low, map_path, frame: str, res: int = DECODE_RES) -> dict:
+    """The verification by decoding: at the points of the low-poly that the pixels of both views
+    (res² each) see, the angle between the normal ``normalmap_microfacet`` decodes from the map at
+    ``map_path`` (baked in ``frame``, decoded in it) and the high-poly's normal where the bake's ray
+    along the low-poly's interpolated normal meets it. {"median", "p90"} in degrees, over the points
+    whose ray meets the high-poly. It holds the map's 8-bit steps and its bilinear filtering between
+    texel centres; a map decoded in a frame other than its own is degrees off."""
+    import drjit as dr
+
+    positions = B.mesh_arrays(high)[0]
+    bsdf = {"type": PLUGIN, "normalmap": {"type": "bitmap", "filename": str(map_path), "raw": True},
+            "bsdf": {"type": "diffuse"}}
+    if frame == "mikktspace":
+        bsdf["tangents"] = "vertex_tangent"
+    shape = low_mesh(low, frame, bsdf)
+    k = (np.arange(res) + 0.5) / res
+    yy, xx = np.meshgrid(k, k, indexing="ij")
+    decoded, points, normals = [], [], []
+    for view in FULL["views"]:
+        target, half = camera(positions, view)
+        sc = mi.load_dict({"type": "scene", "object": shape, "sensor": sensor(target, half, res, 1)})
+        ray, _ = sc.sensors()[0].sample_ray(0.0, 0.5, mi.Point2f(mi.Float(xx.ravel()), mi.Float(yy.ravel())),
+                                           mi.Point2f(0.5, 0.5))
+        si = sc.ray_intersect(ray)
+        valid = si.is_valid()
+        n = si.sh_frame.to_world(sc.shapes()[0].bsdf().source.facet_normal(si, valid)[0])
+        dr.eval(n, si.p, si.sh_frame.n)
+        hit = np.array(valid, bool)
+        for out, v in ((decoded, n), (points, si.p), (normals, si.sh_frame.n)):
+            out.append(np.array(v, dtype=np.float64).T[hit])
+    decoded, points, normals = (np.concatenate(a) for a in (decoded, points, normals))
+    truth, _, met = B.high_surface_at(high, points, normals, B.default_cage(low[0]))
+    cos = np.clip(np.sum(decoded[met] * truth[met], axis=1), -1.0, 1.0)
+    angle = np.degrees(np.arccos(cos))
+    return {"median": float(np.median(angle)), "p90": float(np.percentile(angle, 90)), "points": int(met.sum())}
 
 
 # ---------------------------------------------------------------------------
@@ -607,13 +650,16 @@ def markdown(report, keys, labels) -> str:
          f"(×4 for gold), truth at {s['ref_factor']}× that; the plugin's maps in the {s['frame']} frame, "
          "the classic methods' in Mitsuba's. The method (`validation/real_assets.py`) and the assets' "
          "licenses: [the harness's documentation](../../../docs/validation.md), `ASSETS.md` here.", "",
-         "| asset | high-poly | low-poly | map | tilt median / p99 | missed texels | re-bake (8-bit steps) |",
-         "|---|---|---|---|---|---|---|"]
+         "| asset | high-poly | low-poly | map | tilt median / p99 | missed texels | re-bake (8-bit steps) | "
+         "decoded − high-poly normal, median / p90 (MikkTSpace; Mitsuba) |",
+         "|---|---|---|---|---|---|---|---|"]
     for a in report["assets"]:
         t = a["tilt"]["mikktspace"]
         L.append(f"| {a['asset']} | {a['high_faces']} | {a['low_faces']} | {s['map_size']}² | "
                  f"{t['median']:.1f}° / {t['p99']:.1f}° | {t['missed']} of {t['covered']} | "
-                 f"{a['rebake']['mikktspace']:.1f} / {a['rebake']['mitsuba']:.1f} (MikkTSpace / Mitsuba) |")
+                 f"{a['rebake']['mikktspace']:.1f} / {a['rebake']['mitsuba']:.1f} (MikkTSpace / Mitsuba) | "
+                 + "; ".join(f"{a['decode'][f]['median']:.2f}° / {a['decode'][f]['p90']:.2f}°" for f in ("mikktspace", "mitsuba"))
+                 + " |")
     L += ["", "## Summary", "", "Geometric means of relMSE and its bias part (4 × 4-pixel block means); "
           "near-black: mean fraction of object pixels; `≤classic`: cells where the method's relMSE ≤ "
           "the better of classic and classic_fixed plus twice the noise floor.", ""]
