@@ -133,7 +133,7 @@ def add_bake(sub):
     b.add_argument("--heights", metavar="HEIGHTS.exr",
                    help="also write the high-poly's heights over the low-poly: per texel the signed "
                         "distance along the low-poly's interpolated normal (world units, positive "
-                        "outside), a one-channel float OpenEXR"),
+                        "outside), a one-channel float OpenEXR")
     b.add_argument("--high-normals", choices=HIGH_NORMALS, default="shading",
                    help="the high-poly's interpolated (shading, default) or triangle (geometric) normal")
     b.add_argument("--unwrap", metavar="MESH.ply",
