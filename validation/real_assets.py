@@ -115,6 +115,11 @@ LIMB_HALF = 0.16            # the limb view's half width (the object's diagonal 
 BLOCK = 4                   # the bias part: relMSE of BLOCK × BLOCK pixel means
 MASK_SUB = 3                # sub-pixel rays per axis for the object mask
 MAX_DEPTH = 8
+#: ``--integrator``: every scene's (truth and methods alike). ``mfnormal_path`` starts rays from the
+#: smooth surface the low-poly's vertex normals describe (its ``terminator_offset``), ``path`` from
+#: the flat triangles, which block the rays that leave below them.
+INTEGRATORS = ("path", "mfnormal_path")
+INTEGRATOR = "path"
 SHEET_MAX_THUMB = 64        # contact-sheet thumbnails: the render shrunk by a whole factor to at most this
 DECODE_RES = 64             # the decoding check's pixels per view axis (decode_error)
 
@@ -150,6 +155,9 @@ def parse_args(argv=None):
         p.add_argument("--" + name.replace("_", "-"), type=kind, default=None)
     p.add_argument("--frame", choices=B.TANGENT_FRAMES, default="mikktspace")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--integrator", choices=INTEGRATORS, default=INTEGRATOR,
+                   help="every scene's integrator (default path; mfnormal_path: rays start from the "
+                        "low-poly's smooth surface, terminator_offset)")
     p.add_argument("--variant", default="llvm_ad_rgb")
     p.add_argument("--equal-time", action="store_true",
                    help="also compare at equal render time: every method gets the time classic "
@@ -299,7 +307,7 @@ def sensor(target, half, res: int, spp: int, sampler: str = "multijitter") -> di
 
 
 def scene(shape, cell: Cell, target, half, res, spp, sampler: str = "multijitter"):
-    return mi.load_dict({"type": "scene", "integrator": {"type": "path", "max_depth": MAX_DEPTH},
+    return mi.load_dict({"type": "scene", "integrator": {"type": INTEGRATOR, "max_depth": MAX_DEPTH},
                          "sensor": sensor(target, half, res, spp, sampler), "object": shape,
                          **H._emitters(LIGHTINGS[cell.lighting])})
 
@@ -705,8 +713,10 @@ def _options(args):
 
 
 def main(argv=None):
+    global INTEGRATOR
     args = parse_args(argv)
     opts = _options(args)
+    INTEGRATOR = args.integrator
     mi.set_variant(args.variant)
     mfnormal.register()
     methods = [H.method_from_spec(k) for k in (args.methods or (QUICK_METHODS if args.quick else METHODS))]
@@ -729,7 +739,7 @@ def main(argv=None):
     stem = "real_assets_quick" if args.quick else "real_assets"
     command = "nice .venv/bin/python validation/real_assets.py" + "".join(f" {a}" for a in (argv or sys.argv[1:]))
     report = {"settings": {**opts, "quick": args.quick, "frame": args.frame, "variant": args.variant,
-                           "command": command, "elapsed_s": time.time() - t_start, "methods": keys},
+                           "integrator": args.integrator, "command": command, "elapsed_s": time.time() - t_start, "methods": keys},
               "assets": [{k: v for k, v in p.items() if k not in ("high", "low", "maps")}
                          for p in prepared.values()],
               "cells": [{k: v for k, v in r.items() if k not in ("truth", "images", "mask", "equal_time")}
