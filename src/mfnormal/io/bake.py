@@ -573,24 +573,57 @@ def _working_scale(size: float) -> float:
 
 
 def _scaled_mesh(mesh, scale: float):
-    """A copy of the Mitsuba mesh ``mesh`` scaled by ``scale`` (a power of two: exact)."""
+    """A copy of the Mitsuba mesh ``mesh`` scaled by ``scale`` (a power of two: exact), its
+    vertex normals as :func:`_scaled_arrays` gives them."""
     import mitsuba as mi
-    from mfnormal.io.gltf import mitsuba_mesh
 
     if scale == 1.0:
         return mesh
     if not isinstance(mesh, mi.Mesh):
-        raise BakeError(f"the low-poly mesh is about {1 / scale:g} units across, too far from 1 to trace "
-                        f"a {mesh.class_name()} shape beside it; give the high-poly as a mesh, or "
-                        "scale both")
+        raise BakeError(f"the low-poly mesh is about {1 / scale:g} units across, too far from 1 to "
+                        f"trace a {mesh.class_name()} shape beside it; give the high-poly as a "
+                        "mesh, or scale both")
     positions, normals, _, faces = mesh_arrays(mesh)
-    if normals is None:
-        scaled = mitsuba_mesh("high", mi.load_dict({"type": "diffuse"}), positions * scale,
-                              np.zeros_like(positions), None, None, faces)
-        scaled.recompute_vertex_normals()
-        return scaled
-    return mitsuba_mesh("high", mi.load_dict({"type": "diffuse"}), positions * scale, normals,
-                        None, None, faces)
+    return _mesh(*_scaled_arrays(positions, normals, faces, scale), faces)
+
+
+def _mesh(positions, normals, faces):
+    """A Mitsuba mesh of these arrays (without vertex normals where ``normals`` is None: the
+    triangles' own normals shade it)."""
+    import mitsuba as mi
+
+    mesh = mi.Mesh("mesh", len(positions), len(faces), has_vertex_normals=normals is not None)
+    params = mi.traverse(mesh)
+    params["vertex_positions"] = mi.Float(np.ravel(positions).astype(np.float32))
+    if normals is not None:
+        params["vertex_normals"] = mi.Float(np.ravel(normals).astype(np.float32))
+    params["faces"] = mi.UInt32(np.ravel(faces).astype(np.uint32))
+    params.update()
+    return mesh
+
+
+def _scaled_arrays(positions, normals, faces, scale: float):
+    """(positions·scale, vertex normals): the normals as they are, or recomputed by Mitsuba at
+    the working scale where its loader could not compute them at the mesh's own (single-
+    precision cross products of tiny triangles underflow, and it gives the vertex (1, 0, 0))."""
+    positions = positions * scale
+    if normals is not None and _fallback_normals(positions, normals, faces):
+        mesh = _mesh(positions, np.zeros_like(positions), faces)
+        mesh.recompute_vertex_normals()
+        normals = mesh_arrays(mesh)[1]
+    return positions, normals
+
+
+def _fallback_normals(positions, normals, faces) -> bool:
+    """Whether a vertex normal is Mitsuba's fallback (1, 0, 0) where the triangles around the
+    vertex (in double precision) face elsewhere."""
+    corners = positions[faces]
+    face_normals = _unit(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]))
+    around = np.zeros_like(positions)
+    for k in range(3):
+        np.add.at(around, faces[:, k], face_normals)
+    fallback = np.all(normals == [1.0, 0.0, 0.0], axis=1)
+    return bool(np.any(fallback & (_unit(around)[:, 0] < 0.9)))
 
 
 def _check_variant() -> None:
@@ -675,7 +708,9 @@ def bake(high, low, size: int = 1024, cage: float | None = None, frame: str = "m
 
     # Trace at a working scale (a power of two: exact); the heights are scaled back.
     scale = _working_scale(_diagonal(positions))
-    high_mesh, positions = _scaled_mesh(high_mesh, scale), positions * scale
+    high_mesh = _scaled_mesh(high_mesh, scale)
+    if scale != 1.0:
+        positions, normals = _scaled_arrays(positions, normals, faces, scale)
     cage = default_cage(positions) if cage is None else float(cage) * scale
     bbox = high_mesh.bbox()
     corners = np.concatenate([positions, [list(bbox.min), list(bbox.max)]])
