@@ -2,24 +2,32 @@
 high-poly mesh baked onto a low-poly mesh's UVs, and the high-poly's heights over the low-poly
 (:mod:`mfnormal.io.bake`).
 
-Every argument, both files and the output folders are checked before the meshes are loaded;
-the meshes (and the low-poly's UVs) before the bake; the files are written atomically.
+Every argument, both files and the output paths are checked before the meshes are loaded (no
+output may be an input, or another output: inputs are never written to); the mesh files before
+Mitsuba reads them, the meshes (and the low-poly's UVs) before the bake; the files are written
+atomically.
 """
 
 from __future__ import annotations
 
 import math
+import os
+import sys
 import time
 from pathlib import Path
 
 from mfnormal.io.bake import (BakeError, HIGH_NORMALS, MESH_SUFFIXES, SIZE_RANGE, TANGENT_FRAMES,
-                              bake, check_low_poly, load_mesh, mesh_arrays, unwrap, write_baked)
+                              bake, load_mesh, memory_needed, mesh_arrays, unwrap,
+                              write_baked)
 from mfnormal.io.inputs import CLIError, check_output
 
 __all__ = ["add_bake", "cmd_bake"]
 
 DEFAULT_SIZE = 1024
 PADDING_MAX = 64
+#: What each output is, by its suffix (for the message when a name lacks it).
+OUTPUT_KINDS = {".png": "the map is a PNG", ".exr": "the heights are a float OpenEXR",
+                ".ply": "the unwrapped mesh is written as PLY"}
 #: Covered texels whose rays may miss the high-poly before the command warns.
 MISSED_WARN = 0.01
 
@@ -32,6 +40,41 @@ def _check_mesh_file(path: str, what: str) -> None:
         raise CLIError(f"{what} {path}: expected a .ply or .obj mesh")
 
 
+def _check_output_file(path: str, flag: str, suffix: str) -> None:
+    """``path`` ends in ``suffix``, is not a folder, and its folder is writable."""
+    if Path(path).suffix.lower() != suffix:
+        raise CLIError(f"{flag} {path}: {OUTPUT_KINDS[suffix]}; give a name ending in {suffix}")
+    if Path(path).is_dir():
+        raise CLIError(f"{flag} {path} names a folder; give a file name ending in {suffix}")
+    check_output(Path(path).with_suffix(""), flag)
+
+
+def _same_file(a: str, b: str) -> bool:
+    """Whether the paths ``a`` and ``b`` name one file (links and ``..`` resolved)."""
+    try:
+        if os.path.exists(a) and os.path.exists(b):
+            return os.path.samefile(a, b)
+        return Path(a).resolve() == Path(b).resolve()
+    except (OSError, RuntimeError):
+        return False
+
+
+def _check_no_overwrite(args) -> None:
+    """No output names an input mesh or another output."""
+    inputs = (("high-poly mesh", args.high), ("low-poly mesh", args.low))
+    outputs = [(flag, path) for flag, path in (("-o", args.output), ("--heights", args.heights),
+                                               ("--unwrap", args.unwrap)) if path is not None]
+    for k, (flag, path) in enumerate(outputs):
+        for what, source in inputs:
+            if _same_file(path, source):
+                raise CLIError(f"{flag} {path} is the {what} {source}; the bake would overwrite "
+                               "its input: give another output name")
+        for other, other_path in outputs[:k]:
+            if _same_file(path, other_path):
+                raise CLIError(f"{flag} {path} is also {other} {other_path}; give each output "
+                               "its own name")
+
+
 def _check_bake(args) -> Path:
     """Every argument of ``mfnormal bake`` before anything is loaded; the map's path."""
     if not SIZE_RANGE[0] <= args.size <= SIZE_RANGE[1]:
@@ -41,39 +84,31 @@ def _check_bake(args) -> Path:
         raise CLIError(f"--cage {args.cage}: expected a distance above 0")
     if not 0 <= args.padding <= PADDING_MAX:
         raise CLIError(f"--padding {args.padding}: expected 0 to {PADDING_MAX} texels")
-    output = Path(args.output)
-    if output.suffix.lower() != ".png":
-        raise CLIError(f"-o {args.output}: the map is a PNG; give a name ending in .png")
-    check_output(output.with_suffix(""))
+    _check_output_file(args.output, "-o", ".png")
     if args.heights is not None:
-        if Path(args.heights).suffix.lower() != ".exr":
-            raise CLIError(f"--heights {args.heights}: the heights are a float OpenEXR; give a name "
-                           "ending in .exr")
-        check_output(Path(args.heights).with_suffix(""), "--heights")
+        _check_output_file(args.heights, "--heights", ".exr")
     if args.unwrap is not None:
-        if Path(args.unwrap).suffix.lower() != ".ply":
-            raise CLIError(f"--unwrap {args.unwrap}: the unwrapped mesh is written as PLY; give a "
-                           "name ending in .ply")
-        check_output(Path(args.unwrap).with_suffix(""), "--unwrap")
+        _check_output_file(args.unwrap, "--unwrap", ".ply")
     _check_mesh_file(args.high, "high-poly mesh")
     _check_mesh_file(args.low, "low-poly mesh")
-    return output
+    _check_no_overwrite(args)
+    if not args.variant.startswith(("llvm_", "cuda_")):
+        raise CLIError(f"--variant {args.variant}: the baker traces rays in bulk and needs a JIT "
+                       "variant; choose llvm_ad_rgb (or cuda_ad_rgb)")
+    return Path(args.output)
 
 
-def _unwrapped(low_mesh, path: str, size: int, padding: int):
-    """The low-poly with xatlas UVs, also written to ``path`` (PLY, atomically)."""
+def _unwrapped(low_mesh, size: int, padding: int):
+    """The low-poly with xatlas UVs."""
     import mitsuba as mi
     from mfnormal.io.gltf import mitsuba_mesh
-    from mfnormal.io.images import atomic_write
 
     positions, normals, _, faces = mesh_arrays(low_mesh)
     if normals is None:
         raise CLIError("the low-poly mesh has no vertex normals (it is flat-shaded); give it smooth "
                        "vertex normals")
     p, n, uv, f = unwrap(positions, normals, faces, size, padding)
-    mesh = mitsuba_mesh("low", mi.load_dict({"type": "diffuse"}), p, n, uv, None, f)
-    atomic_write(path, lambda p: mesh.write_ply(str(p)))
-    return mesh
+    return mitsuba_mesh("low", mi.load_dict({"type": "diffuse"}), p, n, uv, None, f)
 
 
 def cmd_bake(args) -> int:
@@ -88,16 +123,21 @@ def cmd_bake(args) -> int:
     started = time.time()
     try:
         high, low = load_mesh(args.high, "high-poly mesh"), load_mesh(args.low, "low-poly mesh")
-        low = _unwrapped(low, args.unwrap, args.size, args.padding) if args.unwrap else low
-        check_low_poly(low)
+        low = _unwrapped(low, args.size, args.padding) if args.unwrap else low
         baked = bake(high, low, args.size, args.cage, args.tangents, args.padding, args.high_normals)
     except BakeError as exc:
         raise CLIError(str(exc)) from None
+    except MemoryError:
+        raise CLIError(f"--size {args.size}: not enough memory for the bake (about "
+                       f"{memory_needed(args.size) / 2 ** 30:.1f} GiB); lower --size") from None
     covered = int(baked.covered.sum())
     if baked.missed > MISSED_WARN * max(covered, 1):
+        fix = ("the cage spans the whole scene: the high-poly is not there along the low-poly's "
+               "normals" if baked.cage_spans_scene else "raise --cage")
         print(f"mfnormal: warning: {baked.missed} of {covered} texels found no high-poly surface "
-              "within the cage and are flat; raise --cage", flush=True)
-    write_baked(output, baked.normals, args.bits, args.heights, baked.heights)
+              f"within the cage and are flat; {fix}", file=sys.stderr, flush=True)
+    unwrapped = [(args.unwrap, lambda p: low.write_ply(str(p)))] if args.unwrap else []
+    write_baked(output, baked.normals, args.bits, args.heights, baked.heights, unwrapped)
     print(f"baked {args.size}x{args.size} ({args.tangents} frame, {covered} texels covered) "
           f"in {time.time() - started:.1f}s")
     if args.unwrap:

@@ -19,18 +19,36 @@ For each texel of the map, :func:`bake`
    in the texel's frame, (x, y, z) = (⟨n, T⟩, ⟨n, B⟩, ⟨n, N⟩), and the height there: the signed
    distance from p along N to that surface (positive outside, where N points; world units).
 
-Texels no triangle covers, and those whose rays miss, hold the flat normal (0, 0, 1) and height
-0; the covered texels' normals and heights are then spread ``padding`` texels outwards (each new
-texel the mean of its covered neighbours), so that bilinear lookups along UV seams read no
+The map is the UV square [0, 1]²: triangles whose UVs lie outside it (another UDIM tile, a
+repeat) are not baked (a warning says how many lie wholly outside), and UVs that cover no texel
+centre at all (a tile other than [0, 1]², islands smaller than a texel) are an error. Texels no
+triangle covers, and those whose rays miss, hold the flat normal (0, 0, 1) and height 0; the
+covered texels' normals and heights are then spread ``padding`` texels outwards (each new texel
+the mean of its covered neighbours), so that bilinear lookups along UV seams read no
 background. The heights are the map of displacement a renderer would apply along the low-poly's
 interpolated normal to get the high-poly back (:func:`write_heights`: a one-channel float EXR).
 :func:`encode_map` turns normals into 8- or 16-bit RGB = (n + 1)/2, and :func:`write_map`
 writes the PNG atomically. Meshes are read as Mitsuba reads them (PLY, OBJ), so the map fits
 the UVs Mitsuba renders with.
+
+The inputs are checked before any work: the files (:mod:`mfnormal.io.mesh_files`: face indices,
+finite numbers, before Mitsuba reads them), then the meshes (triangles, indices, finite
+positions, normals and UVs, a low-poly with area). Meshes whose size (the low-poly's
+bounding-box diagonal) lies outside WORKING_SIZE are traced scaled by a power of two into it
+(exact in floating point; single-precision ray tracing loses normals of tiny triangles), and
+their heights scaled back. A cage longer than the scene (the diagonal of both meshes' bounding
+box) finds nothing a cage of that length does not, and is shortened to it, so that the rays'
+start stays close to the surface. Texels are traced TEXELS_PER_PASS at a time and padded in
+bands of rows, so that memory stays below BYTES_PER_TEXEL per texel (mostly the arrays returned);
+a bake larger than the memory available is refused before it allocates.
 """
 
 from __future__ import annotations
 
+import math
+import numbers
+import os
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -40,7 +58,7 @@ from mfnormal.normals.mikktspace import mikktspace, split_vertices
 
 __all__ = ["BakeError", "Baked", "MESH_SUFFIXES", "TANGENT_FRAMES", "SIZE_RANGE", "load_mesh",
            "mesh_arrays", "unwrap", "bake", "encode_map", "write_map", "write_heights", "write_baked",
-           "tangent_mesh"]
+           "tangent_mesh", "check_low_poly", "check_high_poly", "memory_needed"]
 
 MESH_SUFFIXES = {".ply": "ply", ".obj": "obj"}
 TANGENT_FRAMES = ("mikktspace", "mitsuba")
@@ -50,8 +68,19 @@ SIZE_RANGE = (8, 8192)
 CAGE_FRACTION = 0.05
 #: The rays along ±N start this fraction of the cage behind the low-poly's surface point.
 RAY_START = 1e-3
-#: Texel candidates tested per rasteriser chunk (memory: ~100 bytes each).
-CHUNK = 1 << 22
+#: Texel candidates tested per rasteriser chunk (memory: ~200 bytes each).
+CHUNK = 1 << 20
+#: Texels whose frames and rays are computed at once (memory: ~600 bytes each).
+TEXELS_PER_PASS = 1 << 19
+#: Memory a bake takes per texel of the map, with a margin: the normals and heights (float64),
+#: the covering triangle (int32), the covered and hit masks, the encoded map and its file
+#: (measured: ~37 at 8192², docs/cli.md).
+BYTES_PER_TEXEL = 56
+#: Transient memory of a bake on top of that: one pass of texels, one chunk of candidates.
+BAKE_OVERHEAD_BYTES = 1 << 29
+#: The low-poly sizes (bounding-box diagonal) traced as they are; others are scaled by a power
+#: of two into this range (single-precision normals of tiny triangles underflow).
+WORKING_SIZE = (2.0 ** -7, 2.0 ** 17)
 
 
 class BakeError(ValueError):
@@ -62,11 +91,14 @@ class BakeError(ValueError):
 class Baked:
     """A baked map: ``normals`` (H, W, 3) unit tangent-space normals, ``covered`` (H, W) the
     texels a low-poly triangle covers, ``hit`` (H, W) those whose rays found the high-poly,
-    ``heights`` (H, W) the high-poly's signed distance along the low-poly's normal (world units)."""
+    ``heights`` (H, W) the high-poly's signed distance along the low-poly's normal (world units);
+    ``cage_spans_scene``: the cage was at least as long as the scene is wide, so that a longer
+    one would find nothing more."""
     normals: np.ndarray
     covered: np.ndarray
     hit: np.ndarray
     heights: np.ndarray
+    cage_spans_scene: bool = False
 
     @property
     def missed(self) -> int:
@@ -86,6 +118,8 @@ def load_mesh(path, what: str = "mesh"):
     kind = MESH_SUFFIXES.get(path.suffix.lower())
     if kind is None:
         raise BakeError(f"{what} {path}: expected a .ply or .obj mesh")
+    from mfnormal.io.mesh_files import check_mesh_file
+    check_mesh_file(path, f"{what} {path}", BakeError)
     try:
         return mi.load_dict({"type": kind, "filename": str(path)})
     except Exception as exc:  # Mitsuba's loaders raise RuntimeError with a multi-line message
@@ -147,60 +181,106 @@ def tangent_mesh(name, positions, normals, uvs, faces, bsdf=None):
 
 # -- Rasterising the UV triangles ----------------------------------------------------------------
 
-def _candidates(x, y, size, first, last):
-    """Texel candidates of triangles first..last−1: (triangle, column, row) of each texel
-    centre inside the triangle's UV bounding box."""
-    lo_x = np.clip(np.ceil(x[first:last].min(axis=1)), 0, size - 1).astype(np.int64)
-    hi_x = np.clip(np.floor(x[first:last].max(axis=1)), -1, size - 1).astype(np.int64)
-    lo_y = np.clip(np.ceil(y[first:last].min(axis=1)), 0, size - 1).astype(np.int64)
-    hi_y = np.clip(np.floor(y[first:last].max(axis=1)), -1, size - 1).astype(np.int64)
+def _texel_coordinates(uvs, faces, size):
+    """The UV triangles in texel-centre coordinates: (x, y), each (F, 3)."""
+    return uvs[faces][..., 0] * size - 0.5, uvs[faces][..., 1] * size - 0.5
+
+
+def _pieces(x, y, size):
+    """The texel-centre bounding boxes of the triangles, clipped to the map and cut into pieces of
+    at most about CHUNK centres (a large triangle into bands of rows): (triangle, first column,
+    last column, first row, last row) per piece, in triangle order; empty boxes left out."""
+    lo_x = np.clip(np.ceil(x.min(axis=1)), 0, size - 1).astype(np.int64)
+    hi_x = np.clip(np.floor(x.max(axis=1)), -1, size - 1).astype(np.int64)
+    lo_y = np.clip(np.ceil(y.min(axis=1)), 0, size - 1).astype(np.int64)
+    hi_y = np.clip(np.floor(y.max(axis=1)), -1, size - 1).astype(np.int64)
     nx, ny = np.maximum(hi_x - lo_x + 1, 0), np.maximum(hi_y - lo_y + 1, 0)
-    count = nx * ny
-    tri = np.repeat(np.arange(first, last), count)
+    rows = np.maximum(CHUNK // np.maximum(nx, 1), 1)
+    count = np.where(nx > 0, -(-ny // rows), 0)
+    tri = np.repeat(np.arange(len(x)), count)
     k = np.arange(count.sum()) - np.repeat(np.cumsum(count) - count, count)
-    local = tri - first
-    return tri, lo_x[local] + k % np.maximum(nx[local], 1), lo_y[local] + k // np.maximum(nx[local], 1)
+    first_row = lo_y[tri] + k * rows[tri]
+    return tri, lo_x[tri], hi_x[tri], first_row, np.minimum(first_row + rows[tri] - 1, hi_y[tri])
 
 
-def _chunks(x, y, size):
-    """Triangle ranges whose bounding boxes hold at most about CHUNK texel candidates each."""
-    w = np.clip(np.floor(x.max(axis=1)) - np.ceil(x.min(axis=1)) + 1, 0, size)
-    h = np.clip(np.floor(y.max(axis=1)) - np.ceil(y.min(axis=1)) + 1, 0, size)
-    total = np.cumsum(w * h)
+def _candidates(piece, first, last):
+    """Texel candidates of pieces first..last−1: (triangle, column, row) of each texel centre in
+    each piece's box."""
+    tri, lo_x, hi_x, lo_y, hi_y = (a[first:last] for a in piece)
+    nx, ny = hi_x - lo_x + 1, hi_y - lo_y + 1
+    count = nx * ny
+    k = np.arange(count.sum()) - np.repeat(np.cumsum(count) - count, count)
+    local = np.repeat(np.arange(last - first), count)
+    return tri[local], lo_x[local] + k % nx[local], lo_y[local] + k // nx[local]
+
+
+def _chunks(piece):
+    """Piece ranges holding about CHUNK texel candidates each."""
+    tri, lo_x, hi_x, lo_y, hi_y = piece
+    total = np.cumsum((hi_x - lo_x + 1) * (hi_y - lo_y + 1))
     bounds, first = [], 0
-    while first < len(x):
+    while first < len(tri):
         last = int(np.searchsorted(total, (total[first - 1] if first else 0) + CHUNK, "right"))
         last = max(last, first + 1)
-        bounds.append((first, min(last, len(x))))
+        bounds.append((first, min(last, len(tri))))
         first = last
     return bounds
+
+
+def _barycentrics(x, y, tri, col, row):
+    """(b0, b1, b2, det) of texel centres (col, row) in the triangles ``tri``."""
+    x0, y0 = x[tri, 0], y[tri, 0]
+    e1x, e1y, e2x, e2y = x[tri, 1] - x0, y[tri, 1] - y0, x[tri, 2] - x0, y[tri, 2] - y0
+    det = e1x * e2y - e2x * e1y
+    px, py = col - x0, row - y0
+    with np.errstate(divide="ignore", invalid="ignore"):
+        b1 = (px * e2y - e2x * py) / det
+        b2 = (e1x * py - px * e1y) / det
+    return 1.0 - b1 - b2, b1, b2, det
+
+
+def texel_owners(uvs, faces, size: int):
+    """The first triangle (lowest index) whose UV triangle covers each texel's centre, −1 where
+    none does: (size·size,) int64, texel index row·size + column."""
+    x, y = _texel_coordinates(uvs, faces, size)
+    owner = np.full(size * size, -1, np.int32 if len(faces) < 1 << 31 else np.int64)
+    piece = _pieces(x, y, size)
+    for first, last in _chunks(piece):
+        tri, col, row = _candidates(piece, first, last)
+        b0, b1, b2, det = _barycentrics(x, y, tri, col, row)
+        eps = -1e-9
+        inside = (det != 0) & (b0 >= eps) & (b1 >= eps) & (b2 >= eps)
+        texel, at = np.unique(row[inside] * size + col[inside], return_index=True)
+        free = owner[texel] < 0
+        owner[texel[free]] = tri[inside][at[free]]
+    return owner
+
+
+def owned_barycentrics(uvs, faces, size: int, texel, tri):
+    """Barycentrics (K, 3) of the centres of ``texel`` in their triangles ``tri``."""
+    x, y = _texel_coordinates(uvs, faces, size)
+    row, col = np.divmod(texel, size)
+    return np.stack(_barycentrics(x, y, tri, col, row)[:3], axis=1)
 
 
 def rasterise(uvs, faces, size: int):
     """The texels whose centres a UV triangle covers: (texel index row·size + column (K,),
     triangle (K,), barycentrics (K, 3)), one triangle per texel (the first that covers it)."""
-    x = uvs[faces][..., 0] * size - 0.5          # texel-centre coordinates, (F, 3)
-    y = uvs[faces][..., 1] * size - 0.5
-    found = []
-    for first, last in _chunks(x, y, size):
-        tri, col, row = _candidates(x, y, size, first, last)
-        x0, y0 = x[tri, 0], y[tri, 0]
-        e1x, e1y, e2x, e2y = x[tri, 1] - x0, y[tri, 1] - y0, x[tri, 2] - x0, y[tri, 2] - y0
-        det = e1x * e2y - e2x * e1y
-        px, py = col - x0, row - y0
-        with np.errstate(divide="ignore", invalid="ignore"):
-            b1 = (px * e2y - e2x * py) / det
-            b2 = (e1x * py - px * e1y) / det
-        b0 = 1.0 - b1 - b2
-        eps = -1e-9
-        inside = (det != 0) & (b0 >= eps) & (b1 >= eps) & (b2 >= eps)
-        found.append((row[inside] * size + col[inside], tri[inside],
-                      np.stack([b0, b1, b2], axis=1)[inside]))
-    texel = np.concatenate([f[0] for f in found])
-    tri = np.concatenate([f[1] for f in found])
-    bary = np.concatenate([f[2] for f in found]) if found else np.zeros((0, 3))
-    texel, first = np.unique(texel, return_index=True)
-    return texel, tri[first], bary[first]
+    owner = texel_owners(uvs, faces, size)
+    texel = np.flatnonzero(owner >= 0)
+    return texel, owner[texel], owned_barycentrics(uvs, faces, size, texel, owner[texel])
+
+
+def _uv_problem(uvs, faces, size: int) -> str:
+    """Why the UV triangles cover no texel centre of a ``size``² map."""
+    lo, hi = uvs[faces].reshape(-1, 2).min(axis=0), uvs[faces].reshape(-1, 2).max(axis=0)
+    span = f"u {lo[0]:.6g} to {hi[0]:.6g}, v {lo[1]:.6g} to {hi[1]:.6g}"
+    if (hi <= 0).any() or (lo >= 1).any():
+        return (f"the low-poly mesh's UVs ({span}) lie outside the map, which covers UV 0 to 1 (a "
+                "UDIM tile other than the first?); move them into 0 to 1 (bake one tile at a time)")
+    return (f"the low-poly mesh's UV triangles ({span}) cover no texel centre of a {size}x{size} "
+            "map (each is smaller than a texel, or has no area in UV); raise the map size "
+            "(size, --size) or scale the UVs up")
 
 
 # -- Frames at the texels --------------------------------------------------------------------------
@@ -234,14 +314,16 @@ def _mitsuba_tangent(positions, uvs, faces, n):
     return np.where(ok[:, None], dp_du, fallback)
 
 
-def texel_frames(low, tri, bary, frame: str):
+def texel_frames(low, tri, bary, frame: str, corner=None):
     """(p, T, B, N) at the texels: the low-poly's position and the frame the map is decoded in
-    (see the module's docstring). ``low`` = (positions, normals, uvs, faces)."""
+    (see the module's docstring). ``low`` = (positions, normals, uvs, faces); ``corner``: the
+    low-poly's MikkTSpace corner tangents when already computed."""
     positions, normals, uvs, faces = low
     p = _interpolate(positions, faces, tri, bary)
     n = _unit(_interpolate(normals, faces, tri, bary))
     if frame == "mikktspace":
-        corner = mikktspace(positions, normals, uvs, faces, flip_v=True)
+        if corner is None:
+            corner = mikktspace(positions, normals, uvs, faces, flip_v=True)
         t4 = _interpolate(corner, faces, tri, bary)
         sign = np.where(t4[:, 3] < 0, -1.0, 1.0)[:, None]
         tangent = t4[:, :3]
@@ -270,20 +352,20 @@ def _trace(scene, origins, directions, maxt: float, geometric: bool):
     return np.array(si.t, np.float64), np.array(normal, np.float64).reshape(3, -1).T, hit
 
 
-def high_surface_at(high_mesh, p, n, cage: float, geometric: bool = False):
+def high_surface_at(scene, p, n, cage: float, geometric: bool = False):
     """The high-poly's unit normal at the surface point nearest to ``p`` on the segment
     p ± cage·``n``, (K, 3), that point's signed distance from p along ``n``, (K,), and whether
-    there is one, (K,).
+    there is one, (K,); ``scene`` holds only the high-poly.
 
     Two rays leave p, one along +n and one along −n, each from RAY_START·cage behind p (so that
     a surface through p itself is met, not skipped) up to cage beyond it; each meets the first
-    surface on its side, and the one nearer to p wins."""
-    import mitsuba as mi
-
-    scene = mi.load_dict({"type": "scene", "high": high_mesh})
+    surface on its side, and the one nearer to p wins. A hit whose normal or distance is not
+    finite (a degenerate triangle) counts as none."""
     eps = RAY_START * cage
     t_up, n_up, hit_up = _trace(scene, p - eps * n, n, cage + eps, geometric)
     t_down, n_down, hit_down = _trace(scene, p + eps * n, -n, cage + eps, geometric)
+    hit_up &= np.isfinite(n_up).all(axis=1) & np.isfinite(t_up)
+    hit_down &= np.isfinite(n_down).all(axis=1) & np.isfinite(t_down)
     use_up = hit_up & (~hit_down | (np.abs(t_up - eps) <= np.abs(t_down - eps)))
     normal = np.where(use_up[:, None], n_up, n_down)
     hit = hit_up | hit_down
@@ -293,10 +375,39 @@ def high_surface_at(high_mesh, p, n, cage: float, geometric: bool = False):
 
 # -- Padding and encoding ------------------------------------------------------------------------
 
+#: Rows of texels a band of the padding and the encoding holds at most (times the map's width:
+#: about 2^20 texels).
+BAND_TEXELS = 1 << 20
+
+
+def _bands(height: int, width: int):
+    """Row ranges (first, last) of about BAND_TEXELS texels each."""
+    rows = max(1, BAND_TEXELS // max(width, 1))
+    return [(r, min(r + rows, height)) for r in range(0, height, rows)]
+
+
 def dilate(normals, known, padding: int, unit: bool = True):
     """``normals`` (H, W, C) with the texels outside ``known`` within ``padding`` texels (8-
     neighbourhood rings) set to the mean of their known neighbours (normalised where ``unit``),
     ring by ring."""
+    out = normals.copy()
+    _dilate_into(out, known, padding, unit)
+    return out
+
+
+def _dilate_into(normals, known, padding: int, unit: bool = True) -> None:
+    """:func:`dilate` in place, in bands of rows: a texel after ``padding`` rings depends only on
+    the texels within ``padding`` rows of it, so each band is padded in a slab that holds
+    ``padding`` more rows on each side, and only the band is written back (the slab's rows
+    above, already padded, are not ``known`` and so are not read)."""
+    h = known.shape[0]
+    for first, last in _bands(*known.shape):
+        top, bottom = max(first - padding, 0), min(last + padding, h)
+        slab = _dilate_slab(normals[top:bottom], known[top:bottom], padding, unit)
+        normals[first:last] = slab[first - top:last - top]
+
+
+def _dilate_slab(normals, known, padding: int, unit: bool):
     normals, known = normals.copy(), known.copy()
     for _ in range(padding):
         total = np.zeros_like(normals)
@@ -316,11 +427,30 @@ def dilate(normals, known, padding: int, unit: bool = True):
     return normals
 
 
+def _check_finite(values, what: str) -> None:
+    bad = ~np.isfinite(values)
+    if bad.any():
+        raise BakeError(f"the {what} hold NaN or infinity ({int(bad.sum())} values); nothing was "
+                        "written: give finite values")
+
+
+def _check_bits(bits) -> int:
+    if isinstance(bits, bool) or bits not in (8, 16):
+        raise BakeError(f"bits {bits!r}: expected 8 or 16 bits per channel")
+    return int(bits)
+
+
 def encode_map(normals, bits: int = 8):
-    """Unit normals (H, W, 3) as RGB = (n + 1)/2 rounded to ``bits`` (8 or 16) per channel."""
-    top = (1 << bits) - 1
-    rgb = np.round((np.clip(normals, -1.0, 1.0) + 1.0) * 0.5 * top)
-    return rgb.astype(np.uint8 if bits == 8 else np.uint16)
+    """Unit normals (H, W, 3) as RGB = (n + 1)/2 rounded to ``bits`` (8 or 16) per channel;
+    :class:`BakeError` for other ``bits`` or normals that are not finite."""
+    top = (1 << _check_bits(bits)) - 1
+    normals = np.asarray(normals)
+    _check_finite(normals, "normals")
+    rgb = np.empty(normals.shape, np.uint8 if bits == 8 else np.uint16)
+    bands = _bands(*normals.shape[:2]) if normals.ndim == 3 else [(0, len(normals))]
+    for first, last in bands:
+        rgb[first:last] = np.round((np.clip(normals[first:last], -1.0, 1.0) + 1.0) * 0.5 * top)
+    return rgb
 
 
 def _map_bytes(normals, bits: int) -> bytes:
@@ -335,27 +465,32 @@ def _heights_bytes(heights) -> bytes:
     import mitsuba as mi
     from mfnormal.io.images import encode
 
+    with np.errstate(over="ignore"):
+        _check_finite(np.asarray(heights, np.float32), "heights (in single precision)")
     bitmap = mi.Bitmap(np.ascontiguousarray(heights, np.float32)[..., None], mi.Bitmap.PixelFormat.Y)
     return encode(bitmap, mi.Bitmap.FileFormat.OpenEXR)
 
 
 def write_map(path, normals, bits: int = 8):
-    """Write the normal map PNG (8- or 16-bit) atomically; returns the path."""
+    """Write the normal map PNG (8- or 16-bit) atomically; returns the path. :class:`BakeError`
+    (nothing written) for other ``bits`` or normals that are not finite."""
     return write_baked(path, normals, bits)[0]
 
 
 def write_heights(path, heights):
     """Write the heights (H, W, world units) as a one-channel 32-bit float OpenEXR, atomically
-    (what Mitsuba's ``bitmap`` reads with ``raw=True``); returns the path."""
+    (what Mitsuba's ``bitmap`` reads with ``raw=True``); returns the path. :class:`BakeError`
+    (nothing written) for heights that are not finite in single precision."""
     from mfnormal.io.images import atomic_write, write_bytes
 
     data = _heights_bytes(heights)
     return atomic_write(path, lambda p: write_bytes(p, data))
 
 
-def write_baked(path, normals, bits: int = 8, heights_path=None, heights=None) -> list:
-    """The normal map PNG at ``path`` and, with ``heights_path``, the ``heights`` EXR there, written
-    as one (both or neither: :func:`mfnormal.io.images.atomic_write_all`); returns the paths."""
+def write_baked(path, normals, bits: int = 8, heights_path=None, heights=None, more=()) -> list:
+    """The normal map PNG at ``path`` and, with ``heights_path``, the ``heights`` EXR there (and
+    ``more`` (path, write(tmp_path)) items), written as one (all or none:
+    :func:`mfnormal.io.images.atomic_write_all`); returns the paths."""
     from mfnormal.io.images import atomic_write_all, write_bytes
 
     map_data = _map_bytes(normals, bits)
@@ -363,17 +498,38 @@ def write_baked(path, normals, bits: int = 8, heights_path=None, heights=None) -
     if heights_path is not None:
         heights_data = _heights_bytes(heights)
         items.append((heights_path, lambda p: write_bytes(p, heights_data)))
-    return atomic_write_all(items)
+    return atomic_write_all(items + list(more))
 
 
 # -- The baker ---------------------------------------------------------------------------------
 
-def _as_mesh(mesh, what):
-    return load_mesh(mesh, what) if isinstance(mesh, (str, Path)) else mesh
+def _as_mesh(mesh, what: str, argument: str, kind):
+    """A Mitsuba shape of type ``kind``, or the mesh loaded from a path; :class:`BakeError`
+    naming ``argument`` for anything else."""
+    if isinstance(mesh, (str, os.PathLike)):
+        return load_mesh(mesh, what)
+    if not isinstance(mesh, kind):
+        raise BakeError(f"{argument}: expected the {what} as a Mitsuba {kind.__name__} or the path "
+                        f"of a .ply or .obj file, got {type(mesh).__name__}")
+    return mesh
+
+
+def _check_mesh_arrays(positions, normals, uvs, faces, what: str) -> None:
+    """:class:`BakeError` for a mesh without triangles, a face index past its vertices, or
+    positions, normals or UVs that are not finite."""
+    if len(faces) == 0:
+        raise BakeError(f"the {what} has no triangles; give a mesh with faces")
+    if faces.min() < 0 or faces.max() >= len(positions):
+        raise BakeError(f"the {what} has a face index of {faces.max()}, but {len(positions)} "
+                        "vertices; its faces must index its vertices")
+    for values, name in ((positions, "positions"), (normals, "vertex normals"), (uvs, "UVs")):
+        if values is not None and not np.isfinite(values).all():
+            raise BakeError(f"the {what}'s {name} hold NaN or infinity; give finite values")
 
 
 def check_low_poly(low, what: str = "low-poly mesh"):
-    """(positions, normals, uvs, faces) of the low-poly; :class:`BakeError` without UVs or normals."""
+    """(positions, normals, uvs, faces) of the low-poly; :class:`BakeError` without UVs or
+    normals, for the problems of :func:`_check_mesh_arrays`, or without area."""
     positions, normals, uvs, faces = mesh_arrays(low)
     if uvs is None:
         raise BakeError(f"the {what} has no UVs (texture coordinates); unwrap it first "
@@ -381,14 +537,139 @@ def check_low_poly(low, what: str = "low-poly mesh"):
     if normals is None:
         raise BakeError(f"the {what} has no vertex normals (it is flat-shaded); give it smooth "
                         "vertex normals")
-    if len(faces) == 0:
-        raise BakeError(f"the {what} has no triangles")
+    _check_mesh_arrays(positions, normals, uvs, faces, what)
+    corners = positions[faces]
+    if not np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]),
+                          axis=1).any():
+        raise BakeError(f"the {what} has no area (every triangle's corners coincide or lie on a "
+                        "line); give a mesh with surface to bake onto")
     return positions, normals, uvs, faces
+
+
+def check_high_poly(high, what: str = "high-poly mesh") -> None:
+    """:class:`BakeError` for a high-poly mesh with the problems of :func:`_check_mesh_arrays`
+    (other shapes, e.g. Mitsuba's analytic sphere, are taken as they are)."""
+    import mitsuba as mi
+
+    if isinstance(high, mi.Mesh):
+        positions, normals, _, faces = mesh_arrays(high)
+        _check_mesh_arrays(positions, normals, None, faces, what)
 
 
 def default_cage(positions) -> float:
     """CAGE_FRACTION of the bounding-box diagonal of ``positions``."""
-    return CAGE_FRACTION * float(np.linalg.norm(positions.max(axis=0) - positions.min(axis=0)))
+    return CAGE_FRACTION * _diagonal(positions)
+
+
+def _diagonal(positions) -> float:
+    return float(np.linalg.norm(positions.max(axis=0) - positions.min(axis=0)))
+
+
+def _working_scale(size: float) -> float:
+    """1, or the power of two that brings a low-poly of ``size`` into WORKING_SIZE."""
+    if WORKING_SIZE[0] <= size <= WORKING_SIZE[1]:
+        return 1.0
+    return 2.0 ** -round(math.log2(size))
+
+
+def _scaled_mesh(mesh, scale: float):
+    """A copy of the Mitsuba mesh ``mesh`` scaled by ``scale`` (a power of two: exact), its
+    vertex normals as :func:`_scaled_arrays` gives them."""
+    import mitsuba as mi
+
+    if scale == 1.0:
+        return mesh
+    if not isinstance(mesh, mi.Mesh):
+        raise BakeError(f"the low-poly mesh is about {1 / scale:g} units across, too far from 1 to "
+                        f"trace a {mesh.class_name()} shape beside it; give the high-poly as a "
+                        "mesh, or scale both")
+    positions, normals, _, faces = mesh_arrays(mesh)
+    return _mesh(*_scaled_arrays(positions, normals, faces, scale), faces)
+
+
+def _mesh(positions, normals, faces):
+    """A Mitsuba mesh of these arrays (without vertex normals where ``normals`` is None: the
+    triangles' own normals shade it)."""
+    import mitsuba as mi
+
+    mesh = mi.Mesh("mesh", len(positions), len(faces), has_vertex_normals=normals is not None)
+    params = mi.traverse(mesh)
+    params["vertex_positions"] = mi.Float(np.ravel(positions).astype(np.float32))
+    if normals is not None:
+        params["vertex_normals"] = mi.Float(np.ravel(normals).astype(np.float32))
+    params["faces"] = mi.UInt32(np.ravel(faces).astype(np.uint32))
+    params.update()
+    return mesh
+
+
+def _scaled_arrays(positions, normals, faces, scale: float):
+    """(positions·scale, vertex normals): the normals as they are, or recomputed by Mitsuba at
+    the working scale where its loader could not compute them at the mesh's own (single-
+    precision cross products of tiny triangles underflow, and it gives the vertex (1, 0, 0))."""
+    positions = positions * scale
+    if normals is not None and _fallback_normals(positions, normals, faces):
+        mesh = _mesh(positions, np.zeros_like(positions), faces)
+        mesh.recompute_vertex_normals()
+        normals = mesh_arrays(mesh)[1]
+    return positions, normals
+
+
+def _fallback_normals(positions, normals, faces) -> bool:
+    """Whether a vertex normal is Mitsuba's fallback (1, 0, 0) where the triangles around the
+    vertex (in double precision) face elsewhere."""
+    corners = positions[faces]
+    face_normals = _unit(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]))
+    around = np.zeros_like(positions)
+    for k in range(3):
+        np.add.at(around, faces[:, k], face_normals)
+    fallback = np.all(normals == [1.0, 0.0, 0.0], axis=1)
+    return bool(np.any(fallback & (_unit(around)[:, 0] < 0.9)))
+
+
+def _check_variant() -> None:
+    import mitsuba as mi
+
+    variant = mi.variant()
+    if variant is None or not variant.startswith(("llvm_", "cuda_")):
+        raise BakeError(f"the baker traces rays in bulk and needs a JIT variant (llvm_ad_rgb, "
+                        f"cuda_ad_rgb), not {variant}: call mitsuba.set_variant('llvm_ad_rgb') "
+                        "(mfnormal bake --variant llvm_ad_rgb)")
+
+
+def _check_number(value, name: str, integer: bool, low: float = 0) -> None:
+    kinds = numbers.Integral if integer else numbers.Real
+    if isinstance(value, bool) or not isinstance(value, kinds):
+        raise BakeError(f"{name} {value!r}: expected {'an integer' if integer else 'a number'}")
+    if not low <= value < math.inf:
+        raise BakeError(f"{name} {value}: expected {'an integer' if integer else 'a number'} "
+                        f"of at least {low}")
+
+
+def memory_needed(size: int) -> int:
+    """About the bytes a ``size``² bake takes at its peak (BYTES_PER_TEXEL per texel and the
+    passes' transient memory)."""
+    return BYTES_PER_TEXEL * size * size + BAKE_OVERHEAD_BYTES
+
+
+def _available_memory() -> int | None:
+    """The memory this process may still take: the system's available memory (Linux), None
+    where unknown."""
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    return None
+
+
+def _check_memory(size: int) -> None:
+    needed, available = memory_needed(size), _available_memory()
+    if available is not None and needed > available:
+        raise BakeError(f"a {size}x{size} bake needs about {needed / 2 ** 30:.1f} GiB of memory, "
+                        f"more than the {available / 2 ** 30:.1f} GiB available; lower the map size "
+                        "(size, --size)")
 
 
 def bake(high, low, size: int = 1024, cage: float | None = None, frame: str = "mikktspace",
@@ -401,30 +682,85 @@ def bake(high, low, size: int = 1024, cage: float | None = None, frame: str = "m
     CAGE_FRACTION of the low-poly's bounding-box diagonal); ``frame``: ``mikktspace`` or
     ``mitsuba`` (see the module's docstring); ``padding``: texels to dilate the islands by;
     ``high_normals``: the high-poly's ``shading`` (interpolated) or ``geometric`` normal.
-    A JIT variant (``llvm_*``, ``cuda_*``) must be set."""
+    A JIT variant (``llvm_*``, ``cuda_*``) must be set. Every input is checked first
+    (:class:`BakeError`, one line); a warning says when most texels' normals face away from
+    the low-poly's (one of the meshes' normals is flipped)."""
+    import mitsuba as mi
+
     if frame not in TANGENT_FRAMES:
         raise BakeError(f"frame must be one of {', '.join(TANGENT_FRAMES)}, got '{frame}'")
     if high_normals not in HIGH_NORMALS:
         raise BakeError(f"high_normals must be one of {', '.join(HIGH_NORMALS)}, got '{high_normals}'")
+    _check_number(size, "size", integer=True)
     if not SIZE_RANGE[0] <= size <= SIZE_RANGE[1]:
         raise BakeError(f"size {size} is out of range ({SIZE_RANGE[0]} to {SIZE_RANGE[1]})")
-    high_mesh, low_mesh = _as_mesh(high, "high-poly mesh"), _as_mesh(low, "low-poly mesh")
-    arrays = check_low_poly(low_mesh)
-    cage = default_cage(arrays[0]) if cage is None else float(cage)
-    if not (0 < cage < float("inf")):
-        raise BakeError(f"cage {cage}: expected a distance above 0")
-    texel, tri, bary = rasterise(arrays[2], arrays[3], size)
-    p, tangent, bitangent, n = texel_frames(arrays, tri, bary, frame)
-    normal, distance, hit = high_surface_at(high_mesh, p, n, cage, high_normals == "geometric")
-    local = np.stack([np.sum(normal * v, axis=1) for v in (tangent, bitangent, n)], axis=1)
-    normals = np.zeros((size * size, 3))
-    normals[:, 2] = 1.0
-    normals[texel[hit]] = local[hit]
+    _check_number(padding, "padding", integer=True)
+    if cage is not None:
+        _check_number(cage, "cage", integer=False)
+        if not cage > 0:
+            raise BakeError(f"cage {cage}: expected a distance above 0")
+    _check_variant()
+    high_mesh = _as_mesh(high, "high-poly mesh", "high", mi.Shape)
+    low_mesh = _as_mesh(low, "low-poly mesh", "low", mi.Mesh)
+    check_high_poly(high_mesh)
+    positions, normals, uvs, faces = check_low_poly(low_mesh)
+    _check_memory(size)
+
+    # Trace at a working scale (a power of two: exact); the heights are scaled back.
+    scale = _working_scale(_diagonal(positions))
+    high_mesh = _scaled_mesh(high_mesh, scale)
+    if scale != 1.0:
+        positions, normals = _scaled_arrays(positions, normals, faces, scale)
+    cage = default_cage(positions) if cage is None else float(cage) * scale
+    bbox = high_mesh.bbox()
+    corners = np.concatenate([positions, [list(bbox.min), list(bbox.max)]])
+    scene_size = _diagonal(corners)
+    spans_scene = cage >= scene_size
+    cage = min(cage, scene_size)
+    low_arrays = positions, normals, uvs, faces
+
+    owner = texel_owners(uvs, faces, size)
+    covered = owner >= 0
+    if not covered.any():
+        raise BakeError(_uv_problem(uvs, faces, size))
+    outside = _outside_map(uvs, faces)
+    if outside:
+        warnings.warn(f"{outside} of the low-poly mesh's {len(faces)} triangles have UVs wholly "
+                      "outside the map's 0 to 1 square (another UDIM tile, or a repeat) and are "
+                      "not baked", stacklevel=2)
+    corner = mikktspace(positions, normals, uvs, faces, flip_v=True) if frame == "mikktspace" else None
+    scene = mi.load_dict({"type": "scene", "high": high_mesh})
+
+    normals_out = np.zeros((size * size, 3))
+    normals_out[:, 2] = 1.0
     heights = np.zeros((size * size, 1))
-    heights[texel[hit], 0] = distance[hit]
-    covered, hits = np.zeros(size * size, bool), np.zeros(size * size, bool)
-    covered[texel], hits[texel[hit]] = True, True
+    hits = np.zeros(size * size, bool)
+    facing_away = 0
+    for first in range(0, size * size, TEXELS_PER_PASS):
+        texel = first + np.flatnonzero(covered[first:first + TEXELS_PER_PASS])
+        tri = owner[texel].astype(np.int64)
+        bary = owned_barycentrics(uvs, faces, size, texel, tri)
+        p, tangent, bitangent, n = texel_frames(low_arrays, tri, bary, frame, corner)
+        normal, distance, hit = high_surface_at(scene, p, n, cage, high_normals == "geometric")
+        local = np.stack([np.sum(normal * v, axis=1) for v in (tangent, bitangent, n)], axis=1)
+        normals_out[texel[hit]] = local[hit]
+        heights[texel[hit], 0] = distance[hit] / scale
+        hits[texel[hit]] = True
+        facing_away += int(np.count_nonzero(local[hit, 2] < 0))
+    hit_count = int(hits.sum())
+    if facing_away > hit_count / 2:
+        warnings.warn(f"{facing_away} of {hit_count} baked texels face away from the low-poly's "
+                      "normal (z < 0): the low-poly's and the high-poly's normals point opposite "
+                      "ways; flip the normals of one of them", stacklevel=2)
     covered, hits = covered.reshape(size, size), hits.reshape(size, size)
-    normals = dilate(normals.reshape(size, size, 3), covered, padding)
-    heights = dilate(heights.reshape(size, size, 1), covered, padding, unit=False)
-    return Baked(normals, covered, hits, heights[..., 0])
+    normals_out = normals_out.reshape(size, size, 3)
+    heights = heights.reshape(size, size, 1)
+    _dilate_into(normals_out, covered, padding)
+    _dilate_into(heights, covered, padding, unit=False)
+    return Baked(normals_out, covered, hits, heights[..., 0], spans_scene)
+
+
+def _outside_map(uvs, faces) -> int:
+    """How many triangles have UVs wholly outside the map's [0, 1]² square."""
+    t = uvs[faces]
+    return int(np.count_nonzero((t.max(axis=1) <= 0).any(axis=1) | (t.min(axis=1) >= 1).any(axis=1)))

@@ -232,7 +232,10 @@ def check_xml_scene(path, params: dict, limits: Limits = DEFAULT_LIMITS) -> None
       ``limits.texture_pixels``, as for a glTF model (:mod:`mfnormal.io.image_headers`).
     - every file it names (``<include>``, ``filename``, the plugin's ``normalmap`` and
       ``heightmap`` strings) is a regular file (:func:`check_regular_file`), before
-      anything opens it.
+      anything opens it;
+    - every mesh file a ``<shape type="ply">`` or ``"obj"`` names passes
+      :func:`mfnormal.io.mesh_files.check_mesh_file` (face indices in range, finite numbers:
+      Mitsuba's PLY loader crashes on a face index past the vertices).
 
     Files that do not parse, and images that are missing or of another format, are left
     to Mitsuba's own error."""
@@ -261,8 +264,27 @@ def check_xml_scene(path, params: dict, limits: Limits = DEFAULT_LIMITS) -> None
                     if named and prop.get("value") is not None:
                         image = file.parent / substitute(prop.get("value"), values)
                         pixels += _check_xml_image(image, file, limits, pixels)
+        for shape in root.iter("shape"):        # after the loop: every file is a regular one
+            _check_xml_mesh(shape, file, values)
 
     visit(Path(path), 0, dict(params))
+
+
+def _check_xml_mesh(shape: ET.Element, file: Path, values: dict) -> None:
+    """The mesh file of a ``<shape type="ply">`` or ``"obj"`` (as :func:`_check_named_file`
+    finds it), checked before Mitsuba reads it."""
+    from mfnormal.io.mesh_files import check_mesh_file
+
+    kind = substitute(shape.get("type", ""), values)
+    named = next((s for s in shape.findall("string") if s.get("name") == "filename"), None)
+    if kind not in ("ply", "obj") or named is None or named.get("value") is None:
+        return
+    name = substitute(named.get("value"), values)
+    path = file.parent / name
+    if not os.path.exists(path):
+        path = Path(name)
+    if os.path.isfile(path):
+        check_mesh_file(path, f'{file.name}: <shape type="{kind}"> \'{name}\'', CLIError)
 
 
 #: The ``<string>`` properties that name an image file, by element: a texture's or an emitter's
