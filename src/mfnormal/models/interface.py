@@ -9,8 +9,12 @@ without asking which it is:
 - ``sample(ctx, sp, sample1, sample2, active)``: (BSDFSample3f, weight);
 - ``fuses(sp)`` and ``eval_pdf_sample(ctx, sp, wo, sample1, sample2, active)``: the fused call,
   where the model has one that is cheaper than ``eval_pdf`` then ``sample``;
-- ``deterministic``: ``eval`` is exact and a sample's weight is eval/pdf (the plugin then takes
-  a flat normal's derivatives of the weight from ``eval``), else both are estimates;
+- ``deterministic``: ``eval`` is exact and a sample's weight is eval/pdf, else both are
+  estimates (at a flat normal the plugin takes the weight's derivative from ``eval``'s either
+  way: ∂eval/pdf, or a walk's weight times ∂eval/eval);
+- ``smooth_at_flat``: the model is differentiable at a flat normal; the two-facet models are
+  not (their tangent facet grows like the tilt: one-sided derivatives differ, docs/model.md §9),
+  and the plugin says so where their derivative is taken there;
 - ``traverse``, ``parameters_changed`` (the model's own parameters) and ``map_changed(source)``
   (the normal source changed: the faithful model re-measures the map's slopes).
 
@@ -90,6 +94,7 @@ class Analytic(_Deterministic):
     reciprocal, so its adjoint is itself."""
 
     name = "analytic"
+    smooth_at_flat = False
 
     def eval_pdf(self, ctx, sp, wo, active, want_value=True, want_pdf=True):
         return analytic.eval_pdf(sp, wo, active, want_value, want_pdf)
@@ -103,6 +108,7 @@ class Faithful(_Deterministic):
     (``TransportMode.Importance``) gets its adjoint. ``core`` holds the map's slopes and tables."""
 
     name = "faithful"
+    smooth_at_flat = True
 
     def __init__(self, nested, source, neighbourhood=0.0):
         self.neighbourhood = neighbourhood
@@ -142,6 +148,7 @@ class Walk:
 
     deterministic = False
     stochastic_eval = True
+    smooth_at_flat = False
 
     def __init__(self, name, tangent_facet, values):
         self.name, self.tangent_facet = name, tangent_facet

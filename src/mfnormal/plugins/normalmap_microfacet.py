@@ -232,6 +232,8 @@ and without a map it is cheaper than the normal-map path
 
 from __future__ import annotations
 
+import warnings
+
 import drjit as dr
 import mitsuba as mi
 
@@ -314,6 +316,8 @@ class NormalMapMicrofacet:
             return tuple(replace_grad(o, 2.0 * a - b) for o, a, b in zip(out, g1, g2))
         if not self._flat_texels:
             return out
+        if not self.model.smooth_at_flat and dr.grad_enabled(self.source.map_rgb(si, active)):
+            warnings.warn(self.flat_notice(), stacklevel=2)
         flat = sp.sin_p == 0.0
         nudged = [fn(self.shading_point(ctx, si, active, n)) for n in NUDGES]
         out_ = []
@@ -321,6 +325,12 @@ class NormalMapMicrofacet:
             grad = 0.5 * (nudged[0][k] + nudged[1][k] + nudged[2][k] + nudged[3][k]) - o
             out_.append(dr.select(flat, replace_grad(o, grad), o))
         return tuple(out_)
+
+    def flat_notice(self) -> str:
+        """The one line that says a two-facet model has no derivative at the map's flat texels."""
+        return (f"normalmap_microfacet: model='{self.model.name}' has no derivative at a flat normal "
+                "(the map has flat texels, where its one-sided derivatives differ); it gives their mean, "
+                "the central derivative; for a derivative that exists there use model=\"faithful\"")
 
     def _eval_pdf(self, ctx, sp, wo, active, want_value=True, want_pdf=True):
         """The model's (eval, pdf) at the microsurface ``sp``, ``wo`` in the shading frame: with
@@ -348,17 +358,29 @@ class NormalMapMicrofacet:
     def sample(self, ctx, si, sample1, sample2, active=True):
         sp = self.shading_point(ctx, si, active)
         bs, weight = self.model.sample(ctx, sp, sample1, sample2, active)
-        if macro_of(sp) is not None or not self.model.deterministic:
-            return self._from_macro(ctx, sp, bs, weight)
-        if sp.attached and (self._flat_texels or max(self.strength.ok) == 0.0):
-            # A smooth lobe's weight eval/detach(pdf) and its pdf, with the flat normal's
-            # derivatives (_differentiable) at the sample's (detached) direction.
-            smooth = mi.Bool(active) & negate(mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)) & (bs.pdf > 0)
-            wo = dr.detach(bs.wo)
-            value, pdf = self._differentiable(ctx, si, active, lambda at: self._eval_pdf(ctx, at, wo, smooth))
+        if macro_of(sp) is None and sp.attached and (self._flat_texels or max(self.strength.ok) == 0.0):
+            bs, weight = self._flat_sample(ctx, si, sp, bs, weight, active)
+        return self._from_macro(ctx, sp, bs, weight)
+
+    def _flat_sample(self, ctx, si, sp, bs, weight, active):
+        """A smooth lobe's sample (bs, weight) with the flat normal's derivatives
+        (:meth:`_differentiable`) of eval and pdf at its detached direction: a deterministic
+        model's weight eval/pdf takes ∂eval/pdf. A walk's weight w (at flat lanes; elsewhere the
+        walk's own derivative) takes w·∂eval/eval: w's mean given the direction is eval over the
+        walk's density, and at a flat normal eval is exact (the nested BSDF), its derivative an
+        estimate independent of w, so the product's mean is ∂eval over that density."""
+        smooth = mi.Bool(active) & negate(mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)) & (bs.pdf > 0)
+        if not self.model.deterministic:
+            smooth &= sp.sin_p == 0.0
+        wo = dr.detach(bs.wo)
+        value, pdf = self._differentiable(ctx, si, active, lambda at: self._eval_pdf(ctx, at, wo, smooth))
+        if self.model.deterministic:
             grad = value / dr.detach(dr.select(pdf > 0, pdf, 1.0))
-            weight = dr.select(smooth, replace_grad(weight, grad), weight)
-            bs.pdf = dr.select(smooth, replace_grad(bs.pdf, pdf), bs.pdf)
+        else:
+            f = dr.detach(value)
+            grad = dr.select(f > 0, dr.detach(weight) * value / dr.select(f > 0, f, 1.0), 0.0)
+        weight = dr.select(smooth, replace_grad(weight, grad), weight)
+        bs.pdf = dr.select(smooth, replace_grad(bs.pdf, pdf), bs.pdf)
         return bs, weight
 
     def eval(self, ctx, si, wo, active=True):
