@@ -352,15 +352,19 @@ def _trace(scene, origins, directions, maxt: float, geometric: bool):
     return np.array(si.t, np.float64), np.array(normal, np.float64).reshape(3, -1).T, hit
 
 
-def high_surface_at(scene, p, n, cage: float, geometric: bool = False):
+def high_surface_at(high, p, n, cage: float, geometric: bool = False):
     """The high-poly's unit normal at the surface point nearest to ``p`` on the segment
     p ± cage·``n``, (K, 3), that point's signed distance from p along ``n``, (K,), and whether
-    there is one, (K,); ``scene`` holds only the high-poly.
+    there is one, (K,); ``high`` is the high-poly mesh, or a scene that holds only it (built once
+    for many calls).
 
     Two rays leave p, one along +n and one along −n, each from RAY_START·cage behind p (so that
     a surface through p itself is met, not skipped) up to cage beyond it; each meets the first
     surface on its side, and the one nearer to p wins. A hit whose normal or distance is not
     finite (a degenerate triangle) counts as none."""
+    import mitsuba as mi
+
+    scene = high if isinstance(high, mi.Scene) else mi.load_dict({"type": "scene", "high": high})
     eps = RAY_START * cage
     t_up, n_up, hit_up = _trace(scene, p - eps * n, n, cage + eps, geometric)
     t_down, n_down, hit_down = _trace(scene, p + eps * n, -n, cage + eps, geometric)
