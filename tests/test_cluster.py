@@ -23,6 +23,7 @@ import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -33,7 +34,7 @@ distributed = pytest.importorskip("distributed")
 
 import mitsuba as mi  # noqa: E402
 
-from cli_checks import assert_one_line_error  # noqa: E402
+from cli_checks import assert_error_line, assert_one_line_error  # noqa: E402
 from helpers import write_maps, xml_plugin, xml_scene  # noqa: E402
 from mfnormal.cli import commands as cli  # noqa: E402
 from mfnormal.cli.cluster import xml_bundle  # noqa: E402
@@ -131,6 +132,54 @@ def test_unreachable_scheduler_is_one_line_and_writes_nothing(tmp_path, capsys):
     assert _outputs(tmp_path) == []
 
 
+def _connect_seconds(address: str, tls: tuple, timeout: float) -> tuple:
+    """(seconds, error) of connecting to ``address`` as ``render --cluster`` does, in a thread
+    of its own (a connection that hangs fails the test instead of holding it)."""
+    from mfnormal.cli.cluster import Cluster, parse_cluster
+    from mfnormal.io.inputs import CLIError
+
+    outcome = []
+
+    def connect():
+        started = time.monotonic()
+        try:
+            with Cluster(parse_cluster(address, tls), mi.variant(), timeout):
+                outcome.append((time.monotonic() - started, None))
+        except CLIError as exc:
+            outcome.append((time.monotonic() - started, str(exc)))
+
+    thread = threading.Thread(target=connect, daemon=True)
+    thread.start()
+    thread.join(timeout + 60)
+    assert outcome, f"connecting to {address} with a timeout of {timeout:g} s still waits after a minute more"
+    return outcome[0]
+
+
+@pytest.mark.parametrize("scheme", ["tcp", "tls"])
+def test_a_scheduler_that_never_answers_is_one_line_within_the_timeout(tmp_path, worker, scheme):
+    """A listener that accepts connections and never answers (the kernel accepts them into its
+    backlog): ``--cluster-timeout 2`` bounds the whole connection, Dask's handshake included,
+    on tcp:// as on tls:// (a tcp:// client waited for the handshake's reply for ever): the
+    command exits 2 with one line naming the address and the timeout; the connection gives up
+    within the timeout and 2 s (measured: 2.0 s)."""
+    scene = _scene(tmp_path)
+    tls = ()
+    if scheme == "tls":
+        cert, key = _certificate(tmp_path)
+        tls = (cert, cert, key)
+    options = [x for flag, f in zip(("ca", "cert", "key"), tls) for x in (f"--cluster-tls-{flag}", f)]
+    with socket.socket() as silent:
+        silent.bind(("127.0.0.1", 0))
+        silent.listen(8)
+        address = f"{scheme}://127.0.0.1:{silent.getsockname()[1]}"
+        result = worker.run(["render", scene, "-o", tmp_path / "out", "--cluster", address,
+                             "--cluster-timeout", "2", *options], tmp_path, timeout=60)
+        seconds, error = _connect_seconds(address, tls, 2.0)
+    assert_error_line(result, f"--cluster {address}: cannot reach the scheduler", "within 2 s")
+    assert error and "within 2 s" in error and seconds < 2 + 2, (seconds, error)
+    assert _outputs(tmp_path) == []
+
+
 def test_an_unsupported_protocol_is_one_line_naming_the_supported_ones(tmp_path, capsys):
     rc, _, err = _cli(["render", str(_scene(tmp_path)), "-o", str(tmp_path / "out"), "--cluster",
                        "ucx://127.0.0.1:8786"], capsys)
@@ -161,6 +210,33 @@ def test_tls_options_are_checked_before_any_work(tmp_path, capsys, args, needle)
     finally:
         os.chdir(cwd)
     assert rc == 2 and len(err.strip().splitlines()) == 1 and needle in err, err
+    assert _outputs(tmp_path) == []
+
+
+def test_a_tls_certificate_without_its_key_is_one_line_naming_the_option_and_the_fix(tmp_path, capsys):
+    """``--cluster-tls-cert`` without ``--cluster-tls-key`` must hold the key too: a certificate
+    alone (OpenSSL said "[SSL] PEM lib") or a key alone is refused before any work, naming the
+    option, the file and the fix; a PEM with both is taken. A key that does not match its
+    certificate keeps OpenSSL's own words."""
+    from mfnormal.cli.cluster import parse_cluster
+
+    cert, key = _certificate(tmp_path)
+    both = tmp_path / "both.pem"
+    both.write_bytes(cert.read_bytes() + key.read_bytes())
+    (tmp_path / "other").mkdir()
+    _, other = _certificate(tmp_path / "other")
+    scene = _scene(tmp_path)
+    for alone in (cert, key):
+        rc, _, err = _cli(["render", str(scene), "-o", str(tmp_path / "out"), "--cluster", "tls://127.0.0.1:1",
+                           "--cluster-tls-ca", str(cert), "--cluster-tls-cert", str(alone)], capsys)
+        assert rc == 2 and len(err.strip().splitlines()) == 1, err
+        assert f"--cluster-tls-cert {alone}: no certificate with its private key" in err, err
+        assert "--cluster-tls-key FILE, or a PEM file that holds both" in err and "PEM lib" not in err, err
+    assert parse_cluster("tls://127.0.0.1:1", (cert, both, None)).tls == (str(cert), str(both), None)
+    rc, _, err = _cli(["render", str(scene), "-o", str(tmp_path / "out"), "--cluster", "tls://127.0.0.1:1",
+                       "--cluster-tls-ca", str(cert), "--cluster-tls-cert", str(cert),
+                       "--cluster-tls-key", str(other)], capsys)
+    assert rc == 2 and "cannot reach the scheduler" in err and "key values mismatch" in err, err
     assert _outputs(tmp_path) == []
 
 
@@ -531,6 +607,46 @@ def test_compare_on_a_local_cluster_gives_the_same_report(tmp_path, capsys):
     for key in ("flat", "classic", "faithful", "analytic", "faithful_ref"):
         a, b = (_exr(tmp_path / d / "scene" / f"{key}.exr") for d in ("here", "there"))
         assert np.abs(a - b).max() <= TOL, key
+
+
+def test_compare_on_two_local_workers_of_an_openexr_scene_ends_with_its_report(tmp_path):
+    """The documented ``compare demo --cluster local:2`` (the demo's sky is an OpenEXR file) in a
+    child process: on a machine of two cores it waited for ever, no CPU used (each worker's share
+    was one Dr.Jit thread, with which Mitsuba's OpenEXR reader waits for a task no thread runs).
+    Tiny settings: the hang came before the first pixel."""
+    proc = subprocess.Popen([sys.executable, "-m", "mfnormal", "compare", "demo", "--quick", "--methods", "flat",
+                             "--width", "16", "--spp", "1", "--ref-spp", "1", "-o", str(tmp_path),
+                             "--cluster", "local:2"], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True, start_new_session=True)
+    try:
+        out, err = proc.communicate(timeout=180)
+    except subprocess.TimeoutExpired:
+        os.killpg(proc.pid, signal.SIGKILL)           # the client and its workers
+        proc.communicate()
+        pytest.fail("compare --cluster local:2 still running after 180 s")
+    assert proc.returncode == 0 and "Traceback" not in err, out + err
+    assert (tmp_path / "report.html").is_file() and (tmp_path / "demo" / "flat.exr").is_file()
+
+
+def test_a_worker_never_renders_with_one_dr_jit_thread():
+    """With one thread (no pool thread) Mitsuba's OpenEXR reader and writer wait for ever: a
+    worker's share of ``local:N`` (its cores over N) is at least two threads on any machine,
+    and a worker whose own count is one is raised to two."""
+    import drjit as dr
+
+    from mfnormal.cli.cluster import MIN_THREADS, Cluster, Env, _prepare, parse_cluster, versions
+
+    assert MIN_THREADS >= 2
+    assert Cluster(parse_cluster(f"local:{os.cpu_count() or 1}"), mi.variant()).env.threads >= MIN_THREADS
+    old = dr.thread_count()
+    try:
+        dr.set_thread_count(1)
+        _prepare(Env(mi.variant(), versions(), None))
+        assert dr.thread_count() == MIN_THREADS
+        _prepare(Env(mi.variant(), versions(), 1))
+        assert dr.thread_count() == MIN_THREADS
+    finally:
+        dr.set_thread_count(old)
 
 
 def test_compare_on_a_local_cluster_shows_the_methods_that_refuse_the_scene(tmp_path, capsys):

@@ -31,6 +31,7 @@ A worker renders in the client's ``--variant`` unless it was started with its ow
 
 from __future__ import annotations
 
+import asyncio
 import hashlib
 import importlib.metadata
 import json
@@ -66,6 +67,9 @@ SECURE_SCHEMES = ("tls", "wss")
 #: How often a failed task is retried (on any worker); a lost worker's tasks are
 #: resubmitted by the scheduler on its own (``distributed.scheduler.allowed-failures``).
 RETRIES = 2
+#: The fewest Dr.Jit threads a worker renders with: with one (no pool thread, the caller
+#: alone) Mitsuba's OpenEXR reader and writer wait forever for a task no thread runs.
+MIN_THREADS = 2
 _ADDRESS = re.compile(r"^(?:(\w+)://)?(\[[0-9a-fA-F:]+\]|[\w.-]+):(\d{1,5})/?$")
 
 
@@ -131,7 +135,25 @@ def _check_tls(target: Target, tls: tuple) -> tuple:
     for flag, path in (("--cluster-tls-ca", ca), ("--cluster-tls-cert", cert), ("--cluster-tls-key", key)):
         if path is not None:
             check_regular_file(path, f"{flag} {path}", f"{flag} {path}: no such file")
+    if key is None:
+        _check_holds_key(cert)
     return (str(ca), str(cert), None if key is None else str(key))
+
+
+def _check_holds_key(cert) -> None:
+    """A ``--cluster-tls-cert`` given without ``--cluster-tls-key`` holds its key too (OpenSSL
+    says only "PEM lib"); an encrypted key is refused, not asked for on the terminal."""
+    import ssl
+
+    def no_passphrase():
+        raise ValueError("encrypted")
+
+    try:
+        ssl.SSLContext(ssl.PROTOCOL_TLS_CLIENT).load_cert_chain(str(cert), password=no_passphrase)
+    except (ssl.SSLError, ValueError):
+        raise CLIError(f"--cluster-tls-cert {cert}: no certificate with its private key in this file; "
+                       "give the key with --cluster-tls-key FILE, or a PEM file that holds both "
+                       "(the key unencrypted)") from None
 
 
 def _dask_tls_configured() -> bool:
@@ -332,13 +354,13 @@ WORKER_VARIANT: str | None = None
 WORKER_PROBLEM: str | None = None
 _LOCK = threading.Lock()
 _SCENES: OrderedDict = OrderedDict()
-_THREADS: list = []
 
 
 @dataclass(frozen=True)
 class Env:
     """What a task needs besides its scene: the client's variant, versions and, for
-    ``local:N``, the Dr.Jit threads of each worker (None: all of its machine's)."""
+    ``local:N``, the Dr.Jit threads of each worker (None: all of its machine's; never
+    under :data:`MIN_THREADS`)."""
     variant: str
     versions: dict
     threads: int | None = None
@@ -371,9 +393,9 @@ def _prepare(env: Env):
     if problem:
         raise RuntimeError(problem)
     mi = _use_variant(WORKER_VARIANT or env.variant)
-    if env.threads and _THREADS != [env.threads]:
-        dr.set_thread_count(env.threads)
-        _THREADS[:] = [env.threads]
+    threads = max(MIN_THREADS, env.threads or dr.thread_count())
+    if dr.thread_count() != threads:
+        dr.set_thread_count(threads)
     return mi
 
 
@@ -486,6 +508,23 @@ def _local_cluster(target: Target):
                         preload=["mfnormal.cli.worker"], preload_argv=["--quiet"])
 
 
+def _handshake(address: str, timeout: float, args: dict) -> None:
+    """Open and close a connection (Dask's connection ``args``) to the scheduler at ``address``,
+    Dask's handshake included, within ``timeout`` seconds; raises TimeoutError or OSError.
+    Dask bounds the TCP connection and a TLS handshake, not the handshake's reply: a
+    ``tcp://`` peer that accepts and never answers would hold ``Client()`` for ever."""
+    from distributed.comm import connect
+
+    async def probe():
+        comm = await connect(address, timeout=timeout, **args)
+        await comm.close()
+
+    try:
+        asyncio.run(asyncio.wait_for(probe(), timeout))
+    except asyncio.TimeoutError:
+        raise TimeoutError(f"no answer within {timeout:g} s: is it a Dask scheduler?") from None
+
+
 class Cluster:
     """A connection to the cluster of ``target`` (a context manager): starts the
     ``LocalCluster`` of ``local:N``, or connects to a scheduler and waits up to ``timeout``
@@ -495,7 +534,7 @@ class Cluster:
         self.target, self.timeout = target, float(timeout)
         self.client = self._local = None
         self.info: dict = {}
-        threads = max(1, (os.cpu_count() or 1) // target.workers) if target.workers else None
+        threads = max(MIN_THREADS, (os.cpu_count() or 1) // target.workers) if target.workers else None
         self.env = Env(variant, versions(), threads)
         self._token = uuid.uuid4().hex[:12]
         self._submitted = 0
@@ -513,7 +552,7 @@ class Cluster:
         self.close()
 
     def _connect(self):
-        from distributed import Client
+        from distributed import Client, Security
 
         quiet_logs()                # their errors are ours to tell, in one line
         if self.target.workers:
@@ -525,8 +564,9 @@ class Cluster:
                                f"{one_line(exc)}") from None
             return
         try:
-            self.client = Client(self.target.address, timeout=f"{self.timeout}s",
-                                 security=security(self.target.tls))
+            sec = security(self.target.tls) or Security()
+            _handshake(self.target.address, self.timeout, sec.get_connection_args("client"))
+            self.client = Client(self.target.address, timeout=f"{self.timeout}s", security=sec)
         except (OSError, TimeoutError, ValueError, TypeError) as exc:
             raise CLIError(f"--cluster {self.target.text}: cannot reach the scheduler "
                            f"({one_line(exc)})") from None
