@@ -151,6 +151,8 @@ Contracts (each one is tested):
   for ``faithful`` with a transmitting nested BSDF, which answers for ω_i and
   ω_o on either side (the nested BSDF's radiance scaling across the interface
   included);
+- ``eval_diffuse_reflectance`` (the ``aov`` integrator's ``albedo``, what denoisers read) is
+  the nested BSDF's at the hit;
 - ``eval_pdf`` equals ``(eval, pdf)``; ``pdf`` is a deterministic function of
   (wi, wo): for ``faithful`` and ``analytic`` the exact density of ``sample``, for
   the random walks a function for MIS (below);
@@ -417,6 +419,11 @@ class NormalMapMicrofacet:
             value = value if k is None else value * k
         bs, weight = self._from_macro(ctx, sp, bs, weight)
         return value, pdf, bs, weight
+
+    def eval_diffuse_reflectance(self, si, active=True):
+        """The nested BSDF's diffuse reflectance (albedo) at the hit, as Mitsuba's ``normalmap``
+        forwards it: what the ``aov`` integrator's ``albedo`` and denoisers read."""
+        return self.nested.eval_diffuse_reflectance(si, active)
 
     @property
     def stochastic_eval(self) -> bool:
