@@ -444,7 +444,13 @@ def _resolution(text: str) -> tuple:
 
 def _add_render(sub):
     r = sub.add_parser("render", help="render a Mitsuba 3 scene (XML) that may use normalmap_microfacet, "
-                                      "or a glTF 2.0 model (.gltf, .glb)")
+                                      "or a glTF 2.0 model (.gltf, .glb)",
+                       description="Render SCENE, a Mitsuba 3 XML scene whose BSDFs may be "
+                                   "normalmap_microfacet (and whose integrators may be mfnormal_path or "
+                                   "mfnormal_prb), or a glTF 2.0 model with its normal maps wrapped in "
+                                   "normalmap_microfacet. Writes a linear EXR (every channel of the film) "
+                                   "and a tonemapped PNG side by side, atomically. The scene is checked "
+                                   "before rendering: every error is one line and exit code 2.")
     r.add_argument("scene", help="scene file (.xml), or a glTF 2.0 file (.gltf, .glb: -D sets width, "
                                  "height, spp, max_depth, model, tangents, normal_maps, lights, macro_normal)")
     r.add_argument("-o", "--output", help="output path without extension (writes .exr and .png)")
@@ -518,9 +524,19 @@ def _add_compare(sub):
     return c
 
 
+def version_line() -> str:
+    """``mfnormal VERSION (Mitsuba X, Dr.Jit Y)``: what ``mfnormal --version`` prints."""
+    import drjit as dr
+    import mitsuba as mi
+
+    import mfnormal
+    return f"mfnormal {mfnormal.__version__} (Mitsuba {mi.__version__}, Dr.Jit {dr.__version__})"
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The ``mfnormal`` parser; ``parser.commands`` holds each subcommand's own parser."""
     parser = _Parser(prog="mfnormal", description=__doc__.split("\n\n")[0])
+    parser.add_argument("--version", action="version", version=version_line())
     sub = parser.add_subparsers(dest="command", required=True)
     from mfnormal.cli.bake import add_bake
 
