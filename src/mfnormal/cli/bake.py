@@ -17,7 +17,8 @@ import time
 from pathlib import Path
 
 from mfnormal.io.bake import (BakeError, HIGH_NORMALS, MESH_SUFFIXES, SIZE_RANGE, TANGENT_FRAMES,
-                              bake, load_mesh, memory_needed, mesh_arrays, unwrap,
+                              bake, check_low_poly, load_mesh, memory_needed, mesh_arrays,
+                              tangent_mesh, unwrap,
                               write_baked)
 from mfnormal.io.inputs import CLIError, check_output
 
@@ -27,7 +28,7 @@ DEFAULT_SIZE = 1024
 PADDING_MAX = 64
 #: What each output is, by its suffix (for the message when a name lacks it).
 OUTPUT_KINDS = {".png": "the map is a PNG", ".exr": "the heights are a float OpenEXR",
-                ".ply": "the unwrapped mesh is written as PLY"}
+                ".ply": "the mesh is written as PLY"}
 #: Covered texels whose rays may miss the high-poly before the command warns.
 MISSED_WARN = 0.01
 
@@ -63,7 +64,8 @@ def _check_no_overwrite(args) -> None:
     """No output names an input mesh or another output."""
     inputs = (("high-poly mesh", args.high), ("low-poly mesh", args.low))
     outputs = [(flag, path) for flag, path in (("-o", args.output), ("--heights", args.heights),
-                                               ("--unwrap", args.unwrap)) if path is not None]
+                                               ("--unwrap", args.unwrap),
+                                               ("--tangent-mesh", args.tangent_mesh)) if path is not None]
     for k, (flag, path) in enumerate(outputs):
         for what, source in inputs:
             if _same_file(path, source):
@@ -89,6 +91,12 @@ def _check_bake(args) -> Path:
         _check_output_file(args.heights, "--heights", ".exr")
     if args.unwrap is not None:
         _check_output_file(args.unwrap, "--unwrap", ".ply")
+    if args.tangent_mesh is not None:
+        if args.tangents != "mikktspace":
+            raise CLIError(f"--tangent-mesh {args.tangent_mesh}: the mesh carries MikkTSpace tangents, "
+                           f"which a --tangents {args.tangents} map does not use; drop --tangent-mesh "
+                           "or bake with --tangents mikktspace")
+        _check_output_file(args.tangent_mesh, "--tangent-mesh", ".ply")
     _check_mesh_file(args.high, "high-poly mesh")
     _check_mesh_file(args.low, "low-poly mesh")
     _check_no_overwrite(args)
@@ -136,12 +144,16 @@ def cmd_bake(args) -> int:
                "normals" if baked.cage_spans_scene else "raise --cage")
         print(f"mfnormal: warning: {baked.missed} of {covered} texels found no high-poly surface "
               f"within the cage and are flat; {fix}", file=sys.stderr, flush=True)
-    unwrapped = [(args.unwrap, lambda p: low.write_ply(str(p)))] if args.unwrap else []
-    write_baked(output, baked.normals, args.bits, args.heights, baked.heights, unwrapped)
+    meshes = [(args.unwrap, lambda p: low.write_ply(str(p)))] if args.unwrap else []
+    if args.tangent_mesh:
+        with_tangents = tangent_mesh("low", *check_low_poly(low))
+        meshes.append((args.tangent_mesh, lambda p: with_tangents.write_ply(str(p))))
+    write_baked(output, baked.normals, args.bits, args.heights, baked.heights, meshes)
     print(f"baked {args.size}x{args.size} ({args.tangents} frame, {covered} texels covered) "
           f"in {time.time() - started:.1f}s")
-    if args.unwrap:
-        print(f"wrote {args.unwrap}")
+    for path in (args.unwrap, args.tangent_mesh):
+        if path:
+            print(f"wrote {path}")
     print(f"wrote {output}")
     if args.heights:
         print(f"wrote {args.heights}")
@@ -179,6 +191,10 @@ def add_bake(sub):
     b.add_argument("--unwrap", metavar="MESH.ply",
                    help="unwrap the low-poly with xatlas (pip install 'mfnormal[assets]'), write it "
                         "to MESH.ply and bake onto it")
+    b.add_argument("--tangent-mesh", metavar="MESH.ply",
+                   help="also write the low-poly with its MikkTSpace tangents (vertex attributes "
+                        "vertex_tangent, vertex_tangent_sign) as PLY: the mesh an XML scene renders "
+                        "the map on with tangents=\"vertex_tangent\" (--tangents mikktspace)")
     b.add_argument("--variant", default="llvm_ad_rgb", help="Mitsuba variant (default llvm_ad_rgb)")
     b.set_defaults(func=cmd_bake)
     return b
