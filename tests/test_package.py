@@ -3,16 +3,19 @@
 
 Each check runs in a process of its own: the Mitsuba variant is global to a process."""
 
+import os
 import re
 import subprocess
 import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
+ENV = dict(os.environ, PYTHONPATH=str(ROOT / "src"))      # this checkout's package
 
 
 def _python(code: str, cwd=ROOT) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-c", code], cwd=cwd, capture_output=True, text=True, timeout=300)
+    return subprocess.run([sys.executable, "-c", code], cwd=cwd, env=ENV, capture_output=True, text=True,
+                          timeout=300)
 
 
 def test_a_variant_set_after_the_import_has_the_plugins_without_register():
@@ -40,3 +43,48 @@ def test_the_quick_start_snippets_run_as_written():
         proc = _python(snippet + "\nprint(type(bsdf).__name__)\n")
         assert proc.returncode == 0, f"{page.name}'s quick start fails:\n{proc.stderr}"
         assert "NormalMapMicrofacet" in proc.stdout, proc.stdout + proc.stderr
+
+
+TROUBLESHOOTING = ROOT / "docs" / "troubleshooting.md"
+
+WRONG_MODEL = """
+import mfnormal, mitsuba as mi
+mi.set_variant("llvm_ad_rgb")
+try:
+    mi.load_dict({"type": "normalmap_microfacet", "model": "faithfull",
+                  "normalmap": {"type": "bitmap", "filename": "examples/normals.png", "raw": True},
+                  "bsdf": {"type": "roughconductor", "alpha": 0.2}})
+except RuntimeError as exc:
+    lines = str(exc).strip().splitlines()
+    print(lines[0]); print(lines[-1])
+"""
+
+
+def test_the_troubleshooting_page_shows_the_errors_as_they_are():
+    """docs/troubleshooting.md quotes what a user sees: Mitsuba's wrapper line and our message
+    last for a wrong parameter through Python, and Mitsuba's "not found" for a process that never
+    imported mfnormal. Each quoted line is produced here again (a Mitsuba that words them
+    otherwise fails this test, so the page is updated with it)."""
+    page = TROUBLESHOOTING.read_text(encoding="utf-8")
+    first, last = _python(WRONG_MODEL).stdout.strip().splitlines()
+    assert last.startswith("ValueError: normalmap_microfacet: unknown model 'faithfull'") and last in page
+    assert "RuntimeError: " + first in page, first
+    code = ("import mitsuba as mi\nmi.set_variant('llvm_ad_rgb')\n"
+            "try:\n    mi.load_dict({'type': 'normalmap_microfacet'})\n"
+            "except RuntimeError as exc:\n    print(str(exc).strip().splitlines()[-1])\n")
+    not_found = _python(code).stdout.strip()
+    assert not_found.endswith('Plugin "normalmap_microfacet" not found!'), not_found
+    assert '[PluginManager] Plugin "normalmap_microfacet" not found!' in page
+
+
+def test_the_command_line_prints_the_same_message_as_one_line(tmp_path):
+    scene = tmp_path / "scene.xml"
+    scene.write_text('<scene version="3.0.0"><integrator type="path"/><shape type="sphere">'
+                     '<bsdf type="normalmap_microfacet"><string name="model" value="faithfull"/>'
+                     f'<string name="normalmap" value="{ROOT / "examples" / "normals.png"}"/>'
+                     '<bsdf type="roughconductor"/></bsdf></shape></scene>')
+    proc = subprocess.run([sys.executable, "-m", "mfnormal", "render", "scene.xml", "-o", "out/scene"],
+                          cwd=tmp_path, env=ENV, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 2 and not (tmp_path / "out").exists()
+    (line,) = proc.stderr.strip().splitlines()
+    assert line in TROUBLESHOOTING.read_text(encoding="utf-8"), line
