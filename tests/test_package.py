@@ -88,3 +88,52 @@ def test_the_command_line_prints_the_same_message_as_one_line(tmp_path):
     assert proc.returncode == 2 and not (tmp_path / "out").exists()
     (line,) = proc.stderr.strip().splitlines()
     assert line in TROUBLESHOOTING.read_text(encoding="utf-8"), line
+
+
+# Every harness with an --out option: run as a user runs it (python -m ... for a package's module,
+# else the file), with no arguments, up to the parsing of its command line.
+HARNESSES = ("validation/run.py", "validation/true_geometry.py", "validation/real_assets.py",
+             "validation/dielectric.py", "validation/furnace_glass.py", "validation/normal_sources.py",
+             "validation/inverse_rendering.py", "validation/inverse_water.py", "benchmarks/run.py",
+             "benchmarks/backward.py", "benchmarks/cost_floor.py", "benchmarks/experiments.py",
+             "benchmarks/normal_sources.py")
+
+DEFAULT_OUTS = """
+import argparse, runpy, sys
+from pathlib import Path
+parse = argparse.ArgumentParser.parse_args
+
+class Parsed(BaseException):
+    pass
+
+def parse_only(self, args=None, namespace=None):
+    raise Parsed(getattr(parse(self, [], namespace), "out", None))
+
+argparse.ArgumentParser.parse_args = parse_only
+for script in sys.argv[1:]:
+    path = Path(script)
+    sys.argv = [script]
+    try:
+        if (path.parent / "__init__.py").exists():
+            runpy.run_module(".".join(path.with_suffix("").parts), run_name="__main__", alter_sys=True)
+        else:
+            runpy.run_path(script, run_name="__main__")
+    except Parsed as parsed:
+        print(script, Path(str(parsed.args[0])).resolve())
+    else:
+        print(script, "no --out parsed")
+"""
+
+
+def test_harnesses_write_outside_the_tracked_tree_by_default():
+    """Run without ``--out``, no validation or benchmark harness writes over the committed
+    results or figures: each default output folder is under out/, which git ignores. (The
+    committed results are rewritten only with an explicit ``--out validation/results`` etc.)"""
+    proc = subprocess.run([sys.executable, "-c", DEFAULT_OUTS, *HARNESSES], cwd=ROOT, env=ENV,
+                          capture_output=True, text=True, timeout=600)
+    outs = dict(line.split(" ", 1) for line in proc.stdout.splitlines() if line.startswith(HARNESSES))
+    assert set(outs) == set(HARNESSES), proc.stdout + proc.stderr
+    for script, out in outs.items():
+        assert Path(out).is_relative_to(ROOT / "out"), f"{script} writes to {out} by default"
+        ignored = subprocess.run(["git", "check-ignore", "-q", out], cwd=ROOT)
+        assert ignored.returncode == 0, f"{script}'s default {out} is not ignored by git"

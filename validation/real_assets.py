@@ -83,7 +83,7 @@ from mfnormal.io.images import atomic_write  # noqa: E402
 from mfnormal.report.methods import PLUGIN  # noqa: E402
 from mfnormal.report.metrics import luminance, near_black_fraction, rel_mse  # noqa: E402
 
-OUT = ROOT / "validation" / "results" / "real_assets"
+OUT = ROOT / "out" / "validation" / "real_assets"   # --out validation/results/real_assets: the committed one
 FULL = dict(assets=["bunny", "dragon", "rock"], materials=["aluminium", "plastic", "gold", "diffuse"],
             lightings=["sky_sun", "grazing_sun"], views=["frontal", "limb"], res=128, spp=64,
             ref_factor=4, faces=1000, map_size=1024)
