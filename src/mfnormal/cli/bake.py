@@ -17,7 +17,7 @@ import time
 from pathlib import Path
 
 from mfnormal.io.bake import (BakeError, HIGH_NORMALS, MESH_SUFFIXES, SIZE_RANGE, TANGENT_FRAMES,
-                              bake, check_low_poly, load_mesh, memory_needed, mesh_arrays,
+                              TEXELS_PER_PASS, bake, check_low_poly, load_mesh, memory_needed, mesh_arrays,
                               tangent_mesh, unwrap,
                               write_baked)
 from mfnormal.io.inputs import CLIError, check_output
@@ -31,6 +31,8 @@ OUTPUT_KINDS = {".png": "the map is a PNG", ".exr": "the heights are a float Ope
                 ".ply": "the mesh is written as PLY"}
 #: Covered texels whose rays may miss the high-poly before the command warns.
 MISSED_WARN = 0.01
+#: Bakes of at least this many passes (of TEXELS_PER_PASS texels) report their progress.
+PROGRESS_PASSES = 4
 
 
 def _check_mesh_file(path: str, what: str) -> None:
@@ -119,6 +121,22 @@ def _unwrapped(low_mesh, size: int, padding: int):
     return mitsuba_mesh("low", mi.load_dict({"type": "diffuse"}), p, n, uv, None, f)
 
 
+def progress_lines(size: int, started: float, stream=sys.stderr):
+    """The bake's progress callback: on a bake of PROGRESS_PASSES passes or more, a line on
+    ``stream`` as each quarter of the texels is traced (at most three lines); None otherwise."""
+    if size * size < PROGRESS_PASSES * TEXELS_PER_PASS:
+        return None
+    reported = [0]
+
+    def report(done: int, total: int) -> None:
+        quarter = 4 * done // total
+        if reported[0] < quarter < 4:
+            reported[0] = quarter
+            print(f"mfnormal: bake: {25 * quarter} % of {total} texels traced "
+                  f"({time.time() - started:.0f} s)", file=stream, flush=True)
+    return report
+
+
 def cmd_bake(args) -> int:
     """Bake HIGH's normals onto LOW's UVs; write the PNG."""
     from mfnormal.cli.rendering import use_variant
@@ -132,7 +150,8 @@ def cmd_bake(args) -> int:
     try:
         high, low = load_mesh(args.high, "high-poly mesh"), load_mesh(args.low, "low-poly mesh")
         low = _unwrapped(low, args.size, args.padding) if args.unwrap else low
-        baked = bake(high, low, args.size, args.cage, args.tangents, args.padding, args.high_normals)
+        baked = bake(high, low, args.size, args.cage, args.tangents, args.padding, args.high_normals,
+                     progress_lines(args.size, started))
     except BakeError as exc:
         raise CLIError(str(exc)) from None
     except MemoryError:

@@ -51,6 +51,7 @@ import os
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 
@@ -673,7 +674,8 @@ def _check_memory(size: int) -> None:
 
 
 def bake(high, low, size: int = 1024, cage: float | None = None, frame: str = "mikktspace",
-         padding: int = 4, high_normals: str = "shading") -> Baked:
+         padding: int = 4, high_normals: str = "shading",
+         progress: Callable[[int, int], None] | None = None) -> Baked:
     """Bake the tangent-space normal map of ``high`` onto ``low`` (Mitsuba meshes or paths of PLY
     or OBJ files; the low-poly needs UVs and vertex normals), and its heights over ``low``: a
     ``size``² :class:`Baked`.
@@ -681,7 +683,8 @@ def bake(high, low, size: int = 1024, cage: float | None = None, frame: str = "m
     ``cage``: how far from the low-poly surface rays look for the high-poly (default:
     CAGE_FRACTION of the low-poly's bounding-box diagonal); ``frame``: ``mikktspace`` or
     ``mitsuba`` (see the module's docstring); ``padding``: texels to dilate the islands by;
-    ``high_normals``: the high-poly's ``shading`` (interpolated) or ``geometric`` normal.
+    ``high_normals``: the high-poly's ``shading`` (interpolated) or ``geometric`` normal;
+    ``progress(done, total)``: called after each pass of TEXELS_PER_PASS texels traced.
     A JIT variant (``llvm_*``, ``cuda_*``) must be set. Every input is checked first
     (:class:`BakeError`, one line); a warning says when most texels' normals face away from
     the low-poly's (one of the meshes' normals is flipped)."""
@@ -747,6 +750,8 @@ def bake(high, low, size: int = 1024, cage: float | None = None, frame: str = "m
         heights[texel[hit], 0] = distance[hit] / scale
         hits[texel[hit]] = True
         facing_away += int(np.count_nonzero(local[hit, 2] < 0))
+        if progress is not None:
+            progress(min(first + TEXELS_PER_PASS, size * size), size * size)
     hit_count = int(hits.sum())
     if facing_away > hit_count / 2:
         warnings.warn(f"{facing_away} of {hit_count} baked texels face away from the low-poly's "
