@@ -150,3 +150,15 @@ def test_real_assets_without_its_extra_says_which_extra_in_one_line(tmp_path):
     (line,) = proc.stderr.strip().splitlines()
     assert "fast_simplification" in line and "pip install '.[assets]'" in line, line
     assert not (tmp_path / "out").exists()
+
+
+def test_the_differentiable_pages_float_map_snippet_runs():
+    """docs/differentiable.md's snippet that loads a PNG map as floats for optimising: its
+    ``normalmap.data`` is a float tensor the optimizer takes (an 8-bit one it refuses)."""
+    page = ROOT / "docs" / "differentiable.md"
+    snippet = next(b for b in python_blocks(page) if '"format": "variant"' in b)
+    code = ("import mfnormal, mitsuba as mi, drjit as dr\nmi.set_variant('llvm_ad_rgb')\n" + snippet
+            + "print(type(params['normalmap.data']).__name__, dr.grad_enabled(opt['normalmap.data']))\n")
+    proc = _python(code)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.split() == ["TensorXf", "True"], proc.stdout
