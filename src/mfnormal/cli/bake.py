@@ -10,11 +10,13 @@ atomically.
 
 from __future__ import annotations
 
+import argparse
 import math
 import os
 import sys
 import time
 from pathlib import Path
+from typing import Callable, TextIO
 
 from mfnormal.io.bake import (BakeError, HIGH_NORMALS, MESH_SUFFIXES, SIZE_RANGE, TANGENT_FRAMES,
                               TEXELS_PER_PASS, bake, check_low_poly, load_mesh, memory_needed, mesh_arrays,
@@ -22,7 +24,7 @@ from mfnormal.io.bake import (BakeError, HIGH_NORMALS, MESH_SUFFIXES, SIZE_RANGE
                               write_baked)
 from mfnormal.io.inputs import CLIError, check_output
 
-__all__ = ["add_bake", "cmd_bake"]
+__all__ = ["add_bake", "cmd_bake", "progress_lines"]
 
 DEFAULT_SIZE = 1024
 PADDING_MAX = 64
@@ -121,7 +123,7 @@ def _unwrapped(low_mesh, size: int, padding: int):
     return mitsuba_mesh("low", mi.load_dict({"type": "diffuse"}), p, n, uv, None, f)
 
 
-def progress_lines(size: int, started: float, stream=sys.stderr):
+def progress_lines(size: int, started: float, stream: TextIO = sys.stderr) -> Callable[[int, int], None] | None:
     """The bake's progress callback: on a bake of PROGRESS_PASSES passes or more, a line on
     ``stream`` as each quarter of the texels is traced (at most three lines); None otherwise."""
     if size * size < PROGRESS_PASSES * TEXELS_PER_PASS:
@@ -137,7 +139,7 @@ def progress_lines(size: int, started: float, stream=sys.stderr):
     return report
 
 
-def cmd_bake(args) -> int:
+def cmd_bake(args: argparse.Namespace) -> int:
     """Bake HIGH's normals onto LOW's UVs; write the PNG."""
     from mfnormal.cli.rendering import use_variant
     import mitsuba as mi
@@ -179,7 +181,7 @@ def cmd_bake(args) -> int:
     return 0
 
 
-def add_bake(sub):
+def add_bake(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     b = sub.add_parser("bake", help="bake a tangent-space normal map of a high-poly mesh onto a "
                                     "low-poly mesh's UVs",
                        description="Bake the normals of HIGH onto the UVs of LOW (PLY or OBJ, as "

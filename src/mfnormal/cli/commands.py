@@ -25,8 +25,13 @@ import sys
 import time
 import warnings
 from pathlib import Path
+from types import ModuleType
+from typing import TYPE_CHECKING, Callable, Sequence
 
 import numpy as np
+
+if TYPE_CHECKING:
+    import mitsuba as mi
 
 from mfnormal.io.messages import one_line
 from mfnormal.report.methods import METHOD_BY_KEY, METHODS
@@ -42,7 +47,7 @@ DEFAULT_VARIANT = "llvm_ad_rgb"
 DEMO_OUTPUT = os.path.join("out", "demo.png")
 
 
-def setup_variant(variant: str):
+def setup_variant(variant: str) -> ModuleType:
     """Import Mitsuba in ``variant`` with the plugin registered, or raise CLIError."""
     import mitsuba as mi
 
@@ -104,7 +109,8 @@ def _gltf_scene(mi, path: Path, params: dict[str, str], limits: Limits):
     return mi.load_dict(load_gltf(path, limits=limits, **options))
 
 
-def load_scene(mi, path, params: dict[str, str], limits: Limits = DEFAULT_LIMITS):
+def load_scene(mi: ModuleType, path: str | os.PathLike, params: dict[str, str],
+               limits: Limits = DEFAULT_LIMITS) -> mi.Scene:
     """A Mitsuba XML scene (``-D`` sets its ``$key`` defaults) or a glTF 2.0 file (``.gltf``, ``.glb``)."""
     from mfnormal.io.gltf import GLTF_SUFFIXES, GLTFError
 
@@ -550,7 +556,7 @@ def _one_line_warning(message, category, filename, lineno, file=None, line=None)
     print(f"mfnormal: warning: {text}", file=file or sys.stderr)
 
 
-def run_command(prog: str, command) -> int:
+def run_command(prog: str, command: Callable[[], int]) -> int:
     """Run ``command()`` with the command line's error path: a :class:`CLIError` (or a
     missing libLLVM, or a path the system refuses) is one line ``PROG: error: ...`` and
     exit 2; Ctrl-C exits 130 and
@@ -583,7 +589,7 @@ def run_command(prog: str, command) -> int:
             return 1
 
 
-def main(argv=None, prog: str = "mfnormal", command: str | None = None) -> int:
+def main(argv: Sequence[str] | None = None, prog: str = "mfnormal", command: str | None = None) -> int:
     """``mfnormal`` with ``argv`` (default: the process's); ``command`` runs one subcommand as
     a program of its own, named ``prog`` (``mfnormal-demo`` is ``mfnormal demo``)."""
     argv = list(sys.argv[1:] if argv is None else argv)
@@ -600,7 +606,7 @@ def main(argv=None, prog: str = "mfnormal", command: str | None = None) -> int:
     return run_command(prog, run)
 
 
-def demo_main(argv=None) -> int:
+def demo_main(argv: Sequence[str] | None = None) -> int:
     """``mfnormal-demo``: ``mfnormal demo`` under that name."""
     return main(argv, prog="mfnormal-demo", command="demo")
 
