@@ -97,7 +97,8 @@ def check_scene(scene, error: type = ValueError, where: str = "") -> None:
     """Raise ``error`` (one line, after ``where: `` when given) for the first normal-mapped
     shape that cannot work: a mesh without UVs, or a normal map that does not have 3 channels;
     or for a texture whose ``to_uv`` is not finite, or a scene without an integrator (Mitsuba
-    refuses it only when the render starts)."""
+    refuses it only when the render starts). Warns, one line per attribute, where a
+    ``normalmap_microfacet`` names vertex tangents its shapes lack (:func:`missing_tangents`)."""
     try:
         if scene.integrator() is None:
             raise ValueError("the scene has no integrator; add one, e.g. <integrator type=\"path\"/> "
@@ -106,9 +107,12 @@ def check_scene(scene, error: type = ValueError, where: str = "") -> None:
         _check_shapes(scene)
     except ValueError as exc:
         raise error(f"{where}: {exc}" if where else str(exc)) from None
-    for shape, attribute in missing_tangents(scene):
-        warnings.warn(f"shape {_shape_name(shape)} has no vertex attribute '{attribute}', which its "
-                      f"normalmap_microfacet names (tangents=\"{attribute}\"): its map is decoded in "
+    missing = missing_tangents(scene)
+    for attribute in sorted({name for _, name in missing}):
+        shapes = [shape for shape, name in missing if name == attribute]
+        more = f" (and {len(shapes) - 1} more)" if len(shapes) > 1 else ""
+        warnings.warn(f"shape {_shape_name(shapes[0])}{more} has no vertex attribute '{attribute}', which "
+                      f"its normalmap_microfacet names (tangents=\"{attribute}\"): its map is decoded in "
                       "Mitsuba's frame instead, wrong for a map baked in MikkTSpace; render it on a mesh "
                       "with the tangents (mfnormal bake --tangent-mesh MESH.ply, or a glTF model)",
                       stacklevel=2)
