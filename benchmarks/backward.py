@@ -98,7 +98,7 @@ def main(argv=None):
     p.add_argument("--res", type=int, default=64)
     p.add_argument("--spp", type=int, default=16)
     p.add_argument("--reps", type=int, default=3)
-    p.add_argument("--out", type=Path, default=HERE)
+    p.add_argument("--out", type=Path, default=ROOT / "out" / "benchmarks")
     p.add_argument("--map", choices=["true", "flat"], default="true",
                    help="the map differentiated at: the true one, or a flat one (the optimisation's start, "
                         "where every texel takes the flat normal's derivatives: 4 more evaluations)")

@@ -33,7 +33,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import run as R      # noqa: E402  (benchmarks/run.py: scenes, timing, path vertices)
 
-OUT = Path(__file__).resolve().parent / "cost_floor"
+OUT = Path(__file__).resolve().parents[1] / "out" / "benchmarks" / "cost_floor"   # --out benchmarks/cost_floor: the committed one
 SHELLS = ("bench_shell_classic", "bench_shell_hidden")
 METHODS = ("faithful",) + SHELLS
 

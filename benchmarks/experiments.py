@@ -335,7 +335,7 @@ def main(argv=None):
     ap.add_argument("--queries", type=int, default=20, help="log2 of the number of queries (default 20)")
     ap.add_argument("--reps", type=int, default=5)
     ap.add_argument("--only", default="ops,cap,evalnoise,mispdf,control")
-    ap.add_argument("--out", default=str(HERE))
+    ap.add_argument("--out", default=str(HERE.parent / "out" / "benchmarks"))
     ap.add_argument("--merge", action="store_true",
                     help="re-measure only the --only sections and keep the others from --out's experiments.json")
     args = ap.parse_args(argv)

@@ -214,7 +214,7 @@ def main(argv=None):
     ap.add_argument("--queries", type=int, default=20, help="log2 of the query count (default 20)")
     ap.add_argument("--reps", type=int, default=9)
     ap.add_argument("--models", default=",".join(MODELS))
-    ap.add_argument("--out", type=Path, default=HERE)
+    ap.add_argument("--out", type=Path, default=HERE.parent / "out" / "benchmarks")
     ap.add_argument("--threads", type=int, default=0,
                     help="Dr.Jit worker threads (0, the default: kernels on this thread, exact CPU clock)")
     args = ap.parse_args(argv)

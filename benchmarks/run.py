@@ -1214,7 +1214,8 @@ def parse_args(argv):
                     help="full (192×144, every metric), production (1280×720: time and compile), water "
                          "(the water scene: time), or all (the three, and benchmarks/backward.py; the default)")
     ap.add_argument("--variant", default=VARIANT, help=f"Mitsuba variant (default {VARIANT}; e.g. cuda_ad_rgb)")
-    ap.add_argument("--out", default=str(HERE), help="output directory (default: benchmarks/)")
+    ap.add_argument("--out", default=str(HERE.parent / "out" / "benchmarks"),
+                    help="output directory (default: out/benchmarks; --out benchmarks rewrites the committed results)")
     ap.add_argument("--scenes", help=f"comma-separated subset of {','.join(SCENES)}")
     ap.add_argument("--nested", help=f"comma-separated subset of {','.join(NESTED)}")
     ap.add_argument("--skip", default="", help="comma-separated metrics to skip: render,compile,throughput,backward")

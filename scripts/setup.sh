@@ -1,10 +1,10 @@
 #!/usr/bin/env bash
 # Set up mfnormal on a fresh machine: a libLLVM >= 17 for Dr.Jit, a virtual
-# environment in .venv with the pinned Mitsuba/Dr.Jit, and the package itself.
+# environment in .venv with the tested Mitsuba/Dr.Jit, and the package itself.
 # With --test, also what the test suite needs (pytest, pytest-xdist, scipy, matplotlib,
 # selenium, Sphinx and MyST for the documentation build, Dask.distributed for the
-# --cluster tests, Debian's headless Chromium for the browser tests of the report and
-# the documentation,
+# --cluster tests, xatlas and fast-simplification for validation/real_assets.py,
+# Debian's headless Chromium for the browser tests of the report and the documentation,
 # pymikktspace, the reference MikkTSpace of the glTF tests, and their
 # third-party glTF asset, from Debian's archive).
 # Idempotent: re-running it only checks what is already there.
@@ -39,13 +39,14 @@ if [ "$TEST" = 1 ] && { ! command -v chromium >/dev/null 2>&1 || ! command -v ch
     fi
 fi
 
-# 2. The virtual environment and the package (pins live in pyproject.toml).
+# 2. The virtual environment and the package, with the Mitsuba and Dr.Jit it is tested with
+#    (scripts/tested-versions.txt; pyproject.toml accepts their patch releases).
 if [ ! -x .venv/bin/python ]; then
     "$PYTHON" -m venv .venv
 fi
 EXTRAS=""
-[ "$TEST" = 1 ] && EXTRAS="[test,cluster]"
-.venv/bin/python -m pip install -q --disable-pip-version-check -e ".$EXTRAS" 2>&1 | grep -v '^WARNING: Location' || true
+[ "$TEST" = 1 ] && EXTRAS="[test,cluster,assets]"
+.venv/bin/python -m pip install -q --disable-pip-version-check -c scripts/tested-versions.txt -e ".$EXTRAS" 2>&1 | grep -v '^WARNING: Location' || true
 
 # 2b. The reference MikkTSpace (C) that tests/test_gltf.py compares against; its sdist
 #     needs a hand to build (see the script). Without it that one comparison skips.

@@ -267,6 +267,10 @@ def meshes(tmp_path_factory):
     (["high.ply", "low.ply", "-o", "m.png", "--heights", "m.png"], ("--heights", "ending in .exr")),
     (["high.ply", "low.ply", "-o", "m.png", "--heights", "file.txt/m.exr"], ("--heights", "is a file, not a folder")),
     (["high.ply", "low.ply"], ("-o/--output",)),
+    (["high.ply", "low.ply", "-o", "m.png", "--tangent-mesh", "t.obj"], ("--tangent-mesh", "ending in .ply")),
+    (["high.ply", "low.ply", "-o", "m.png", "--tangents", "mitsuba", "--tangent-mesh", "t.ply"],
+     ("--tangent-mesh t.ply", "--tangents mikktspace")),
+    (["high.ply", "low.ply", "-o", "m.png", "--tangent-mesh", "low.ply"], ("--tangent-mesh", "overwrite its input")),
 ])
 def test_bake_command_rejects_bad_input_in_one_line(worker, meshes, args, needles):
     result = worker.run(["bake", *args], cwd=meshes)
@@ -318,6 +322,82 @@ def test_bake_command_unwraps_a_mesh_without_uvs(worker, meshes):
     uvs = B.mesh_arrays(mesh)[2]
     assert uvs.min() >= 0.0 and uvs.max() <= 1.0
     assert np.array(mi.Bitmap(str(meshes / "unwrapped.png"))).shape == (32, 32, 3)
+
+
+def test_a_long_bake_reports_its_progress_in_at_most_three_lines(monkeypatch):
+    """``bake(progress=...)`` is called after every pass with the texels traced so far; the
+    command's callback prints a line at each quarter, on stderr, for bakes of
+    PROGRESS_PASSES passes or more (passes made small here), and nothing for shorter ones."""
+    import io
+    from mfnormal.cli import bake as cli_bake
+    monkeypatch.setattr(B, "TEXELS_PER_PASS", 512)
+    monkeypatch.setattr(cli_bake, "TEXELS_PER_PASS", 512)
+    calls = []
+    B.bake(bumpy_sphere(), low_mesh(uv_sphere(6, 12), False), 64, progress=lambda *a: calls.append(a))
+    assert calls == [(min(k * 512, 64 * 64), 64 * 64) for k in range(1, 9)]
+    stream = io.StringIO()
+    report = cli_bake.progress_lines(64, 0.0, stream)
+    for done, total in calls:
+        report(done, total)
+    lines = stream.getvalue().splitlines()
+    assert [ln.split(" texels")[0] for ln in lines] == [
+        f"mfnormal: bake: {q} % of 4096" for q in (25, 50, 75)], lines
+    assert cli_bake.progress_lines(32, 0.0, stream) is None     # 2 passes: no report
+
+
+TANGENT_SCENE = """<scene version="3.0.0">
+    <integrator type="path"><integer name="max_depth" value="2"/></integrator>
+    <sensor type="orthographic">
+        <transform name="to_world"><scale x="1.1" y="1.1"/><lookat origin="0,-5,0" target="0,0,0" up="0,0,1"/></transform>
+        <film type="hdrfilm"><integer name="width" value="16"/><integer name="height" value="16"/></film>
+        <sampler type="independent"><integer name="sample_count" value="4"/></sampler>
+    </sensor>
+    <emitter type="directional"><vector name="direction" x="-1" y="0.5" z="-1"/></emitter>
+    <shape type="ply">
+        <string name="filename" value="$mesh"/>
+        <bsdf type="normalmap_microfacet">
+            <string name="tangents" value="vertex_tangent"/>
+            <texture name="normalmap" type="bitmap">
+                <string name="filename" value="tmap.png"/>
+                <boolean name="raw" value="true"/>
+            </texture>
+            <bsdf type="diffuse"/>
+        </bsdf>
+    </shape>
+</scene>
+"""
+
+
+def test_bake_command_writes_the_mesh_with_its_mikktspace_tangents_for_xml(worker, meshes):
+    """``--tangent-mesh`` writes the low-poly with the MikkTSpace tangents the map was baked in
+    (Mitsuba's ``write_ply`` keeps the attributes ``vertex_tangent``, ``vertex_tangent_sign``):
+    read back, they are :func:`tangent_mesh`'s, and an XML scene renders the map on it as the
+    Python route (``tangent_mesh``) does. On the low-poly without them the command warns, in one
+    line, that the map falls back to Mitsuba's frame; on the tangent mesh it does not."""
+    result = worker.run(["bake", "high.ply", "low.ply", "-o", "tmap.png", "--size", "32",
+                         "--tangent-mesh", "tlow.ply"], cwd=meshes)
+    assert result.rc == 0 and result.exception is None, result.describe()
+    written = mi.load_dict({"type": "ply", "filename": str(meshes / "tlow.ply")})
+    python_route = low_mesh(uv_sphere(6, 12), True)
+    for key in ("vertex_positions", "vertex_texcoords", "vertex_tangent", "vertex_tangent_sign"):
+        np.testing.assert_allclose(np.array(mi.traverse(written)[key]),
+                                   np.array(mi.traverse(python_route)[key]), atol=1e-6, err_msg=key)
+    (meshes / "tangents.xml").write_text(TANGENT_SCENE)
+    for mesh in ("tlow.ply", "low.ply"):
+        run = worker.run(["render", "tangents.xml", "-D", f"mesh={mesh}", "-o", meshes / f"render_{mesh[:-4]}"],
+                         cwd=meshes)
+        assert run.rc == 0, run.describe()
+        warned = [ln for ln in run.stderr.splitlines() if "vertex attribute 'vertex_tangent'" in ln]
+        assert len(warned) == (mesh == "low.ply"), run.stderr
+        assert not warned or warned[0].startswith("mfnormal: warning: ") and "--tangent-mesh" in warned[0]
+    scenes = {mesh: mi.load_file(str(meshes / "tangents.xml"), mesh=mesh) for mesh in ("tlow.ply", "low.ply")}
+    images = {mesh: np.array(mi.render(scene, seed=0)) for mesh, scene in scenes.items()}
+    scene = scenes["tlow.ply"]
+    python_route.set_bsdf(scene.shapes()[0].bsdf())
+    scene_python = mi.load_dict({"type": "scene", "integrator": scene.integrator(), "sensor": scene.sensors()[0],
+                                 "sun": scene.emitters()[0], "shape": python_route})
+    np.testing.assert_allclose(images["tlow.ply"], np.array(mi.render(scene_python, seed=0)), atol=1e-5)
+    assert not np.allclose(images["tlow.ply"], images["low.ply"], atol=1e-3)   # the frames differ
 
 
 def test_a_baked_map_renders_the_high_poly_shading_on_the_low_poly(tmp_path):

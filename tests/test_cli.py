@@ -93,6 +93,23 @@ def run_cli(*args, cwd):
                           capture_output=True, text=True, timeout=300)
 
 
+def test_version_names_the_package_mitsuba_and_drjit(tmp_path):
+    import drjit as dr
+    proc = run_cli("--version", cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.strip() == (f"mfnormal {mfnormal.__version__} (Mitsuba {mi.__version__}, "
+                                   f"Dr.Jit {dr.__version__})")
+    project = (ROOT / "pyproject.toml").read_text(encoding="utf-8")
+    assert f'\nversion = "{mfnormal.__version__}"\n' in project
+
+
+def test_every_command_has_a_description():
+    """``mfnormal COMMAND --help`` says what the command does, not only its usage."""
+    from mfnormal.cli.commands import build_parser
+    for name, parser in build_parser().commands.items():
+        assert parser.description and len(parser.description) > 40, name
+
+
 def test_good_scene_renders(scenes, tmp_path):
     proc = run_cli("render", "good.xml", "-o", str(tmp_path / "good"), cwd=scenes)
     assert proc.returncode == 0, proc.stderr

@@ -123,7 +123,8 @@ def test_the_generator_reads_every_plugin_docstring():
 
 def test_the_docs_build_with_warnings_as_errors(site):
     for page in ("index", "plugins", "models", "model", "faithful", "normal_sources", "cli", "gltf",
-                 "differentiable", "validation", "performance", "diagnoses", "development"):
+                 "differentiable", "validation", "performance", "diagnoses", "troubleshooting",
+                 "development"):
         assert (site / f"{page}.html").is_file(), page
 
 
@@ -140,6 +141,10 @@ def test_the_plugin_reference_holds_the_parameter_tables(site):
     # Mitsuba's substitutions are rendered, not left as |float| or :monosp:.
     assert "|float|" not in text and "|texture|" not in text and ":monosp:" not in text
     assert 'class="paramtype' in text
+    # Every row reads as prose: no flag substitution left dangling as "(Exposed, exposed )".
+    words = " ".join(re.sub(r"<[^>]+>", " ", text).split())
+    assert not re.search(r"\(Exposed, exposed\s*\)", words, re.I), "a row ends in a bare flag"
+    assert "what Mitsuba’s bumpmap calls scale" in words or "what Mitsuba's bumpmap calls scale" in words
 
 
 def test_the_front_page_links_to_the_plugin_reference(site):

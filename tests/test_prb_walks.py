@@ -147,8 +147,9 @@ def test_mirror_facet_walk_texel_gradient_is_biased_under_varying_radiance():
     assert abs(diff) > 3 * se, (diff, se)
 
 
-# Behind MFNORMAL_SLOW=1: it measures the pinned Mitsuba (pyproject: mitsuba==3.9.1), not this
-# package, so its outcome changes only with that pin; run it when the pin moves.
+# Behind MFNORMAL_SLOW=1: it measures the tested Mitsuba (scripts/tested-versions.txt:
+# mitsuba==3.9.1), not this package, so its outcome changes only with that version; run it when
+# the tested version moves.
 @pytest.mark.slow
 @pytest.mark.parametrize("integrator", ["prb", "path"])
 def test_mitsuba_integrators_are_biased_for_walks_under_bsdf_sampled_light(integrator):

@@ -73,6 +73,16 @@ def test_report_embeds_every_image_and_fetches_nothing(report):
     assert "white furnace" in text.lower() and "albedo.png" in text
 
 
+def test_the_measurements_say_what_their_relmse_is_measured_against(report):
+    """The table's relMSE is each method's noise against its own reference, not a distance to
+    the truth: its header and caption say so where it is read."""
+    text = report.read_text(encoding="utf-8")
+    table = text[text.index("<table class=metrics>"):]
+    table = table[:table.index("</table>")]
+    assert "relMSE to its own reference" in table
+    assert "<caption>" in table and "not its distance to the true geometry" in table
+
+
 def test_compare_writes_a_render_and_a_reference_per_method(report):
     out = report.parent / "model"
     for method in METHODS:
@@ -135,6 +145,15 @@ def test_report_works_in_headless_chromium(report, browser):
     # No errors in the console (script errors, failed loads).
     errors = [e for e in browser.get_log("browser") if e["level"] in ("SEVERE", "ERROR")]
     assert errors == []
+
+    # The measurements fit a 1280-px window: no table wider than the page, no sideways scroll.
+    browser.set_window_size(1280, 900)
+    width = browser.execute_script("return document.documentElement.clientWidth")
+    rights = browser.execute_script("return Array.from(document.querySelectorAll('table.metrics'))"
+                                    ".map(t => t.getBoundingClientRect().right)")
+    assert rights and max(rights) <= width, (rights, width)
+    assert browser.execute_script("return document.documentElement.scrollWidth") <= width
+    browser.set_window_size(1400, 1000)
 
     shot = report.parent / "report_screenshot.png"
     browser.save_screenshot(str(shot))

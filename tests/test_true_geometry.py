@@ -59,3 +59,13 @@ def test_on_mild_maps_the_default_is_as_close_to_the_truth_as_classic_normal_map
     best_classic = min(m["classic"]["rel_mse"], m["classic_fixed"]["rel_mse"])
     assert m["default"]["rel_mse"] <= best_classic, (m["default"]["rel_mse"], best_classic, r["floor"])
     assert m["default"]["rel_mse"] < 0.5 * m["analytic"]["rel_mse"]
+
+
+def test_the_default_methods_are_those_of_the_committed_results():
+    """``python -m validation.true_geometry`` as documented measures what the committed results
+    hold (the default model among them)."""
+    import json
+    from pathlib import Path
+    committed = json.loads((Path(__file__).resolve().parents[1] / "validation" / "results" /
+                            "true_geometry.json").read_text())["settings"]["methods"]
+    assert [H.method_from_spec(s).key for s in H.DEFAULT_METHODS] == committed

@@ -165,6 +165,7 @@ def test_the_wheel_holds_the_package_and_its_bundled_scenes(installed):
     names = zipfile.ZipFile(installed.wheel).namelist()
     scenes = sorted(p.name for p in (ROOT / "src" / "mfnormal" / "scenes").glob("*.xml"))
     assert scenes and all(f"mfnormal/scenes/{name}" in names for name in scenes), names
+    assert "mfnormal/py.typed" in names, names      # PEP 561: type checkers read its hints
     assert not any(name.startswith(("validation/", "tests/", "benchmarks/")) for name in names), names
 
 
@@ -172,6 +173,12 @@ def test_the_installed_package_is_the_wheels(installed):
     proc = installed.run("python", "-c", "import mfnormal; print(mfnormal.__file__)")
     path = Path(proc.stdout.strip()).resolve()
     assert path.is_relative_to(installed.venv.resolve()), path
+    assert installed.outside_reads() == []
+
+
+def test_the_installed_command_tells_its_version(installed):
+    proc = installed.run("mfnormal", "--version")
+    assert proc.stdout.startswith(f"mfnormal {mfnormal.__version__} (Mitsuba "), proc.stdout
     assert installed.outside_reads() == []
 
 

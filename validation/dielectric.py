@@ -84,7 +84,7 @@ def harness_parser(module: str, doc: str, quick: str) -> argparse.ArgumentParser
     its help), --methods, --seed; the module's docstring ``doc`` is the help's text."""
     p = argparse.ArgumentParser(prog=f"python -m {module}", description=doc.split("\n\n")[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter, epilog=doc)
-    p.add_argument("--out", type=Path, default=ROOT / "validation" / "results")
+    p.add_argument("--out", type=Path, default=ROOT / "out" / "validation")
     p.add_argument("--quick", action="store_true", help=quick)
     p.add_argument("--methods", type=H.split_methods, default=list(DEFAULT_METHODS),
                    help="validation.heightfield method keys or plugin:MODEL[:FACET][,k=v] ('plugin:': "

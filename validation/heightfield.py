@@ -791,8 +791,8 @@ METHODS = {m.key: m for m in (
 )}
 
 #: The methods of the default grid.
-DEFAULT_METHODS = ("nomap", "classic", "classic_fixed", "analytic", "separable_specular",
-                   "separable_same", "nonseparable_specular", "nonseparable_same")
+DEFAULT_METHODS = ("nomap", "classic", "classic_fixed", "plugin:faithful", "analytic",
+                   "separable_specular", "separable_same", "nonseparable_specular", "nonseparable_same")
 
 
 def split_methods(text: str) -> list:

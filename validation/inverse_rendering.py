@@ -41,7 +41,7 @@ def main(argv=None):
     p.add_argument("--res", type=int, default=32)
     p.add_argument("--spp", type=int, default=8)
     p.add_argument("--lr", type=float, default=0.02)
-    p.add_argument("--out", type=Path, default=ROOT / "validation" / "results")
+    p.add_argument("--out", type=Path, default=ROOT / "out" / "validation")
     args = p.parse_args(argv)
 
     mi.set_variant("llvm_ad_rgb")

@@ -89,7 +89,7 @@ def main(argv=None):
     p.add_argument("--iterations", type=int, default=80)
     p.add_argument("--res", type=int, default=32)
     p.add_argument("--spp", type=int, default=16)
-    p.add_argument("--out", type=Path, default=ROOT / "validation" / "results")
+    p.add_argument("--out", type=Path, default=ROOT / "out" / "validation")
     args = p.parse_args(argv)
     from validation import inverse as I
 

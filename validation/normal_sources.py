@@ -351,7 +351,7 @@ def markdown(res) -> str:
 
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--out", type=Path, default=ROOT / "validation" / "results")
+    p.add_argument("--out", type=Path, default=ROOT / "out" / "validation")
     p.add_argument("--quick", action="store_true")
     p.add_argument("--spp", type=int, default=None)
     p.add_argument("--res", type=int, default=128)

@@ -272,7 +272,8 @@ STEPS = {"microgeometry": microgeometry, "furnace": furnace, "variance": varianc
 
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--out", default=str(ROOT / "validation" / "results"))
+    parser.add_argument("--out", default=str(ROOT / "out" / "validation"),
+                        help="output folder (default: out/validation; --out validation/results rewrites the committed results)")
     parser.add_argument("--quick", action="store_true", help="fewer samples (about a minute)")
     parser.add_argument("--only", nargs="*", choices=sorted(STEPS), help="run only these steps")
     args = parser.parse_args(argv)

@@ -88,7 +88,7 @@ ROW_EXPOSURE = 0.35  # contact sheet: the truth's mean luminance maps to this (l
 def parse_args(argv=None):
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--out", type=Path, default=ROOT / "validation" / "results")
+    p.add_argument("--out", type=Path, default=ROOT / "out" / "validation")
     p.add_argument("--quick", action="store_true", help="small grid at low resolution (~2 min)")
     for name in ("heightfields", "steepness", "materials", "lightings", "views", "magnifications"):
         p.add_argument(f"--{name}", type=lambda s: s.split(","), default=None,

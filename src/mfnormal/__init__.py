@@ -4,8 +4,8 @@
 ``mfnormal._llvm``), then registers the ``normalmap_microfacet`` BSDF plugin, the
 ``mfnormal_path`` integrator (``mfnormal.plugins.mfnormal_path``) and, in the ``*_ad_*`` variants, the
 ``mfnormal_prb`` AD integrator (``mfnormal.plugins.mfnormal_prb``: unbiased render derivatives for the
-random-walk models) for the active Mitsuba variant. Call ``mfnormal.register()`` again
-after ``mi.set_variant(...)``.
+random-walk models) for the active Mitsuba variant, and again for every variant set after it
+(``mi.set_variant``: through Mitsuba's variant callback, as Mitsuba's own Python plugins are).
 """
 
 from __future__ import annotations  # ``str | None`` annotations on Python 3.9
@@ -26,7 +26,8 @@ _warned_scalar = False
 
 
 def register(variant: str | None = None) -> str | None:
-    """Register the plugins for ``variant`` (default: the active one); idempotent.
+    """Register the plugins for ``variant`` (default: the active one); idempotent. ``import
+    mfnormal`` calls it, and so does every ``mi.set_variant`` after the import.
 
     Returns the variant registered for, or None when no variant is active.
     """
@@ -54,4 +55,12 @@ def register(variant: str | None = None) -> str | None:
     return variant
 
 
+def _on_variant(old: str | None, new: str | None) -> None:
+    """Mitsuba's variant callback (``mi.detail.add_variant_callback``): every variant set after
+    ``import mfnormal`` gets the plugins, without a call of :func:`register`."""
+    if new is not None:
+        register()
+
+
 register()
+mi.detail.add_variant_callback(_on_variant)

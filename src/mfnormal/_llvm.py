@@ -103,7 +103,7 @@ def find_llvm(system: list[str] | None = None,
     return None if best is None else (best[1], best[2])
 
 
-def ensure_llvm(environ=None, loaded: list[str] | None = None, system: list[str] | None = None,
+def ensure_llvm(environ: dict[str, str] | None = None, loaded: list[str] | None = None, system: list[str] | None = None,
                 wheels: list[tuple[str, list[str]]] | None = None) -> str:
     """Make sure Dr.Jit will load a compatible libLLVM; return its path.
 

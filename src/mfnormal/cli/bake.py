@@ -10,26 +10,31 @@ atomically.
 
 from __future__ import annotations
 
+import argparse
 import math
 import os
 import sys
 import time
 from pathlib import Path
+from typing import Callable, TextIO
 
 from mfnormal.io.bake import (BakeError, HIGH_NORMALS, MESH_SUFFIXES, SIZE_RANGE, TANGENT_FRAMES,
-                              bake, load_mesh, memory_needed, mesh_arrays, unwrap,
+                              TEXELS_PER_PASS, bake, check_low_poly, load_mesh, memory_needed, mesh_arrays,
+                              tangent_mesh, unwrap,
                               write_baked)
 from mfnormal.io.inputs import CLIError, check_output
 
-__all__ = ["add_bake", "cmd_bake"]
+__all__ = ["add_bake", "cmd_bake", "progress_lines"]
 
 DEFAULT_SIZE = 1024
 PADDING_MAX = 64
 #: What each output is, by its suffix (for the message when a name lacks it).
 OUTPUT_KINDS = {".png": "the map is a PNG", ".exr": "the heights are a float OpenEXR",
-                ".ply": "the unwrapped mesh is written as PLY"}
+                ".ply": "the mesh is written as PLY"}
 #: Covered texels whose rays may miss the high-poly before the command warns.
 MISSED_WARN = 0.01
+#: Bakes of at least this many passes (of TEXELS_PER_PASS texels) report their progress.
+PROGRESS_PASSES = 4
 
 
 def _check_mesh_file(path: str, what: str) -> None:
@@ -63,7 +68,8 @@ def _check_no_overwrite(args) -> None:
     """No output names an input mesh or another output."""
     inputs = (("high-poly mesh", args.high), ("low-poly mesh", args.low))
     outputs = [(flag, path) for flag, path in (("-o", args.output), ("--heights", args.heights),
-                                               ("--unwrap", args.unwrap)) if path is not None]
+                                               ("--unwrap", args.unwrap),
+                                               ("--tangent-mesh", args.tangent_mesh)) if path is not None]
     for k, (flag, path) in enumerate(outputs):
         for what, source in inputs:
             if _same_file(path, source):
@@ -89,6 +95,12 @@ def _check_bake(args) -> Path:
         _check_output_file(args.heights, "--heights", ".exr")
     if args.unwrap is not None:
         _check_output_file(args.unwrap, "--unwrap", ".ply")
+    if args.tangent_mesh is not None:
+        if args.tangents != "mikktspace":
+            raise CLIError(f"--tangent-mesh {args.tangent_mesh}: the mesh carries MikkTSpace tangents, "
+                           f"which a --tangents {args.tangents} map does not use; drop --tangent-mesh "
+                           "or bake with --tangents mikktspace")
+        _check_output_file(args.tangent_mesh, "--tangent-mesh", ".ply")
     _check_mesh_file(args.high, "high-poly mesh")
     _check_mesh_file(args.low, "low-poly mesh")
     _check_no_overwrite(args)
@@ -111,7 +123,23 @@ def _unwrapped(low_mesh, size: int, padding: int):
     return mitsuba_mesh("low", mi.load_dict({"type": "diffuse"}), p, n, uv, None, f)
 
 
-def cmd_bake(args) -> int:
+def progress_lines(size: int, started: float, stream: TextIO = sys.stderr) -> Callable[[int, int], None] | None:
+    """The bake's progress callback: on a bake of PROGRESS_PASSES passes or more, a line on
+    ``stream`` as each quarter of the texels is traced (at most three lines); None otherwise."""
+    if size * size < PROGRESS_PASSES * TEXELS_PER_PASS:
+        return None
+    reported = [0]
+
+    def report(done: int, total: int) -> None:
+        quarter = 4 * done // total
+        if reported[0] < quarter < 4:
+            reported[0] = quarter
+            print(f"mfnormal: bake: {25 * quarter} % of {total} texels traced "
+                  f"({time.time() - started:.0f} s)", file=stream, flush=True)
+    return report
+
+
+def cmd_bake(args: argparse.Namespace) -> int:
     """Bake HIGH's normals onto LOW's UVs; write the PNG."""
     from mfnormal.cli.rendering import use_variant
     import mitsuba as mi
@@ -124,7 +152,8 @@ def cmd_bake(args) -> int:
     try:
         high, low = load_mesh(args.high, "high-poly mesh"), load_mesh(args.low, "low-poly mesh")
         low = _unwrapped(low, args.size, args.padding) if args.unwrap else low
-        baked = bake(high, low, args.size, args.cage, args.tangents, args.padding, args.high_normals)
+        baked = bake(high, low, args.size, args.cage, args.tangents, args.padding, args.high_normals,
+                     progress_lines(args.size, started))
     except BakeError as exc:
         raise CLIError(str(exc)) from None
     except MemoryError:
@@ -136,19 +165,23 @@ def cmd_bake(args) -> int:
                "normals" if baked.cage_spans_scene else "raise --cage")
         print(f"mfnormal: warning: {baked.missed} of {covered} texels found no high-poly surface "
               f"within the cage and are flat; {fix}", file=sys.stderr, flush=True)
-    unwrapped = [(args.unwrap, lambda p: low.write_ply(str(p)))] if args.unwrap else []
-    write_baked(output, baked.normals, args.bits, args.heights, baked.heights, unwrapped)
+    meshes = [(args.unwrap, lambda p: low.write_ply(str(p)))] if args.unwrap else []
+    if args.tangent_mesh:
+        with_tangents = tangent_mesh("low", *check_low_poly(low))
+        meshes.append((args.tangent_mesh, lambda p: with_tangents.write_ply(str(p))))
+    write_baked(output, baked.normals, args.bits, args.heights, baked.heights, meshes)
     print(f"baked {args.size}x{args.size} ({args.tangents} frame, {covered} texels covered) "
           f"in {time.time() - started:.1f}s")
-    if args.unwrap:
-        print(f"wrote {args.unwrap}")
+    for path in (args.unwrap, args.tangent_mesh):
+        if path:
+            print(f"wrote {path}")
     print(f"wrote {output}")
     if args.heights:
         print(f"wrote {args.heights}")
     return 0
 
 
-def add_bake(sub):
+def add_bake(sub: argparse._SubParsersAction) -> argparse.ArgumentParser:
     b = sub.add_parser("bake", help="bake a tangent-space normal map of a high-poly mesh onto a "
                                     "low-poly mesh's UVs",
                        description="Bake the normals of HIGH onto the UVs of LOW (PLY or OBJ, as "
@@ -179,6 +212,10 @@ def add_bake(sub):
     b.add_argument("--unwrap", metavar="MESH.ply",
                    help="unwrap the low-poly with xatlas (pip install 'mfnormal[assets]'), write it "
                         "to MESH.ply and bake onto it")
+    b.add_argument("--tangent-mesh", metavar="MESH.ply",
+                   help="also write the low-poly with its MikkTSpace tangents (vertex attributes "
+                        "vertex_tangent, vertex_tangent_sign) as PLY: the mesh an XML scene renders "
+                        "the map on with tangents=\"vertex_tangent\" (--tangents mikktspace)")
     b.add_argument("--variant", default="llvm_ad_rgb", help="Mitsuba variant (default llvm_ad_rgb)")
     b.set_defaults(func=cmd_bake)
     return b

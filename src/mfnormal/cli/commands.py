@@ -25,8 +25,13 @@ import sys
 import time
 import warnings
 from pathlib import Path
+from types import ModuleType
+from typing import TYPE_CHECKING, Callable, Sequence
 
 import numpy as np
+
+if TYPE_CHECKING:
+    import mitsuba as mi
 
 from mfnormal.io.messages import one_line
 from mfnormal.report.methods import METHOD_BY_KEY, METHODS
@@ -42,7 +47,7 @@ DEFAULT_VARIANT = "llvm_ad_rgb"
 DEMO_OUTPUT = os.path.join("out", "demo.png")
 
 
-def setup_variant(variant: str):
+def setup_variant(variant: str) -> ModuleType:
     """Import Mitsuba in ``variant`` with the plugin registered, or raise CLIError."""
     import mitsuba as mi
 
@@ -104,7 +109,8 @@ def _gltf_scene(mi, path: Path, params: dict[str, str], limits: Limits):
     return mi.load_dict(load_gltf(path, limits=limits, **options))
 
 
-def load_scene(mi, path, params: dict[str, str], limits: Limits = DEFAULT_LIMITS):
+def load_scene(mi: ModuleType, path: str | os.PathLike, params: dict[str, str],
+               limits: Limits = DEFAULT_LIMITS) -> mi.Scene:
     """A Mitsuba XML scene (``-D`` sets its ``$key`` defaults) or a glTF 2.0 file (``.gltf``, ``.glb``)."""
     from mfnormal.io.gltf import GLTF_SUFFIXES, GLTFError
 
@@ -444,7 +450,13 @@ def _resolution(text: str) -> tuple:
 
 def _add_render(sub):
     r = sub.add_parser("render", help="render a Mitsuba 3 scene (XML) that may use normalmap_microfacet, "
-                                      "or a glTF 2.0 model (.gltf, .glb)")
+                                      "or a glTF 2.0 model (.gltf, .glb)",
+                       description="Render SCENE, a Mitsuba 3 XML scene whose BSDFs may be "
+                                   "normalmap_microfacet (and whose integrators may be mfnormal_path or "
+                                   "mfnormal_prb), or a glTF 2.0 model with its normal maps wrapped in "
+                                   "normalmap_microfacet. Writes a linear EXR (every channel of the film) "
+                                   "and a tonemapped PNG side by side, atomically. The scene is checked "
+                                   "before rendering: every error is one line and exit code 2.")
     r.add_argument("scene", help="scene file (.xml), or a glTF 2.0 file (.gltf, .glb: -D sets width, "
                                  "height, spp, max_depth, model, tangents, normal_maps, lights, macro_normal)")
     r.add_argument("-o", "--output", help="output path without extension (writes .exr and .png)")
@@ -518,9 +530,19 @@ def _add_compare(sub):
     return c
 
 
+def version_line() -> str:
+    """``mfnormal VERSION (Mitsuba X, Dr.Jit Y)``: what ``mfnormal --version`` prints."""
+    import drjit as dr
+    import mitsuba as mi
+
+    import mfnormal
+    return f"mfnormal {mfnormal.__version__} (Mitsuba {mi.__version__}, Dr.Jit {dr.__version__})"
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The ``mfnormal`` parser; ``parser.commands`` holds each subcommand's own parser."""
     parser = _Parser(prog="mfnormal", description=__doc__.split("\n\n")[0])
+    parser.add_argument("--version", action="version", version=version_line())
     sub = parser.add_subparsers(dest="command", required=True)
     from mfnormal.cli.bake import add_bake
 
@@ -534,7 +556,7 @@ def _one_line_warning(message, category, filename, lineno, file=None, line=None)
     print(f"mfnormal: warning: {text}", file=file or sys.stderr)
 
 
-def run_command(prog: str, command) -> int:
+def run_command(prog: str, command: Callable[[], int]) -> int:
     """Run ``command()`` with the command line's error path: a :class:`CLIError` (or a
     missing libLLVM, or a path the system refuses) is one line ``PROG: error: ...`` and
     exit 2; Ctrl-C exits 130 and
@@ -567,7 +589,7 @@ def run_command(prog: str, command) -> int:
             return 1
 
 
-def main(argv=None, prog: str = "mfnormal", command: str | None = None) -> int:
+def main(argv: Sequence[str] | None = None, prog: str = "mfnormal", command: str | None = None) -> int:
     """``mfnormal`` with ``argv`` (default: the process's); ``command`` runs one subcommand as
     a program of its own, named ``prog`` (``mfnormal-demo`` is ``mfnormal demo``)."""
     argv = list(sys.argv[1:] if argv is None else argv)
@@ -584,7 +606,7 @@ def main(argv=None, prog: str = "mfnormal", command: str | None = None) -> int:
     return run_command(prog, run)
 
 
-def demo_main(argv=None) -> int:
+def demo_main(argv: Sequence[str] | None = None) -> int:
     """``mfnormal-demo``: ``mfnormal demo`` under that name."""
     return main(argv, prog="mfnormal-demo", command="demo")
 

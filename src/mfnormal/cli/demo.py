@@ -70,8 +70,8 @@ def demo_scene(model: str = "faithful", bsdf: dict | None = None, spp: int = DEF
             (default: :func:`default_assets_dir`).
         strength: normal map strength (ignored by ``'classic'``).
 
-    The active variant must be set before calling this (``mi.load_dict`` of
-    the result needs ``mfnormal.register()`` as well).
+    The active variant must be set before calling this (``import mfnormal`` registers the
+    plugins for it).
     """
     assets = generate_demo_assets(default_assets_dir() if assets_dir is None else assets_dir)
     classic = model == CLASSIC

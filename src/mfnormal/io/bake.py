@@ -51,8 +51,17 @@ import os
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING, Callable, Sequence, Union
 
 import numpy as np
+
+if TYPE_CHECKING:
+    import mitsuba as mi
+
+#: A file path as the functions take it.
+PathLike = Union[str, os.PathLike]
+#: A mesh's arrays: positions (V, 3), normals (V, 3) or None, uvs (V, 2) or None, faces (F, 3).
+MeshArrays = tuple  # (np.ndarray, np.ndarray | None, np.ndarray | None, np.ndarray)
 
 from mfnormal.normals.mikktspace import mikktspace, split_vertices
 
@@ -108,7 +117,7 @@ class Baked:
 
 # -- Meshes ---------------------------------------------------------------------------------------
 
-def load_mesh(path, what: str = "mesh"):
+def load_mesh(path: PathLike, what: str = "mesh") -> mi.Mesh:
     """The Mitsuba mesh of the PLY or OBJ file ``path``; :class:`BakeError` if it cannot be."""
     import mitsuba as mi
 
@@ -127,7 +136,7 @@ def load_mesh(path, what: str = "mesh"):
         raise BakeError(f"cannot load {what} {path}: {one_line(exc)}") from None
 
 
-def mesh_arrays(mesh):
+def mesh_arrays(mesh: mi.Mesh) -> MeshArrays:
     """(positions (V, 3), normals (V, 3) or None, uvs (V, 2) or None, faces (F, 3)) of a Mitsuba
     mesh, as numpy arrays."""
     import mitsuba as mi
@@ -142,7 +151,8 @@ def mesh_arrays(mesh):
     return positions, normals, uvs, faces
 
 
-def unwrap(positions, normals, faces, size: int | None = None, padding: int = 4):
+def unwrap(positions: np.ndarray, normals: np.ndarray, faces: np.ndarray, size: int | None = None,
+           padding: int = 4) -> MeshArrays:
     """xatlas UVs for a mesh without them: (positions, normals, uvs, faces) with vertices split
     along the UV seams; ``size`` (the map's texels across) with ``padding`` texels between the
     charts. Needs the optional ``xatlas`` package (``pip install 'mfnormal[assets]'``)."""
@@ -163,7 +173,8 @@ def unwrap(positions, normals, faces, size: int | None = None, padding: int = 4)
             new_faces.astype(np.int64))
 
 
-def tangent_mesh(name, positions, normals, uvs, faces, bsdf=None):
+def tangent_mesh(name: str, positions: np.ndarray, normals: np.ndarray, uvs: np.ndarray, faces: np.ndarray,
+                 bsdf: mi.BSDF | None = None) -> mi.Mesh:
     """A Mitsuba mesh with MikkTSpace vertex tangents (attributes ``vertex_tangent`` and
     ``vertex_tangent_sign``), vertices split where corners' tangents differ: the mesh on which
     ``normalmap_microfacet`` with ``tangents="vertex_tangent"`` decodes a ``mikktspace`` bake
@@ -444,7 +455,7 @@ def _check_bits(bits) -> int:
     return int(bits)
 
 
-def encode_map(normals, bits: int = 8):
+def encode_map(normals: np.ndarray, bits: int = 8) -> np.ndarray:
     """Unit normals (H, W, 3) as RGB = (n + 1)/2 rounded to ``bits`` (8 or 16) per channel;
     :class:`BakeError` for other ``bits`` or normals that are not finite."""
     top = (1 << _check_bits(bits)) - 1
@@ -475,13 +486,13 @@ def _heights_bytes(heights) -> bytes:
     return encode(bitmap, mi.Bitmap.FileFormat.OpenEXR)
 
 
-def write_map(path, normals, bits: int = 8):
+def write_map(path: PathLike, normals: np.ndarray, bits: int = 8) -> Path:
     """Write the normal map PNG (8- or 16-bit) atomically; returns the path. :class:`BakeError`
     (nothing written) for other ``bits`` or normals that are not finite."""
     return write_baked(path, normals, bits)[0]
 
 
-def write_heights(path, heights):
+def write_heights(path: PathLike, heights: np.ndarray) -> Path:
     """Write the heights (H, W, world units) as a one-channel 32-bit float OpenEXR, atomically
     (what Mitsuba's ``bitmap`` reads with ``raw=True``); returns the path. :class:`BakeError`
     (nothing written) for heights that are not finite in single precision."""
@@ -491,7 +502,9 @@ def write_heights(path, heights):
     return atomic_write(path, lambda p: write_bytes(p, data))
 
 
-def write_baked(path, normals, bits: int = 8, heights_path=None, heights=None, more=()) -> list:
+def write_baked(path: PathLike, normals: np.ndarray, bits: int = 8, heights_path: PathLike | None = None,
+                heights: np.ndarray | None = None,
+                more: Sequence[tuple[PathLike, Callable[[Path], None]]] = ()) -> list:
     """The normal map PNG at ``path`` and, with ``heights_path``, the ``heights`` EXR there (and
     ``more`` (path, write(tmp_path)) items), written as one (all or none:
     :func:`mfnormal.io.images.atomic_write_all`); returns the paths."""
@@ -531,7 +544,7 @@ def _check_mesh_arrays(positions, normals, uvs, faces, what: str) -> None:
             raise BakeError(f"the {what}'s {name} hold NaN or infinity; give finite values")
 
 
-def check_low_poly(low, what: str = "low-poly mesh"):
+def check_low_poly(low: mi.Mesh, what: str = "low-poly mesh") -> MeshArrays:
     """(positions, normals, uvs, faces) of the low-poly; :class:`BakeError` without UVs or
     normals, for the problems of :func:`_check_mesh_arrays`, or without area."""
     positions, normals, uvs, faces = mesh_arrays(low)
@@ -550,7 +563,7 @@ def check_low_poly(low, what: str = "low-poly mesh"):
     return positions, normals, uvs, faces
 
 
-def check_high_poly(high, what: str = "high-poly mesh") -> None:
+def check_high_poly(high: mi.Shape, what: str = "high-poly mesh") -> None:
     """:class:`BakeError` for a high-poly mesh with the problems of :func:`_check_mesh_arrays`
     (other shapes, e.g. Mitsuba's analytic sphere, are taken as they are)."""
     import mitsuba as mi
@@ -676,8 +689,9 @@ def _check_memory(size: int) -> None:
                         "(size, --size)")
 
 
-def bake(high, low, size: int = 1024, cage: float | None = None, frame: str = "mikktspace",
-         padding: int = 4, high_normals: str = "shading") -> Baked:
+def bake(high: mi.Shape | PathLike, low: mi.Mesh | PathLike, size: int = 1024, cage: float | None = None, frame: str = "mikktspace",
+         padding: int = 4, high_normals: str = "shading",
+         progress: Callable[[int, int], None] | None = None) -> Baked:
     """Bake the tangent-space normal map of ``high`` onto ``low`` (Mitsuba meshes or paths of PLY
     or OBJ files; the low-poly needs UVs and vertex normals), and its heights over ``low``: a
     ``size``² :class:`Baked`.
@@ -685,7 +699,8 @@ def bake(high, low, size: int = 1024, cage: float | None = None, frame: str = "m
     ``cage``: how far from the low-poly surface rays look for the high-poly (default:
     CAGE_FRACTION of the low-poly's bounding-box diagonal); ``frame``: ``mikktspace`` or
     ``mitsuba`` (see the module's docstring); ``padding``: texels to dilate the islands by;
-    ``high_normals``: the high-poly's ``shading`` (interpolated) or ``geometric`` normal.
+    ``high_normals``: the high-poly's ``shading`` (interpolated) or ``geometric`` normal;
+    ``progress(done, total)``: called after each pass of TEXELS_PER_PASS texels traced.
     A JIT variant (``llvm_*``, ``cuda_*``) must be set. Every input is checked first
     (:class:`BakeError`, one line); a warning says when most texels' normals face away from
     the low-poly's (one of the meshes' normals is flipped)."""
@@ -751,6 +766,8 @@ def bake(high, low, size: int = 1024, cage: float | None = None, frame: str = "m
         heights[texel[hit], 0] = distance[hit] / scale
         hits[texel[hit]] = True
         facing_away += int(np.count_nonzero(local[hit, 2] < 0))
+        if progress is not None:
+            progress(min(first + TEXELS_PER_PASS, size * size), size * size)
     hit_count = int(hits.sum())
     if facing_away > hit_count / 2:
         warnings.warn(f"{facing_away} of {hit_count} baked texels face away from the low-poly's "

@@ -6,16 +6,20 @@ degenerate tangent frame everywhere) and a normal map with three channels (a
 one-channel map fails deep inside the JIT at render time), wherever the normal-mapped
 BSDF sits (nested in ``twosided``, ``blendbsdf``, ``mask``). And no texture of the scene
 may have a uv transform (``to_uv``) that holds NaN or infinity: Mitsuba's bitmap then reads
-outside its data (a crash in ``bumpmap``'s gradient, garbage elsewhere).
+outside its data (a crash in ``bumpmap``'s gradient, garbage elsewhere). A map decoded in a
+mesh's vertex tangents (``tangents="vertex_tangent"``, a MikkTSpace bake) on a shape without them
+falls back to Mitsuba's frame: a warning says so.
 """
 
 from __future__ import annotations
 
 import re
+import warnings
 
 import mitsuba as mi
 
-__all__ = ["is_normal_mapped", "normal_mapped_shapes", "plugin_instances", "check_scene"]
+__all__ = ["is_normal_mapped", "normal_mapped_shapes", "plugin_instances", "check_scene",
+           "missing_tangents"]
 
 
 def _is_plugin(bsdf) -> bool:
@@ -93,7 +97,8 @@ def check_scene(scene, error: type = ValueError, where: str = "") -> None:
     """Raise ``error`` (one line, after ``where: `` when given) for the first normal-mapped
     shape that cannot work: a mesh without UVs, or a normal map that does not have 3 channels;
     or for a texture whose ``to_uv`` is not finite, or a scene without an integrator (Mitsuba
-    refuses it only when the render starts)."""
+    refuses it only when the render starts). Warns, one line per attribute, where a
+    ``normalmap_microfacet`` names vertex tangents its shapes lack (:func:`missing_tangents`)."""
     try:
         if scene.integrator() is None:
             raise ValueError("the scene has no integrator; add one, e.g. <integrator type=\"path\"/> "
@@ -102,6 +107,36 @@ def check_scene(scene, error: type = ValueError, where: str = "") -> None:
         _check_shapes(scene)
     except ValueError as exc:
         raise error(f"{where}: {exc}" if where else str(exc)) from None
+    missing = missing_tangents(scene)
+    for attribute in sorted({name for _, name in missing}):
+        shapes = [shape for shape, name in missing if name == attribute]
+        more = f" (and {len(shapes) - 1} more)" if len(shapes) > 1 else ""
+        warnings.warn(f"shape {_shape_name(shapes[0])}{more} has no vertex attribute '{attribute}', which "
+                      f"its normalmap_microfacet names (tangents=\"{attribute}\"): its map is decoded in "
+                      "Mitsuba's frame instead, wrong for a map baked in MikkTSpace; render it on a mesh "
+                      "with the tangents (mfnormal bake --tangent-mesh MESH.ply, or a glTF model)",
+                      stacklevel=2)
+
+
+def missing_tangents(scene) -> list:
+    """(shape, attribute) for each shape whose ``normalmap_microfacet`` (its BSDF or nested in it)
+    decodes its map in a vertex tangent attribute the shape lacks (it falls back to Mitsuba's
+    frame there)."""
+    missing = []
+    for shape in scene.shapes():
+        bsdf = shape.bsdf()
+        plugins = [] if bsdf is None else [o for o in mi.traverse(bsdf).hierarchy if _is_plugin(o)]
+        if bsdf is not None and _is_plugin(bsdf) and bsdf not in plugins:
+            plugins.append(bsdf)
+        for name in {p.source.tangents.name for p in plugins if p.source.tangents is not None}:
+            if not (shape.is_mesh() and _has_attribute(shape, name)):
+                missing.append((shape, name))
+    return missing
+
+
+def _has_attribute(mesh, name: str) -> bool:
+    import drjit as dr
+    return bool(dr.all(mesh.has_attribute(name), axis=None))
 
 
 def _check_uv_transforms(scene) -> None:

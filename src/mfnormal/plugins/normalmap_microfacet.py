@@ -24,8 +24,8 @@ Microfacet-based normal mapping (:monosp:`normalmap_microfacet`)
      through the tangent frame (``tangents`` respected). docs/normal_sources.md.
  * - height_scale
    - |float|
-   - Height map only: the heights' scale, Mitsuba ``bumpmap``'s ``scale``
-     (world units per texture unit where dp/du, dp/dv have unit length).
+   - Height map only: what Mitsuba's ``bumpmap`` calls ``scale``: the heights'
+     scale (world units per texture unit where dp/du, dp/dv have unit length).
      Default: 1; any finite number (negative inverts the relief).
  * - macro_normal
    - |string|
@@ -117,7 +117,7 @@ Microfacet-based normal mapping (:monosp:`normalmap_microfacet`)
      strength); values above ``STRENGTH_MAX`` = 1e6 act as 1e6, which tilts
      every texel that is not exactly flat to the steepest facet already for
      8- and 16-bit maps, and keeps the decoding from overflowing to the flat
-     normal. (Exposed, |exposed|)
+     normal. (Exposed and differentiable in ``mi.traverse``.)
  * - tangents
    - |string|
    - The tangent frame the map is decoded in. ``mitsuba`` (default): the
@@ -127,7 +127,8 @@ Microfacet-based normal mapping (:monosp:`normalmap_microfacet`)
      T, B = sign·(N×T), N, with T the interpolated 3-float attribute ``NAME``
      and sign the 1-float attribute ``NAME_sign`` (glTF's ``TANGENT.w``), so
      maps baked in MikkTSpace, mirrored UV islands included, come out right.
-     Shapes without the attribute fall back to ``mitsuba``.
+     Shapes without the attribute fall back to ``mitsuba`` (``mfnormal render`` warns;
+     ``mfnormal bake --tangent-mesh`` writes a mesh with them).
      (:func:`mfnormal.io.gltf.load_gltf` adds both attributes.)
 
 Robust normal mapping after Schüßler, Heitz, Hanika and Dachsbacher,
@@ -151,6 +152,8 @@ Contracts (each one is tested):
   for ``faithful`` with a transmitting nested BSDF, which answers for ω_i and
   ω_o on either side (the nested BSDF's radiance scaling across the interface
   included);
+- ``eval_diffuse_reflectance`` (the ``aov`` integrator's ``albedo``, what denoisers read) is
+  the nested BSDF's at the hit;
 - ``eval_pdf`` equals ``(eval, pdf)``; ``pdf`` is a deterministic function of
   (wi, wo): for ``faithful`` and ``analytic`` the exact density of ``sample``, for
   the random walks a function for MIS (below);
@@ -417,6 +420,11 @@ class NormalMapMicrofacet:
             value = value if k is None else value * k
         bs, weight = self._from_macro(ctx, sp, bs, weight)
         return value, pdf, bs, weight
+
+    def eval_diffuse_reflectance(self, si, active=True):
+        """The nested BSDF's diffuse reflectance (albedo) at the hit, as Mitsuba's ``normalmap``
+        forwards it: what the ``aov`` integrator's ``albedo`` and denoisers read."""
+        return self.nested.eval_diffuse_reflectance(si, active)
 
     @property
     def stochastic_eval(self) -> bool:

@@ -76,6 +76,9 @@ nav a { margin-right: 14px; }
 .thumbs img { width: 200px; image-rendering: pixelated; border: 2px solid transparent; }
 .thumbs img.is-a { border-color: #d33; } .thumbs img.is-b { border-color: #36c; }
 table { border-collapse: collapse; margin: 4px 0; }
+.wide { max-width: 100%; overflow-x: auto; }
+table.metrics { font-size: 12px; } table.metrics th { white-space: normal; min-width: 4em; }
+table.metrics caption { caption-side: top; text-align: left; color: #444; padding: 2px 0 6px; max-width: 1200px; }
 th, td { border: 1px solid #ccc; padding: 3px 7px; text-align: right; vertical-align: middle; }
 th { background: #eee; } td.l, th.l { text-align: left; } table.metrics td { white-space: nowrap; }
 table.crops td, table.fig td { padding: 2px; text-align: center; }
@@ -173,10 +176,18 @@ SCRIPT = r"""
 """
 
 
+#: What the table's relMSE measures, said where it is read.
+METRICS_CAPTION = ("relMSE is each method against its own reference (the same method at more samples): "
+                   "its noise at this spp, not its distance to the true geometry or to another method "
+                   "(that is measured by validation/true_geometry.py against dense meshes of the "
+                   "heightfields the maps were baked from; see docs/validation.md).")
+
+
 def _metrics_table(section, checks_by_key) -> str:
     tilt = 60.0
     head = ("<tr><th class=l>method</th><th>render time</th><th>spp</th><th>reference</th>"
-            "<th>relMSE<br>(image)</th><th>relMSE<br>(normal-mapped)</th>"
+            "<th>noise: relMSE to its own reference<br>(image)</th>"
+            "<th>noise: relMSE to its own reference<br>(normal-mapped)</th>"
             "<th>near-black<br>(render)</th><th>near-black<br>(reference)</th>"
             "<th>darkened<br>(reference)</th>"
             f"<th>albedo θ<sub>p</sub>={tilt:g}°<br>θ<sub>i</sub>=0° / 60° / 85°</th>"
@@ -202,7 +213,8 @@ def _metrics_table(section, checks_by_key) -> str:
             f"<td>{alb}</td><td>{rec}</td><td>{r['nonfinite']}</td><td>{r['negative']}</td></tr>")
     rows += [f"<tr class=refused><td class=l title='{E(x['method'].about)}'>{E(x['method'].label)}</td>"
              f"<td class=l colspan=12>{_refusal(x)}</td></tr>" for x in section.get("refused", ())]
-    return f"<table class=metrics>{head}{''.join(rows)}</table>"
+    return (f"<div class=wide><table class=metrics><caption>{METRICS_CAPTION}</caption>{head}"
+            f"{''.join(rows)}</table></div>")
 
 
 def _refusal(refused) -> str:
@@ -354,7 +366,7 @@ DEFINITIONS = """
 <dt>render time</dt><dd>wall-clock time of the render at the listed spp, including Dr.Jit's kernel
 compilation (or its cache look-up); the reference is rendered after it with independent seeds.</dd>
 <dt>relMSE</dt><dd>mean over pixels and channels of (x − ref)² / (ref² + 0.01), against the
-reference of the same method: the noise of the method at this spp (plus a quarter of it, from the
+reference of the same method (not the true geometry, nor another method): the noise of the method at this spp (plus a quarter of it, from the
 reference's own noise at 4× spp). "normal-mapped": only pixels fully covered by normal-mapped shapes.</dd>
 <dt>near-black</dt><dd>fraction of the pixels fully covered by normal-mapped shapes whose luminance is
 below 5 % of the median luminance of those pixels in the flat reference: the black fringes of classic
