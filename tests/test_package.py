@@ -93,6 +93,7 @@ def test_the_command_line_prints_the_same_message_as_one_line(tmp_path):
 # Every harness with an --out option: run as a user runs it (python -m ... for a package's module,
 # else the file), with no arguments, up to the parsing of its command line.
 HARNESSES = ("validation/run.py", "validation/true_geometry.py", "validation/real_assets.py",
+             "validation/real_assets_split.py",
              "validation/dielectric.py", "validation/furnace_glass.py", "validation/normal_sources.py",
              "validation/inverse_rendering.py", "validation/inverse_water.py", "benchmarks/run.py",
              "benchmarks/backward.py", "benchmarks/cost_floor.py", "benchmarks/experiments.py",

@@ -1,7 +1,7 @@
 """The real-asset harness with each image rendered as two independent halves: bias² and noise
 apart, per cell, at equal spp and at equal time, with a noise floor for the bias itself.
 
-    nice .venv/bin/python -m validation.real_assets_split [--quick] [--out out/real_assets_split]
+    nice .venv/bin/python -m validation.real_assets_split [--quick] [--out out/validation/real_assets_split]
         [--assets bunny,dragon,rock] [--materials aluminium,plastic,diffuse]
         [--lightings sky_sun,grazing_sun] [--views frontal,limb,far]
         [--methods classic,classic_fixed,faithful] [--res 96] [--spp 64] [--truth-spp 1024]
@@ -36,7 +36,7 @@ in the time of the faster classic setting, n = spp·t_classic/t_method; its relM
 bias² + noise·spp/n (noise falls as 1/spp). No second render is needed, and the comparison is the
 one users make: the same time for each.
 
-Writes ``real_assets_split.md`` and ``.json`` to ``--out`` (default ``out/real_assets_split``,
+Writes ``real_assets_split.md`` and ``.json`` to ``--out`` (default ``out/validation/real_assets_split``,
 outside the tracked tree).
 """
 
@@ -64,7 +64,7 @@ from validation import heightfield as H  # noqa: E402
 from validation import true_geometry as TG  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
-OUT = ROOT / "out" / "real_assets_split"
+OUT = ROOT / "out" / "validation" / "real_assets_split"
 FULL = dict(assets=["bunny", "dragon", "rock"], materials=["aluminium", "plastic", "diffuse"],
             lightings=["sky_sun", "grazing_sun"], views=["frontal", "limb", "far"], res=96, spp=64,
             truth_spp=1024, faces=1000, map_size=1024)
