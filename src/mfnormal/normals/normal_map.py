@@ -53,6 +53,23 @@ def channels_message(texture, what: str = "") -> str | None:
     return channel_count_message(what, channels)
 
 
+#: Files whose values Mitsuba's ``bitmap`` reads as linear whatever ``raw`` says.
+LINEAR_FORMATS = (".exr", ".hdr", ".rgbe", ".pfm")
+
+
+def srgb_message(texture) -> str | None:
+    """Why a bitmap ``texture`` read as sRGB colour (``raw`` false, a file Mitsuba decodes from
+    sRGB: PNG, JPEG, ...) cannot be a normal map, or None. The sRGB curve bends the stored vectors:
+    a flat texel (0.5, 0.5, 1) decodes to (0.21, 0.21, 1), 39° tilted."""
+    text = str(texture)
+    name = re.search(r'name = "([^"]*)"', text)
+    if "raw = 0" not in text or name is None or name.group(1).lower().endswith(LINEAR_FORMATS):
+        return None
+    return (f"normal map '{name.group(1)}' is read as sRGB colour (raw is false), which bends its "
+            "vectors (a flat texel decodes 39° tilted): load it with raw=True "
+            '(XML: <boolean name="raw" value="true"/>)')
+
+
 def channel_count_message(what: str, channels: int) -> str:
     """The one-line refusal of a normal map ``what`` that has ``channels`` channels, not 3."""
     return (f"normal map {what} has {channels} channel{'s' if channels != 1 else ''}; "
@@ -66,7 +83,7 @@ class NormalMap:
     def __init__(self, texture, strength, directx: bool, tangents: VertexTangents | None):
         self.texture, self.strength, self.directx, self.tangents = texture, strength, directx, tangents
         self._uv_checked = check_uv_transforms(texture, "normalmap")
-        message = channels_message(texture)
+        message = channels_message(texture) or srgb_message(texture)
         if message:
             fail(message)
         self.hoist_uv_transform()
