@@ -35,39 +35,31 @@ from mfnormal.models import analytic, faithful, walk
 from mfnormal.models.walk_pdf import mis_pdf
 from mfnormal.models.walk_replay import replays
 from mfnormal.models.microsurface import COS_P_MIN
+from mfnormal.models.properties import INT32_MAX, Choice, Integer, Number
 
 MODELS = ("faithful", "analytic", "separable", "nonseparable")
 DEFAULT_MODEL = "faithful"
 TANGENT_FACETS = ("specular", "same")
-INT32_MAX = 2 ** 31 - 1          # walk counters are 32-bit
-WALK_KEYS = ("max_bounces", "rr_depth", "mis_boost_max")
 #: The faithful model's local statistics: the width of the window around a texel, in the map's
 #: texels (0: the whole map's slopes for every texel; docs/faithful.md §5).
 NEIGHBOURHOOD = 8.0
 
+# The models' parameters (mfnormal.models.properties); the walk's are kernel inputs, exposed.
+PLUGIN = "normalmap_microfacet"
+MODEL = Choice(PLUGIN, "model", DEFAULT_MODEL, MODELS)
+TANGENT_FACET = Choice(PLUGIN, "tangent_facet", "specular", TANGENT_FACETS)
+NEIGHBOURHOOD_PARAM = Number(PLUGIN, "neighbourhood", NEIGHBOURHOOD,
+                             "a finite number of texels >= 0 (0: the whole map)", lo=0.0)
+WALK_PARAMS = (
+    Integer(PLUGIN, "max_bounces", walk.MAX_BOUNCES, 1, expects=f"between 1 and {INT32_MAX} (an integer)"),
+    Integer(PLUGIN, "rr_depth", walk.RR_DEPTH, 0,
+            expects=f"between 0 (0 turns Russian roulette off) and {INT32_MAX} (an integer)"),
+    Number(PLUGIN, "mis_boost_max", walk.MIS_BOOST_MAX, "a finite number >= 1 (1 turns the boost off)", lo=1.0))
+WALK_KEYS = tuple(p.name for p in WALK_PARAMS)
+
 
 def _fail(msg: str):
-    raise ValueError(f"normalmap_microfacet: {msg}")
-
-
-def checked_walk_values(max_bounces, rr_depth, mis_boost_max) -> tuple:
-    """(max_bounces, rr_depth, mis_boost_max) as int, int, float, each in its range (else ValueError)."""
-    max_bounces, rr_depth, mis_boost_max = int(max_bounces), int(rr_depth), float(mis_boost_max)
-    if not (1 <= max_bounces <= INT32_MAX):
-        _fail(f"max_bounces must be between 1 and {INT32_MAX}, got {max_bounces}")
-    if not (0 <= rr_depth <= INT32_MAX):
-        _fail(f"rr_depth must be between 0 (0 turns Russian roulette off) and {INT32_MAX}, got {rr_depth}")
-    if not (1.0 <= mis_boost_max < float("inf")):
-        _fail(f"mis_boost_max must be a finite number >= 1 (1 turns the boost off), got {mis_boost_max}")
-    return max_bounces, rr_depth, mis_boost_max
-
-
-def _scalar(x, key: str = "the value"):
-    """The value of a width-1 Dr.Jit array (or a Python number) as a Python number; ValueError
-    for a wider array (a kernel input of one value per plugin)."""
-    if dr.is_array_v(x) and dr.width(x) != 1:
-        _fail(f"{key} must be one number, got an array of width {dr.width(x)}")
-    return dr.slice(x, 0) if dr.is_array_v(x) else x
+    raise ValueError(f"{PLUGIN}: {msg}")
 
 
 class _Deterministic:
@@ -144,7 +136,8 @@ class Walk:
     """The random walks (``separable``, ``nonseparable``) over the microsurface: a stochastic
     ``eval`` (unbiased, deterministic per query), the walk's exit as the sample, a deterministic
     MIS ``pdf``, and one walk for ``eval_pdf_sample``. ``max_bounces``, ``rr_depth`` and
-    ``mis_boost_max`` are kernel inputs: a new value (``mi.traverse``) compiles nothing."""
+    ``mis_boost_max`` are kernel inputs: a new value (``mi.traverse``) compiles nothing. The two
+    integers are exposed as float64 arrays, so that an update to 1.5 is refused, not truncated."""
 
     deterministic = False
     stochastic_eval = True
@@ -152,7 +145,7 @@ class Walk:
 
     def __init__(self, name, tangent_facet, values):
         self.name, self.tangent_facet = name, tangent_facet
-        self.max_bounces, self.rr_depth = mi.Int32(values[0]), mi.Int32(values[1])
+        self.max_bounces, self.rr_depth = mi.Float64(values[0]), mi.Float64(values[1])
         self.mis_boost_max = mi.Float(values[2])
         self.ok = values
         dr.make_opaque(self.max_bounces, self.rr_depth, self.mis_boost_max)
@@ -176,7 +169,7 @@ class Walk:
         if not any(k in WALK_KEYS for k in keys):
             return
         try:
-            self.ok = checked_walk_values(*(_scalar(getattr(self, k), k) for k in WALK_KEYS))
+            self.ok = tuple(p.check_update(getattr(self, p.name)) for p in WALK_PARAMS)
         finally:
             for key, value in zip(WALK_KEYS, self.ok):
                 mi.set_property(getattr(self, key), type(getattr(self, key))(value))
@@ -222,41 +215,28 @@ def refusal(name, nested) -> str | None:
     return None
 
 
-def checked_neighbourhood(value) -> float:
-    """``neighbourhood`` (texels) as a float ≥ 0 (else ValueError)."""
-    value = float(value)
-    if not (0.0 <= value < float("inf")):
-        _fail(f"neighbourhood must be a finite number of texels >= 0 (0: the whole map), got {value}")
-    return value
-
-
 def make(name, tangent_facet, nested, source, walk_values, neighbourhood=0.0):
-    """The model called ``name`` (``MODELS``) with its parameters, checked."""
-    if name not in MODELS:
-        _fail(f"unknown model '{name}'; choose one of {', '.join(MODELS)}")
-    if tangent_facet not in TANGENT_FACETS:
-        _fail(f"unknown tangent_facet '{tangent_facet}'; use 'specular' or 'same'")
+    """The model called ``name`` (``MODELS``) with its parameters (each already of its type and
+    range: :data:`MODEL`, :data:`TANGENT_FACET`, :data:`WALK_PARAMS`, :data:`NEIGHBOURHOOD_PARAM`),
+    checked together."""
     if name in ("analytic", "faithful") and tangent_facet != "specular":
         _fail(f"tangent_facet 'same' needs model='separable' or 'nonseparable'; the {name} "
               "model has no tangent facet of the nested material")
-    values = checked_walk_values(*walk_values)
     refused = refusal(name, nested)
     if refused:
         _fail(refused)
     if name == "faithful":
-        model = Faithful(nested, source, checked_neighbourhood(neighbourhood))
+        model = Faithful(nested, source, neighbourhood)
     elif name == "analytic":
         model = Analytic()
     else:
-        return Walk(name, tangent_facet, values)
-    model.tangent_facet, model.ok = tangent_facet, values    # the walk values, checked and shown
+        return Walk(name, tangent_facet, walk_values)
+    model.tangent_facet, model.ok = tangent_facet, walk_values    # the walk values, checked and shown
     return model
 
 
 def from_properties(props, nested, source):
     """The model a ``normalmap_microfacet``'s properties ask for (``model``, ``tangent_facet``,
-    ``max_bounces``, ``rr_depth``, ``mis_boost_max``), checked."""
-    return make(props.get("model", DEFAULT_MODEL), props.get("tangent_facet", "specular"), nested, source,
-                (props.get("max_bounces", walk.MAX_BOUNCES), props.get("rr_depth", walk.RR_DEPTH),
-                 props.get("mis_boost_max", walk.MIS_BOOST_MAX)),
-                props.get("neighbourhood", NEIGHBOURHOOD))
+    ``max_bounces``, ``rr_depth``, ``mis_boost_max``, ``neighbourhood``), checked."""
+    return make(MODEL.read(props), TANGENT_FACET.read(props), nested, source,
+                tuple(p.read(props) for p in WALK_PARAMS), NEIGHBOURHOOD_PARAM.read(props))

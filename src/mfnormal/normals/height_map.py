@@ -107,8 +107,6 @@ class HeightMap:
     ``height_scale``, in the base shading frame or through the mesh's vertex tangents."""
 
     def __init__(self, texture, height_scale: float, strength, tangents: VertexTangents | None):
-        if not (abs(height_scale) < float("inf")):
-            fail(f"height_scale must be a finite number, got {height_scale}")
         self.texture, self.height_scale, self.strength, self.tangents = texture, height_scale, strength, tangents
         self._uv_checked = check_uv_transforms(texture, "heightmap")     # before any lookup (eval_1_grad)
         si = dr.zeros(mi.SurfaceInteraction3f)

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import mitsuba as mi
 
+from mfnormal.models.properties import Choice, Number, Text
 from mfnormal.normals.height_map import HeightMap
 from mfnormal.normals.macro import MACRO_NORMALS, macro_normal
 from mfnormal.normals.normal_map import CONVENTIONS, NormalMap
@@ -12,6 +13,18 @@ from mfnormal.normals.strength import Strength, fail
 from mfnormal.normals.tangents import VertexTangents
 
 MITSUBA_TANGENTS = "mitsuba"
+
+# The normal source's parameters (mfnormal.models.properties; ``strength``: normals/strength.py).
+PLUGIN = "normalmap_microfacet"
+MACRO_NORMAL = Choice(PLUGIN, "macro_normal", "shading", MACRO_NORMALS)
+CONVENTION = Choice(PLUGIN, "normalmap_convention", "opengl", CONVENTIONS)
+HEIGHT_SCALE = Number(PLUGIN, "height_scale", 1.0, "a finite number")
+TANGENTS = Text(PLUGIN, "tangents", MITSUBA_TANGENTS,
+                f"'{MITSUBA_TANGENTS}' or a vertex attribute name such as 'vertex_tangent'",
+                lambda name: name == MITSUBA_TANGENTS or name.startswith("vertex_"))
+#: A map given by name instead of as a texture: its file (loaded raw).
+MAP_FILES = {name: Text(PLUGIN, name, None, "a texture (a raw bitmap) or a file name", lambda f: f != "")
+             for name in ("normalmap", "heightmap")}
 
 
 class Flat:
@@ -52,13 +65,19 @@ def _textures(props):
             normalmap = obj
         elif isinstance(obj, mi.Texture) and name == "heightmap":
             heightmap = obj
-    if normalmap is None and isinstance(props.get("normalmap", None), str):
-        normalmap = mi.load_dict({"type": "bitmap", "filename": props["normalmap"], "raw": True})
-    if heightmap is None and isinstance(props.get("heightmap", None), str):
-        heightmap = mi.load_dict({"type": "bitmap", "filename": props["heightmap"], "raw": True})
+    if normalmap is None:
+        normalmap = _map_file(props, "normalmap")
+    if heightmap is None:
+        heightmap = _map_file(props, "heightmap")
     if nested is None:
         fail("needs a nested BSDF (e.g. <bsdf type=\"diffuse\"/> inside it)")
     return nested, normalmap, heightmap
+
+
+def _map_file(props, name):
+    """The raw bitmap of the file that the string parameter ``name`` names, or None."""
+    filename = MAP_FILES[name].read(props)
+    return None if filename is None else mi.load_dict({"type": "bitmap", "filename": filename, "raw": True})
 
 
 def from_properties(props):
@@ -68,35 +87,27 @@ def from_properties(props):
         fail(f"does not support polarized variants ({mi.variant()}); use an rgb, mono or spectral "
              "one (e.g. llvm_ad_rgb)")
     nested, normalmap, heightmap = _textures(props)
-    macro = props.get("macro_normal", "shading")
-    if macro not in MACRO_NORMALS:
-        fail(f"unknown macro_normal '{macro}'; use 'shading' or 'geometric'")
+    macro = MACRO_NORMAL.read(props)
     if normalmap is not None and heightmap is not None:
         fail("takes a 'normalmap' or a 'heightmap', not both")
     if normalmap is None and heightmap is None and macro != "geometric":
         fail("needs a texture named 'normalmap' (a raw bitmap: <texture name=\"normalmap\" "
              "type=\"bitmap\"> with <boolean name=\"raw\" value=\"true\"/>) or 'heightmap' "
              "(or macro_normal=\"geometric\" for a smooth-shaded mesh without a map)")
-    height_scale = float(props.get("height_scale", 1.0))
-    convention = props.get("normalmap_convention", "opengl")
-    if convention not in CONVENTIONS:
-        fail(f"unknown normalmap_convention '{convention}'; use 'opengl' or 'directx'")
+    height_scale = HEIGHT_SCALE.read(props)
+    convention = CONVENTION.read(props)
     if convention != "opengl" and normalmap is None:
         fail("normalmap_convention applies to normal maps only (a height map has no channel order)")
-    strength, tangents = Strength(props.get("strength", 1.0)), _tangents(props)
+    strength, tangents = Strength(props), TANGENTS.read(props)
     if heightmap is not None:
-        source = HeightMap(heightmap, height_scale, strength, tangents)
+        source = HeightMap(heightmap, height_scale, strength, _frame(tangents))
     elif normalmap is not None:
-        source = NormalMap(normalmap, strength, convention == "directx", tangents)
+        source = NormalMap(normalmap, strength, convention == "directx", _frame(tangents))
     else:
         source = Flat()
     return nested, source, macro_normal(macro), strength
 
 
-def _tangents(props):
+def _frame(tangents: str):
     """The vertex tangent frame named by ``tangents``, or None for Mitsuba's shading frame."""
-    tangents = props.get("tangents", MITSUBA_TANGENTS)
-    if tangents != MITSUBA_TANGENTS and not tangents.startswith("vertex_"):
-        fail(f"tangents must be '{MITSUBA_TANGENTS}' or a vertex attribute name such as "
-             f"'vertex_tangent', got '{tangents}'")
     return None if tangents == MITSUBA_TANGENTS else VertexTangents(tangents)

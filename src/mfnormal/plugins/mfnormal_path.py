@@ -19,7 +19,13 @@ Path tracer calling each BSDF's eval_pdf_sample (:monosp:`mfnormal_path`)
    - |bool|
    - Start shadow rays and outgoing rays on smooth-shaded meshes from the smooth surface their
      vertex normals describe (Hanika 2021), which removes the stair-stepped shadow terminator of
-     low-poly meshes; false: from the triangle, as ``path``. Default: true.
+     low-poly meshes; false: from the triangle, as ``path``. Default: true. A triangle with odd
+     vertex normals (one more than 60° off its face normal, or normals on both sides of its
+     plane) keeps the flat triangle.
+
+Each parameter takes only its type (``<integer>``, ``<boolean>``; in Python an int, a bool) in
+its range: anything else, e.g. ``<string name="terminator_offset" value="false"/>`` or a
+``max_depth`` of 1.5, is refused at load with a one-line ``ValueError`` naming the parameter.
 
 Mitsuba 3.9.1's ``path`` calls ``bsdf->eval_pdf_sample(ctx, si, wo, s1, s2)`` at every
 vertex (the NEE toward the light sample ``wo`` and the continuation sample), but its Python
@@ -41,7 +47,8 @@ onto the tangent planes of the triangle's three vertices (outward only) and the 
 interpolated with its barycentrics. The light sample is drawn from that point, and a BSDF-sampled
 ray that leaves on the interpolated normal's side starts there too, so that light sampling and
 BSDF sampling see the same visibility (MIS combines them); rays toward the other side, flat
-triangles and other shapes are unchanged. With ``terminator_offset`` false the image is
+triangles, triangles with odd vertex normals (their tangent planes are no surface near the
+triangle: the origin would move across it or below its plane) and other shapes are unchanged. With ``terminator_offset`` false the image is
 ``path``'s. The offset is not reciprocal: Mitsuba's light tracer (``ptracer``) still sees the
 triangles' terminator, so the two agree only away from it.
 
@@ -69,10 +76,23 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
+from mfnormal.models.properties import INT32_MAX, Boolean, Integer
 from mfnormal.plugins import terminator
 from mfnormal.plugins.variant_class import variant_subclass
 
 RR_PROB_MAX = 0.95      # path's cap of the Russian roulette survival probability
+
+
+def integrator_params(plugin: str, max_depth: int) -> tuple:
+    """The parameters of the integrator ``plugin`` (``max_depth``: its default), typed and in
+    ``path``'s ranges: (max_depth, rr_depth, hide_emitters, terminator_offset)."""
+    return (Integer(plugin, "max_depth", max_depth, -1,
+                    expects=f"-1 (unbounded) or an integer between 0 and {INT32_MAX}"),
+            Integer(plugin, "rr_depth", 5, 1), Boolean(plugin, "hide_emitters", False),
+            Boolean(plugin, "terminator_offset", True))
+
+
+PARAMS = integrator_params("mfnormal_path", -1)
 
 
 def mis_weight(pdf_a, pdf_b):
@@ -92,16 +112,10 @@ class MfnormalPath:
     ``mi.SamplingIntegrator``."""
 
     def __init__(self, props: mi.Properties):
+        values = tuple(p.read(props) for p in PARAMS)
         type(self).__mro__[1].__init__(self, props)   # the variant's mi.SamplingIntegrator
-        max_depth = int(props.get("max_depth", -1))
-        if max_depth < -1:
-            raise ValueError(f"mfnormal_path: max_depth must be -1 (unbounded) or >= 0, got {max_depth}")
-        self.rr_depth = int(props.get("rr_depth", 5))
-        if self.rr_depth <= 0:
-            raise ValueError(f"mfnormal_path: rr_depth must be > 0, got {self.rr_depth}")
+        max_depth, self.rr_depth, self.hide_emitters, self.terminator_offset = values
         self.max_depth = 0xFFFFFFFF if max_depth == -1 else max_depth    # path's uint32 cast of -1
-        self.hide_emitters = bool(props.get("hide_emitters", False))
-        self.terminator_offset = bool(props.get("terminator_offset", True))
         if mi.is_polarized:
             raise ValueError("mfnormal_path: polarised variants are not supported (use 'path')")
 

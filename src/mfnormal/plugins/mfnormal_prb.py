@@ -13,7 +13,9 @@ Path replay backpropagation for stochastic BSDFs (:monosp:`mfnormal_prb`)
    - |int|, |bool|, |bool|
    - As for :ref:`mfnormal_path <integrator-mfnormal_path>` (defaults 5, false, true): Russian
      roulette from ``rr_depth`` on, as ``prb``; with ``terminator_offset`` false, shadow rays and
-     outgoing rays start from the triangle, as ``prb``.
+     outgoing rays start from the triangle, as ``prb``. Typed as there: a value of another type
+     or out of range is refused at load, naming the parameter (``prb`` takes a ``max_depth`` of
+     1.5 or 2^40 and fails later).
 
 Mitsuba's ``prb`` (detached path replay: NEE with MIS, emitter hits, Russian roulette, the
 area Jacobian of moving geometry) with one change, for BSDFs whose ``eval`` is a Monte Carlo
@@ -59,7 +61,10 @@ import drjit as dr
 import mitsuba as mi
 
 from mfnormal.plugins import terminator
+from mfnormal.plugins.mfnormal_path import integrator_params
 from mfnormal.plugins.variant_class import variant_subclass
+
+PARAMS = integrator_params("mfnormal_prb", 6)
 
 
 def _is_stochastic(bsdf):
@@ -165,8 +170,9 @@ class MfnormalPRB:
     ``RBIntegrator`` (Mitsuba's base of ``prb``: render, render_forward, render_backward)."""
 
     def __init__(self, props: mi.Properties):
+        values = {p.name: p.read(props) for p in PARAMS}   # typed, before the base reads them untyped
         type(self).__mro__[1].__init__(self, props)   # the variant's RBIntegrator
-        self.terminator_offset = bool(props.get("terminator_offset", True))
+        self.terminator_offset = values["terminator_offset"]
 
     def _skip_emitters(self, scene, ray, pi, active):
         """``hide_emitters``: the first hit behind directly visible area emitters."""

@@ -84,7 +84,8 @@ Microfacet-based normal mapping (:monosp:`normalmap_microfacet`)
    - Random-walk models only: bounce cap of the walk (default 1024). Paths
      still on the microsurface after it are dropped; the energy this loses is
      measured by the test suite (below 1e-4 of the albedo for θ_p ≤ 80°).
-     (Exposed, a kernel input: a new value compiles no kernel.)
+     (Exposed, a kernel input: a new value compiles no kernel. It is exposed as a
+     float64 array, so that an update to 1.5 is refused, not truncated to 1.)
  * - rr_depth
    - |int|
    - Random-walk models only: Russian roulette from this many facet bounces on
@@ -92,7 +93,7 @@ Microfacet-based normal mapping (:monosp:`normalmap_microfacet`)
      min(1, its largest throughput channel) and divides its throughput by it:
      unbiased, and dark materials (roughplastic, coloured metals) no longer run
      long walks that carry little energy. White facets are never rouletted.
-     (Exposed, a kernel input.)
+     (Exposed, a kernel input, like ``max_bounces``.)
  * - mis_boost_max
    - |float|
    - Random-walk models only: cap of the variance-aware MIS boost (default 64).
@@ -130,6 +131,15 @@ Microfacet-based normal mapping (:monosp:`normalmap_microfacet`)
      Shapes without the attribute fall back to ``mitsuba`` (``mfnormal render`` warns;
      ``mfnormal bake --tangent-mesh`` writes a mesh with them).
      (:func:`mfnormal.io.gltf.load_gltf` adds both attributes.)
+
+Every parameter is typed (``mfnormal.models.properties``): a boolean, an integer in its range,
+a finite number or one of its strings, as the table says. A value of another type (the string
+``"abc"`` for a number, 1.5 or NaN for an integer, ``<string>`` where the table says |float|)
+is refused at load, in XML and ``mi.load_dict`` alike, with a one-line ``ValueError`` that names
+the parameter and what it expects; so is an ``mi.traverse`` update of an exposed parameter
+(``strength``, ``max_bounces``, ``rr_depth``, ``mis_boost_max``) to a wrong number, and the
+values before it stay. (A string assigned to an exposed parameter is refused by ``mi.traverse``
+itself, as it converts the value to the parameter's array type.)
 
 Robust normal mapping after Schüßler, Heitz, Hanika and Dachsbacher,
 *Microfacet-based Normal Mapping for Robust Monte Carlo Path Tracing*
@@ -246,11 +256,18 @@ from mfnormal.models.microsurface import negate, replace_grad
 from mfnormal.models.shading import off_horizon
 from mfnormal.normals.macro import macro_of
 from mfnormal.normals.normal_map import NUDGES, NormalMap
+from mfnormal.normals import source
 from mfnormal.normals.source import MITSUBA_TANGENTS, from_properties
-from mfnormal.normals.strength import STRENGTH_MAX
+from mfnormal.normals.strength import STRENGTH, STRENGTH_MAX
 from mfnormal.plugins.variant_class import variant_subclass
 
-__all__ = ["NormalMapMicrofacet", "bsdf_class", "MODELS", "DEFAULT_MODEL", "STRENGTH_MAX"]
+__all__ = ["NormalMapMicrofacet", "bsdf_class", "MODELS", "DEFAULT_MODEL", "STRENGTH_MAX", "PARAMS"]
+
+#: Every parameter but the nested BSDF, typed (mfnormal.models.properties): read at load, and
+#: the exposed ones (``strength`` and the walk's) checked on ``mi.traverse`` updates.
+PARAMS = (source.MAP_FILES["normalmap"], source.MAP_FILES["heightmap"], source.HEIGHT_SCALE, source.MACRO_NORMAL,
+          interface.MODEL, interface.NEIGHBOURHOOD_PARAM, interface.TANGENT_FACET, *interface.WALK_PARAMS,
+          source.CONVENTION, STRENGTH, source.TANGENTS)
 
 
 class NormalMapMicrofacet:

@@ -8,12 +8,22 @@ edges. The rays start instead from the smooth surface the vertex normals describ
 projected onto each vertex's tangent plane (only ever outward, along that vertex's normal), the
 three projections interpolated with the hit's barycentrics. The displacement is detached: it
 moves where rays start, not what is differentiated.
+
+The tangent planes describe a surface near the triangle only where the vertex normals are near
+its face normal. A triangle with a vertex normal more than 60° off it (``COS_SMOOTH_MIN``), or
+with vertex normals on both sides of it (odd normals: random, swapped, nearly in the plane), keeps
+the flat triangle: its projections would move the origin across the triangle, or below its plane. So
+a shifted origin is always above the plane, on the side of the vertex normals.
 """
 
 from __future__ import annotations
 
 import drjit as dr
 import mitsuba as mi
+
+#: The largest angle between a vertex normal and the face normal of a triangle that is shifted:
+#: 60°, a smooth-shaded triangular prism's (the coarsest ordinary smooth mesh; a cube's is 54.7°).
+COS_SMOOTH_MIN = 0.5
 
 
 def applies(scene) -> bool:
@@ -38,17 +48,27 @@ def smooth_shift(si, prim_uv, active=True):
 def _tangent_plane_shift(mesh, prim_index, prim_uv, p):
     """On one shape of the scene: p projected onto each vertex's tangent plane (outward only),
     the projections interpolated with the barycentrics, minus p (0 on a mesh without vertex
-    normals and on other shapes)."""
+    normals, on other shapes, and on a triangle with odd vertex normals: module docstring)."""
     shift = mi.Vector3f(0.0)
     if not (mesh.is_mesh() and mesh.has_vertex_normals()):     # the registry holds every shape
         return shift
     face = mesh.face_indices(prim_index)
     weights = (1.0 - prim_uv.x - prim_uv.y, prim_uv.x, prim_uv.y)
-    for k, index in enumerate((face.x, face.y, face.z)):
-        v = mesh.vertex_position(index)
-        n = mi.Vector3f(dr.normalize(mesh.vertex_normal(index)))
-        shift -= weights[k] * dr.minimum(dr.dot(p - v, n), 0.0) * n
-    return shift
+    v = [mesh.vertex_position(index) for index in (face.x, face.y, face.z)]
+    n = [mi.Vector3f(dr.normalize(mesh.vertex_normal(index))) for index in (face.x, face.y, face.z)]
+    for k in range(3):
+        shift -= weights[k] * dr.minimum(dr.dot(p - v[k], n[k]), 0.0) * n[k]
+    return dr.select(_smooth(v, n), shift, 0.0)
+
+
+def _smooth(v, n):
+    """Whether the triangle's vertex normals ``n`` are all within 60° of its face
+    normal, on one side of it (False for a degenerate triangle)."""
+    face_n = dr.normalize(dr.cross(v[1] - v[0], v[2] - v[0]))
+    cos = [dr.dot(face_n, nk) for nk in n]
+    above = (cos[0] >= COS_SMOOTH_MIN) & (cos[1] >= COS_SMOOTH_MIN) & (cos[2] >= COS_SMOOTH_MIN)
+    below = (cos[0] <= -COS_SMOOTH_MIN) & (cos[1] <= -COS_SMOOTH_MIN) & (cos[2] <= -COS_SMOOTH_MIN)
+    return above | below
 
 
 def moved(si, shift):
