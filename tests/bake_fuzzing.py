@@ -17,23 +17,12 @@ from pathlib import Path
 import numpy as np
 from hypothesis import strategies as st
 
+from helpers import uv_sphere
+
 
 def sphere(n_theta: int = 6, n_phi: int = 12):
     """A unit UV sphere (u = φ/2π, v = θ/π), its poles' zero-area triangles left out."""
-    theta, phi = np.meshgrid(np.linspace(0, np.pi, n_theta + 1), np.linspace(0, 2 * np.pi, n_phi + 1),
-                             indexing="ij")
-    pos = np.stack([np.sin(theta) * np.cos(phi), np.sin(theta) * np.sin(phi), np.cos(theta)], -1).reshape(-1, 3)
-    uv = np.stack([phi / (2 * np.pi), theta / np.pi], -1).reshape(-1, 2)
-    faces = []
-    for i in range(n_theta):
-        for j in range(n_phi):
-            a = i * (n_phi + 1) + j
-            b, c, d = a + 1, a + n_phi + 1, a + n_phi + 2
-            if i > 0:
-                faces.append((a, c, b))
-            if i < n_theta - 1:
-                faces.append((b, c, d))
-    return pos, pos.copy(), uv, np.array(faces)
+    return uv_sphere(n_theta, n_phi)
 
 
 def bumpy(n_theta: int = 20, n_phi: int = 40):

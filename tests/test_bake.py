@@ -17,32 +17,12 @@ import numpy as np
 import pytest
 
 from cli_checks import assert_error_line
+from helpers import uv_sphere
 from mfnormal.io import bake as B
 from mfnormal.io.gltf import mitsuba_mesh
 from mfnormal.models.shading import from_tangent_frame
 
 SIZE = 128
-
-
-def uv_sphere(n_theta: int = 10, n_phi: int = 20, lean: float = 0.0):
-    """A unit UV sphere's (positions, normals, uvs, faces): u = φ/2π, v = θ/π (v = 0 at +z),
-    the poles' zero-area triangles left out; its vertex normals leant by ``lean`` towards +x
-    (n + lean·x, normalised), so that the map has to tilt them back."""
-    theta, phi = np.meshgrid(np.linspace(0, np.pi, n_theta + 1), np.linspace(0, 2 * np.pi, n_phi + 1),
-                             indexing="ij")
-    pos = np.stack([np.sin(theta) * np.cos(phi), np.sin(theta) * np.sin(phi), np.cos(theta)], -1).reshape(-1, 3)
-    uv = np.stack([phi / (2 * np.pi), theta / np.pi], -1).reshape(-1, 2)
-    faces = []
-    for i in range(n_theta):
-        for j in range(n_phi):
-            a = i * (n_phi + 1) + j
-            b, c, d = a + 1, a + n_phi + 1, a + n_phi + 2
-            if i > 0:
-                faces.append((a, c, b))
-            if i < n_theta - 1:
-                faces.append((b, c, d))
-    normals = pos + lean * np.array([1.0, 0.0, 0.0])
-    return pos, normals / np.linalg.norm(normals, axis=1, keepdims=True), uv, np.array(faces)
 
 
 def low_mesh(arrays, tangents: bool):

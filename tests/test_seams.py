@@ -29,7 +29,7 @@ import pytest
 
 from mfnormal.io import bake as B
 from mfnormal.io.gltf import mitsuba_mesh
-from test_bake import uv_sphere
+from helpers import uv_sphere
 
 RES, SPP = 96, 128
 AL = {"type": "roughconductor", "material": "Al", "alpha": 0.2}

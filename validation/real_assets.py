@@ -141,16 +141,22 @@ class Cell:
         return 4 if float(H.MATERIALS[self.material].get("alpha", 1.0)) <= 0.05 else 1
 
 
-def parse_args(argv=None):
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+def cell_arguments(doc: str, out: Path, full: dict, methods_help: str):
+    """The parser of a real-asset harness: ``--out``, ``--quick``, the cells' subsets (defaults in
+    ``full``) and ``--methods``."""
+    p = argparse.ArgumentParser(description=doc.split("\n\n")[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--out", type=Path, default=OUT)
+    p.add_argument("--out", type=Path, default=out)
     p.add_argument("--quick", action="store_true", help="one small asset, two cells, 32² px")
     for name in ("assets", "materials", "lightings", "views"):
         p.add_argument(f"--{name}", type=lambda s: s.split(","), default=None,
-                       help=f"comma-separated subset (default: {','.join(FULL[name])})")
-    p.add_argument("--methods", type=H.split_methods, default=None,
-                   help="method keys of validation.heightfield.METHODS or plugin:MODEL specs")
+                       help=f"comma-separated subset (default: {','.join(full[name])})")
+    p.add_argument("--methods", type=H.split_methods, default=None, help=methods_help)
+    return p
+
+
+def parse_args(argv=None):
+    p = cell_arguments(__doc__, OUT, FULL, "method keys of validation.heightfield.METHODS or plugin:MODEL specs")
     for name, kind in (("res", int), ("spp", int), ("ref_factor", int), ("faces", int), ("map_size", int)):
         p.add_argument("--" + name.replace("_", "-"), type=kind, default=None)
     p.add_argument("--frame", choices=B.TANGENT_FRAMES, default="mikktspace")
@@ -534,17 +540,22 @@ def render_equal_time(cell: Cell, prepared: dict, methods, frame: str, res: int,
 CLASSIC = ("classic", "classic_fixed")
 
 
+def cell_groups(results) -> dict:
+    """The results by group: all cells, then each asset, material, lighting and view (in the
+    order they occur), a name → the results in it."""
+    groups = {"all cells": results}
+    for part, index in (("asset", 0), ("material", 1), ("lighting", 2), ("view", 3)):
+        for value in dict.fromkeys(r["cell"].split("/")[index] for r in results):
+            groups[f"{part} {value}"] = [r for r in results if r["cell"].split("/")[index] == value]
+    return groups
+
+
 def summarise(results, keys) -> dict:
     """Per group (all cells, each asset, each material): per method the geometric-mean relMSE
     and bias part, the mean near-black fraction, and the cells where it is ≤ the better classic
     method within twice the noise floor."""
-    groups = {"all cells": lambda c: True}
-    for part, index in (("asset", 0), ("material", 1), ("lighting", 2), ("view", 3)):
-        for value in dict.fromkeys(r["cell"].split("/")[index] for r in results):
-            groups[f"{part} {value}"] = lambda c, i=index, v=value: c.split("/")[i] == v
     out = {}
-    for name, pred in groups.items():
-        rs = [r for r in results if pred(r["cell"])]
+    for name, rs in cell_groups(results).items():
         row = {"cells": len(rs), "floor": TG.geomean([r["floor"]["rel_mse"] for r in rs]), "methods": {}}
         for k in keys:
             have = [r for r in rs if k in r["metrics"]]

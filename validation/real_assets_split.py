@@ -42,7 +42,6 @@ outside the tracked tree).
 
 from __future__ import annotations
 
-import argparse
 import gc
 import itertools
 import json
@@ -191,13 +190,8 @@ def summarise(cells: list, keys: list) -> dict:
     method's relMSE, noise and equal-time relMSE, the mean of its bias² (an estimate that can be
     below 0 where the bias is under the floor), the cells where it is ≤ the better classic, and
     the resolved cells."""
-    groups = {"all cells": lambda c: True}
-    for part, index in (("asset", 0), ("material", 1), ("lighting", 2), ("view", 3)):
-        for value in dict.fromkeys(c["cell"].split("/")[index] for c in cells):
-            groups[f"{part} {value}"] = lambda c, i=index, v=value: c.split("/")[i] == v
     out = {}
-    for name, pred in groups.items():
-        rs = [c for c in cells if pred(c["cell"])]
+    for name, rs in RA.cell_groups(cells).items():
         row = {"cells": len(rs), "resolved": sum(c["resolved"] for c in rs),
                "floor": TG.geomean([c["floor"] for c in rs]), "methods": {}}
         for k in keys:
@@ -246,16 +240,8 @@ def markdown(report: dict, keys: list) -> str:
 
 
 def parse_args(argv=None):
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--out", type=Path, default=OUT)
-    p.add_argument("--quick", action="store_true", help="one small asset, two cells, 32² px")
-    for name in ("assets", "materials", "lightings", "views"):
-        p.add_argument(f"--{name}", type=lambda s: s.split(","), default=None,
-                       help=f"comma-separated subset (default: {','.join(FULL[name])})")
-    p.add_argument("--methods", type=H.split_methods, default=None,
-                   help=f"method keys or plugin:MODEL specs (default: {','.join(METHODS)}); one of "
-                        f"{' or '.join(CLASSIC)} is needed")
+    p = RA.cell_arguments(__doc__, OUT, FULL, f"method keys or plugin:MODEL specs (default: "
+                          f"{','.join(METHODS)}); one of {' or '.join(CLASSIC)} is needed")
     for name in ("res", "spp", "truth_spp", "faces", "map_size"):
         p.add_argument("--" + name.replace("_", "-"), type=int, default=None)
     p.add_argument("--integrator", choices=RA.INTEGRATORS, default="path")
