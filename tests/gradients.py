@@ -115,18 +115,18 @@ def test_function(w):
     return 1.0 + w.x + 0.5 * w.y
 
 
-def query_values(bsdf, si, wo, u, what="eval"):
+def query_values(bsdf, si, wo, u, what="eval", c=test_function):
     """Per-query values q_k: the RGB mean of eval·c(ω_o), of pdf·c(ω_o), or of a sample's
-    weight·c(its direction) (c: :func:`test_function`)."""
+    weight·c(its direction) (c: :func:`test_function` unless given)."""
     ctx = mi.BSDFContext()
     if what == "eval":
         v = bsdf.eval(ctx, si, wo)
-        return (v[0] + v[1] + v[2]) / 3.0 * test_function(wo)
+        return (v[0] + v[1] + v[2]) / 3.0 * c(wo)
     if what == "pdf":
-        return bsdf.pdf(ctx, si, wo) * test_function(wo)
+        return bsdf.pdf(ctx, si, wo) * c(wo)
     if what == "sample":
         bs, w = bsdf.sample(ctx, si, floats(u[:, 0]), point2(u[:, 1:]))
-        return (w[0] + w[1] + w[2]) / 3.0 * test_function(bs.wo)
+        return (w[0] + w[1] + w[2]) / 3.0 * c(bs.wo)
     raise ValueError(what)
 
 
@@ -140,10 +140,11 @@ def _attached(bsdf, key):
     return params, theta, arr
 
 
-def forward(bsdf, key, si, wo, u, what="eval"):
-    """Every query's forward-mode derivative dq_k/dθ for the parameter ``key`` (numpy)."""
+def forward(bsdf, key, si, wo, u, what="eval", c=test_function):
+    """Every query's forward-mode derivative dq_k/dθ for the parameter ``key`` (numpy; ``c``:
+    :func:`query_values`)."""
     params, theta, arr = _attached(bsdf, key)
-    q = query_values(bsdf, si, wo, u, what)
+    q = query_values(bsdf, si, wo, u, what, c)
     if isinstance(key, tuple):
         _, index, channel = key
         seed = np.zeros(np.array(arr).shape, np.float32)

@@ -304,25 +304,24 @@ def test_bake_command_unwraps_a_mesh_without_uvs(worker, meshes):
     assert np.array(mi.Bitmap(str(meshes / "unwrapped.png"))).shape == (32, 32, 3)
 
 
-def test_a_long_bake_reports_its_progress_in_at_most_three_lines(monkeypatch):
+def test_a_long_bake_reports_its_progress_in_at_most_three_lines():
     """``bake(progress=...)`` is called after every pass with the texels traced so far; the
     command's callback prints a line at each quarter, on stderr, for bakes of
     PROGRESS_PASSES passes or more (passes made small here), and nothing for shorter ones."""
     import io
     from mfnormal.cli import bake as cli_bake
-    monkeypatch.setattr(B, "TEXELS_PER_PASS", 512)
-    monkeypatch.setattr(cli_bake, "TEXELS_PER_PASS", 512)
     calls = []
-    B.bake(bumpy_sphere(), low_mesh(uv_sphere(6, 12), False), 64, progress=lambda *a: calls.append(a))
+    B.bake(bumpy_sphere(), low_mesh(uv_sphere(6, 12), False), 64, progress=lambda *a: calls.append(a),
+           batches=B.Batches(trace=512))
     assert calls == [(min(k * 512, 64 * 64), 64 * 64) for k in range(1, 9)]
     stream = io.StringIO()
-    report = cli_bake.progress_lines(64, 0.0, stream)
+    report = cli_bake.progress_lines(64, 0.0, stream, per_pass=512)
     for done, total in calls:
         report(done, total)
     lines = stream.getvalue().splitlines()
     assert [ln.split(" texels")[0] for ln in lines] == [
         f"mfnormal: bake: {q} % of 4096" for q in (25, 50, 75)], lines
-    assert cli_bake.progress_lines(32, 0.0, stream) is None     # 2 passes: no report
+    assert cli_bake.progress_lines(32, 0.0, stream, per_pass=512) is None     # 2 passes: no report
 
 
 TANGENT_SCENE = """<scene version="3.0.0">

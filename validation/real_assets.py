@@ -312,8 +312,9 @@ def sensor(target, half, res: int, spp: int, sampler: str = "multijitter") -> di
                      "rfilter": {"type": "box"}}}
 
 
-def scene(shape, cell: Cell, target, half, res, spp, sampler: str = "multijitter"):
-    return mi.load_dict({"type": "scene", "integrator": {"type": INTEGRATOR, "max_depth": MAX_DEPTH},
+def scene(shape, cell: Cell, target, half, res, spp, sampler: str = "multijitter", integrator: str | None = None):
+    """The cell's scene around ``shape``, loaded; ``integrator``: default the run's (``--integrator``)."""
+    return mi.load_dict({"type": "scene", "integrator": {"type": integrator or INTEGRATOR, "max_depth": MAX_DEPTH},
                          "sensor": sensor(target, half, res, spp, sampler), "object": shape,
                          **H._emitters(LIGHTINGS[cell.lighting])})
 
@@ -367,12 +368,12 @@ def object_metrics(img, truth, mask) -> dict:
 
 
 def method_scene(m, cell: Cell, prepared: dict, frame: str, target, half, res: int, spp: int,
-                 sampler: str = "multijitter"):
+                 sampler: str = "multijitter", integrator: str | None = None):
     """The low-poly with the cell's material wrapped by method ``m`` (the classic methods and
     ``nomap`` on the Mitsuba-frame mesh), loaded."""
     low_frame = frame if m.key not in ("nomap", "classic", "classic_fixed") else "mitsuba"
     bsdf = method_bsdf(m, H.MATERIALS[cell.material], prepared["maps"], frame)
-    return scene(low_mesh(prepared["low"], low_frame, bsdf), cell, target, half, res, spp, sampler)
+    return scene(low_mesh(prepared["low"], low_frame, bsdf), cell, target, half, res, spp, sampler, integrator)
 
 
 def _load_error(exc) -> str:

@@ -127,13 +127,13 @@ def texels_per_pixel(prepared: dict, half: float, res: int) -> float:
     return float(covered / area * (2.0 * half / res) ** 2)
 
 
-def method_seconds(cell, prepared, methods, frame, target, half, res, spp, seed) -> dict:
+def method_seconds(cell, prepared, methods, frame, target, half, res, spp, seed, integrator: str) -> dict:
     """Each method's warm seconds per render at ``spp``: the median of its timed renders over
     TIME_ROUNDS rounds, one method's scene loaded at a time (:func:`validation.real_assets.timed_renders`)."""
     runs = {}
     for _ in range(RA.TIME_ROUNDS):
         for m in methods:
-            s = RA.method_scene(m, cell, prepared, frame, target, half, res, spp)
+            s = RA.method_scene(m, cell, prepared, frame, target, half, res, spp, integrator=integrator)
             runs.setdefault(m.key, []).extend(RA.timed_renders(s, spp, seed, RA.TIME_MIN_S / RA.TIME_ROUNDS))
             del s
             gc.collect()
@@ -141,16 +141,16 @@ def method_seconds(cell, prepared, methods, frame, target, half, res, spp, seed)
 
 
 def render_cell(cell: RA.Cell, prepared: dict, methods, frame: str, res: int, spp: int, truth_spp: int,
-                run_seed: int = 0, timing: bool = True, log=print) -> dict:
+                run_seed: int = 0, timing: bool = True, integrator: str = "path", log=print) -> dict:
     """One cell: the truth's halves, the floor's (the truth again at ``spp``) and every method's,
-    their split metrics, and (``timing``) the equal-time relMSE."""
+    their split metrics, and (``timing``) the equal-time relMSE; every scene with ``integrator``."""
     seed = H.cell_seed(cell, run_seed) * 1000
     positions = B.mesh_arrays(prepared["high"])[0]
     target, half = camera(positions, cell.view)
     prepared["high"].set_bsdf(mi.load_dict(H.MATERIALS[cell.material]))
-    truth_scene = RA.scene(prepared["high"], cell, target, half, res, spp)
+    truth_scene = RA.scene(prepared["high"], cell, target, half, res, spp, integrator=integrator)
     mask = RA.object_mask([truth_scene, RA.scene(RA.low_mesh(prepared["low"], "mitsuba"), cell, target, half,
-                                                 res, spp)], res)
+                                                 res, spp, integrator=integrator)], res)
     truth = render_halves(truth_scene, truth_spp, seed + 100)
     again = split_metrics(render_halves(truth_scene, spp, seed + 200), truth, mask)
     floor = abs(again["bias2"]) + 2.0 * again["bias2_se"]
@@ -158,7 +158,7 @@ def render_cell(cell: RA.Cell, prepared: dict, methods, frame: str, res: int, sp
            "texels_per_pixel": texels_per_pixel(prepared, half, res), "floor": floor, "again": again,
            "metrics": {}}
     for m in methods:
-        s = RA.method_scene(m, cell, prepared, frame, target, half, res, spp)
+        s = RA.method_scene(m, cell, prepared, frame, target, half, res, spp, integrator=integrator)
         out["metrics"][m.key] = split_metrics(render_halves(s, spp, seed), truth, mask)
         del s
         gc.collect()
@@ -169,7 +169,7 @@ def render_cell(cell: RA.Cell, prepared: dict, methods, frame: str, res: int, sp
     for r in out["metrics"].values():
         r["le_classic"] = bool(r["rel_mse"] <= best + 2.0 * floor)
     if timing:
-        seconds = method_seconds(cell, prepared, methods, frame, target, half, res, spp, seed)
+        seconds = method_seconds(cell, prepared, methods, frame, target, half, res, spp, seed, integrator)
         t_ref = min(seconds[c] for c in CLASSIC if c in seconds)
         for k, r in out["metrics"].items():
             n = spp * t_ref / seconds[k]
@@ -277,11 +277,10 @@ def main(argv=None):
     import mfnormal
 
     mfnormal.register()
-    RA.INTEGRATOR = args.integrator
     t_start = time.time()
     prepared = {a: RA.prepare(a, opts["faces"], opts["map_size"]) for a in opts["assets"]}
     cells = [render_cell(RA.Cell(*c), prepared[c[0]], methods, args.frame, opts["res"], opts["spp"],
-                         opts["truth_spp"], args.seed, not args.no_timing)
+                         opts["truth_spp"], args.seed, not args.no_timing, args.integrator)
              for c in itertools.product(opts["assets"], opts["materials"], opts["lightings"], opts["views"])]
     command = "nice .venv/bin/python -m validation.real_assets_split" + "".join(f" {a}" for a in (argv or sys.argv[1:]))
     report = {"settings": {**opts, "quick": args.quick, "frame": args.frame, "variant": args.variant,

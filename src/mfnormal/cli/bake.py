@@ -123,10 +123,12 @@ def _unwrapped(low_mesh, size: int, padding: int):
     return mitsuba_mesh("low", mi.load_dict({"type": "diffuse"}), p, n, uv, None, f)
 
 
-def progress_lines(size: int, started: float, stream: TextIO = sys.stderr) -> Callable[[int, int], None] | None:
-    """The bake's progress callback: on a bake of PROGRESS_PASSES passes or more, a line on
-    ``stream`` as each quarter of the texels is traced (at most three lines); None otherwise."""
-    if size * size < PROGRESS_PASSES * TEXELS_PER_PASS:
+def progress_lines(size: int, started: float, stream: TextIO = sys.stderr,
+                   per_pass: int = TEXELS_PER_PASS) -> Callable[[int, int], None] | None:
+    """The bake's progress callback: on a bake of PROGRESS_PASSES passes (of ``per_pass``
+    texels) or more, a line on ``stream`` as each quarter of the texels is traced (at most three
+    lines); None otherwise."""
+    if size * size < PROGRESS_PASSES * per_pass:
         return None
     reported = [0]
 

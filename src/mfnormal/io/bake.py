@@ -77,10 +77,23 @@ SIZE_RANGE = (8, 8192)
 CAGE_FRACTION = 0.05
 #: The rays along ±N start this fraction of the cage behind the low-poly's surface point.
 RAY_START = 1e-3
-#: Texel candidates tested per rasteriser chunk (memory: ~200 bytes each).
-CHUNK = 1 << 20
-#: Texels whose frames and rays are computed at once (memory: ~600 bytes each).
-TEXELS_PER_PASS = 1 << 19
+
+
+@dataclass(frozen=True)
+class Batches:
+    """How many texels a bake handles at once: ``trace`` texels whose frames and rays are
+    computed in one pass (memory: ~600 bytes each), ``band`` texels of rows padded and encoded
+    together, ``chunk`` texel candidates the rasteriser tests at a time (~200 bytes each). The
+    map is the same for any batches; they trade memory for per-step overhead."""
+    trace: int = 1 << 19
+    band: int = 1 << 20
+    chunk: int = 1 << 20
+
+
+#: The bake's batches.
+BATCHES = Batches()
+#: Texels traced per pass (``BATCHES.trace``).
+TEXELS_PER_PASS = BATCHES.trace
 #: Memory a bake takes per texel of the map, with a margin: the normals and heights (float64),
 #: the covering triangle (int32), the covered and hit masks, the encoded map and its file
 #: (measured: ~37 at 8192², docs/cli.md).
@@ -197,16 +210,16 @@ def _texel_coordinates(uvs, faces, size):
     return uvs[faces][..., 0] * size - 0.5, uvs[faces][..., 1] * size - 0.5
 
 
-def _pieces(x, y, size):
+def _pieces(x, y, size, chunk: int = BATCHES.chunk):
     """The texel-centre bounding boxes of the triangles, clipped to the map and cut into pieces of
-    at most about CHUNK centres (a large triangle into bands of rows): (triangle, first column,
+    at most about ``chunk`` centres (a large triangle into bands of rows): (triangle, first column,
     last column, first row, last row) per piece, in triangle order; empty boxes left out."""
     lo_x = np.clip(np.ceil(x.min(axis=1)), 0, size - 1).astype(np.int64)
     hi_x = np.clip(np.floor(x.max(axis=1)), -1, size - 1).astype(np.int64)
     lo_y = np.clip(np.ceil(y.min(axis=1)), 0, size - 1).astype(np.int64)
     hi_y = np.clip(np.floor(y.max(axis=1)), -1, size - 1).astype(np.int64)
     nx, ny = np.maximum(hi_x - lo_x + 1, 0), np.maximum(hi_y - lo_y + 1, 0)
-    rows = np.maximum(CHUNK // np.maximum(nx, 1), 1)
+    rows = np.maximum(chunk // np.maximum(nx, 1), 1)
     count = np.where(nx > 0, -(-ny // rows), 0)
     tri = np.repeat(np.arange(len(x)), count)
     k = np.arange(count.sum()) - np.repeat(np.cumsum(count) - count, count)
@@ -225,13 +238,13 @@ def _candidates(piece, first, last):
     return tri[local], lo_x[local] + k % nx[local], lo_y[local] + k // nx[local]
 
 
-def _chunks(piece):
-    """Piece ranges holding about CHUNK texel candidates each."""
+def _chunks(piece, chunk: int = BATCHES.chunk):
+    """Piece ranges holding about ``chunk`` texel candidates each."""
     tri, lo_x, hi_x, lo_y, hi_y = piece
     total = np.cumsum((hi_x - lo_x + 1) * (hi_y - lo_y + 1))
     bounds, first = [], 0
     while first < len(tri):
-        last = int(np.searchsorted(total, (total[first - 1] if first else 0) + CHUNK, "right"))
+        last = int(np.searchsorted(total, (total[first - 1] if first else 0) + chunk, "right"))
         last = max(last, first + 1)
         bounds.append((first, min(last, len(tri))))
         first = last
@@ -250,13 +263,13 @@ def _barycentrics(x, y, tri, col, row):
     return 1.0 - b1 - b2, b1, b2, det
 
 
-def texel_owners(uvs, faces, size: int):
+def texel_owners(uvs, faces, size: int, chunk: int = BATCHES.chunk):
     """The first triangle (lowest index) whose UV triangle covers each texel's centre, −1 where
-    none does: (size·size,) int64, texel index row·size + column."""
+    none does: (size·size,) int64, texel index row·size + column; ``chunk`` candidates at a time."""
     x, y = _texel_coordinates(uvs, faces, size)
     owner = np.full(size * size, -1, np.int32 if len(faces) < 1 << 31 else np.int64)
-    piece = _pieces(x, y, size)
-    for first, last in _chunks(piece):
+    piece = _pieces(x, y, size, chunk)
+    for first, last in _chunks(piece, chunk):
         tri, col, row = _candidates(piece, first, last)
         b0, b1, b2, det = _barycentrics(x, y, tri, col, row)
         eps = -1e-9
@@ -390,14 +403,9 @@ def high_surface_at(high, p, n, cage: float, geometric: bool = False):
 
 # -- Padding and encoding ------------------------------------------------------------------------
 
-#: Rows of texels a band of the padding and the encoding holds at most (times the map's width:
-#: about 2^20 texels).
-BAND_TEXELS = 1 << 20
-
-
-def _bands(height: int, width: int):
-    """Row ranges (first, last) of about BAND_TEXELS texels each."""
-    rows = max(1, BAND_TEXELS // max(width, 1))
+def _bands(height: int, width: int, band: int = BATCHES.band):
+    """Row ranges (first, last) of about ``band`` texels each."""
+    rows = max(1, band // max(width, 1))
     return [(r, min(r + rows, height)) for r in range(0, height, rows)]
 
 
@@ -410,13 +418,13 @@ def dilate(normals, known, padding: int, unit: bool = True):
     return out
 
 
-def _dilate_into(normals, known, padding: int, unit: bool = True) -> None:
+def _dilate_into(normals, known, padding: int, unit: bool = True, band: int = BATCHES.band) -> None:
     """:func:`dilate` in place, in bands of rows: a texel after ``padding`` rings depends only on
     the texels within ``padding`` rows of it, so each band is padded in a slab that holds
     ``padding`` more rows on each side, and only the band is written back (the slab's rows
     above, already padded, are not ``known`` and so are not read)."""
     h = known.shape[0]
-    for first, last in _bands(*known.shape):
+    for first, last in _bands(*known.shape, band):
         top, bottom = max(first - padding, 0), min(last + padding, h)
         slab = _dilate_slab(normals[top:bottom], known[top:bottom], padding, unit)
         normals[first:last] = slab[first - top:last - top]
@@ -681,8 +689,10 @@ def _available_memory() -> int | None:
     return None
 
 
-def _check_memory(size: int) -> None:
-    needed, available = memory_needed(size), _available_memory()
+def _check_memory(size: int, limit: int | None = None) -> None:
+    """A :class:`BakeError` where a ``size``² bake needs more than ``limit`` bytes (default: the
+    memory the system has available)."""
+    needed, available = memory_needed(size), _available_memory() if limit is None else limit
     if available is not None and needed > available:
         raise BakeError(f"a {size}x{size} bake needs about {needed / 2 ** 30:.1f} GiB of memory, "
                         f"more than the {available / 2 ** 30:.1f} GiB available; lower the map size "
@@ -691,7 +701,8 @@ def _check_memory(size: int) -> None:
 
 def bake(high: mi.Shape | PathLike, low: mi.Mesh | PathLike, size: int = 1024, cage: float | None = None, frame: str = "mikktspace",
          padding: int = 4, high_normals: str = "shading",
-         progress: Callable[[int, int], None] | None = None) -> Baked:
+         progress: Callable[[int, int], None] | None = None, batches: Batches = BATCHES,
+         memory_limit: int | None = None) -> Baked:
     """Bake the tangent-space normal map of ``high`` onto ``low`` (Mitsuba meshes or paths of PLY
     or OBJ files; the low-poly needs UVs and vertex normals), and its heights over ``low``: a
     ``size``² :class:`Baked`.
@@ -700,10 +711,51 @@ def bake(high: mi.Shape | PathLike, low: mi.Mesh | PathLike, size: int = 1024, c
     CAGE_FRACTION of the low-poly's bounding-box diagonal); ``frame``: ``mikktspace`` or
     ``mitsuba`` (see the module's docstring); ``padding``: texels to dilate the islands by;
     ``high_normals``: the high-poly's ``shading`` (interpolated) or ``geometric`` normal;
-    ``progress(done, total)``: called after each pass of TEXELS_PER_PASS texels traced.
+    ``progress(done, total)``: called after each pass of ``batches.trace`` texels traced;
+    ``batches``: how many texels each step handles (:class:`Batches`); ``memory_limit``: the
+    bytes the bake may take (default: what the system has available), checked before it starts.
     A JIT variant (``llvm_*``, ``cuda_*``) must be set. Every input is checked first
     (:class:`BakeError`, one line); a warning says when most texels' normals face away from
     the low-poly's (one of the meshes' normals is flipped)."""
+    import mitsuba as mi
+
+    high_mesh, (positions, normals, uvs, faces) = _checked_inputs(high, low, size, cage, frame, padding,
+                                                                   high_normals, memory_limit)
+    # Trace at a working scale (a power of two: exact); the heights are scaled back.
+    scale = _working_scale(_diagonal(positions))
+    high_mesh = _scaled_mesh(high_mesh, scale)
+    if scale != 1.0:
+        positions, normals = _scaled_arrays(positions, normals, faces, scale)
+    cage = default_cage(positions) if cage is None else float(cage) * scale
+    bbox = high_mesh.bbox()
+    scene_size = _diagonal(np.concatenate([positions, [list(bbox.min), list(bbox.max)]]))
+    spans_scene = cage >= scene_size
+    cage = min(cage, scene_size)
+
+    owner = texel_owners(uvs, faces, size, batches.chunk)
+    covered = owner >= 0
+    if not covered.any():
+        raise BakeError(_uv_problem(uvs, faces, size))
+    outside = _outside_map(uvs, faces)
+    if outside:
+        warnings.warn(f"{outside} of the low-poly mesh's {len(faces)} triangles have UVs wholly "
+                      "outside the map's 0 to 1 square (another UDIM tile, or a repeat) and are "
+                      "not baked", stacklevel=2)
+    scene = mi.load_dict({"type": "scene", "high": high_mesh})
+    normals_out, heights, hits = _trace_passes(scene, (positions, normals, uvs, faces), owner, size, frame,
+                                               cage, high_normals == "geometric", progress, batches.trace)
+    heights /= scale
+    covered, hits = covered.reshape(size, size), hits.reshape(size, size)
+    normals_out = normals_out.reshape(size, size, 3)
+    heights = heights.reshape(size, size, 1)
+    _dilate_into(normals_out, covered, padding, band=batches.band)
+    _dilate_into(heights, covered, padding, unit=False, band=batches.band)
+    return Baked(normals_out, covered, hits, heights[..., 0], spans_scene)
+
+
+def _checked_inputs(high, low, size, cage, frame, padding, high_normals, memory_limit):
+    """:func:`bake`'s inputs checked before any work (one-line :class:`BakeError`s): the
+    high-poly mesh and the low-poly's arrays."""
     import mitsuba as mi
 
     if frame not in TANGENT_FRAMES:
@@ -722,63 +774,42 @@ def bake(high: mi.Shape | PathLike, low: mi.Mesh | PathLike, size: int = 1024, c
     high_mesh = _as_mesh(high, "high-poly mesh", "high", mi.Shape)
     low_mesh = _as_mesh(low, "low-poly mesh", "low", mi.Mesh)
     check_high_poly(high_mesh)
-    positions, normals, uvs, faces = check_low_poly(low_mesh)
-    _check_memory(size)
+    arrays = check_low_poly(low_mesh)
+    _check_memory(size, memory_limit)
+    return high_mesh, arrays
 
-    # Trace at a working scale (a power of two: exact); the heights are scaled back.
-    scale = _working_scale(_diagonal(positions))
-    high_mesh = _scaled_mesh(high_mesh, scale)
-    if scale != 1.0:
-        positions, normals = _scaled_arrays(positions, normals, faces, scale)
-    cage = default_cage(positions) if cage is None else float(cage) * scale
-    bbox = high_mesh.bbox()
-    corners = np.concatenate([positions, [list(bbox.min), list(bbox.max)]])
-    scene_size = _diagonal(corners)
-    spans_scene = cage >= scene_size
-    cage = min(cage, scene_size)
-    low_arrays = positions, normals, uvs, faces
 
-    owner = texel_owners(uvs, faces, size)
-    covered = owner >= 0
-    if not covered.any():
-        raise BakeError(_uv_problem(uvs, faces, size))
-    outside = _outside_map(uvs, faces)
-    if outside:
-        warnings.warn(f"{outside} of the low-poly mesh's {len(faces)} triangles have UVs wholly "
-                      "outside the map's 0 to 1 square (another UDIM tile, or a repeat) and are "
-                      "not baked", stacklevel=2)
+def _trace_passes(scene, low_arrays, owner, size, frame, cage, geometric, progress, per_pass):
+    """The covered texels' tangent-space normals (size², 3), heights along the low-poly's normal
+    (size², 1; at the working scale) and hits (size²,), traced ``per_pass`` texels at a time; a
+    warning where most face away from the low-poly's normal."""
+    positions, normals, uvs, faces = low_arrays
     corner = mikktspace(positions, normals, uvs, faces, flip_v=True) if frame == "mikktspace" else None
-    scene = mi.load_dict({"type": "scene", "high": high_mesh})
-
+    covered = owner >= 0
     normals_out = np.zeros((size * size, 3))
     normals_out[:, 2] = 1.0
     heights = np.zeros((size * size, 1))
     hits = np.zeros(size * size, bool)
     facing_away = 0
-    for first in range(0, size * size, TEXELS_PER_PASS):
-        texel = first + np.flatnonzero(covered[first:first + TEXELS_PER_PASS])
+    for first in range(0, size * size, per_pass):
+        texel = first + np.flatnonzero(covered[first:first + per_pass])
         tri = owner[texel].astype(np.int64)
         bary = owned_barycentrics(uvs, faces, size, texel, tri)
         p, tangent, bitangent, n = texel_frames(low_arrays, tri, bary, frame, corner)
-        normal, distance, hit = high_surface_at(scene, p, n, cage, high_normals == "geometric")
+        normal, distance, hit = high_surface_at(scene, p, n, cage, geometric)
         local = np.stack([np.sum(normal * v, axis=1) for v in (tangent, bitangent, n)], axis=1)
         normals_out[texel[hit]] = local[hit]
-        heights[texel[hit], 0] = distance[hit] / scale
+        heights[texel[hit], 0] = distance[hit]
         hits[texel[hit]] = True
         facing_away += int(np.count_nonzero(local[hit, 2] < 0))
         if progress is not None:
-            progress(min(first + TEXELS_PER_PASS, size * size), size * size)
+            progress(min(first + per_pass, size * size), size * size)
     hit_count = int(hits.sum())
     if facing_away > hit_count / 2:
         warnings.warn(f"{facing_away} of {hit_count} baked texels face away from the low-poly's "
                       "normal (z < 0): the low-poly's and the high-poly's normals point opposite "
-                      "ways; flip the normals of one of them", stacklevel=2)
-    covered, hits = covered.reshape(size, size), hits.reshape(size, size)
-    normals_out = normals_out.reshape(size, size, 3)
-    heights = heights.reshape(size, size, 1)
-    _dilate_into(normals_out, covered, padding)
-    _dilate_into(heights, covered, padding, unit=False)
-    return Baked(normals_out, covered, hits, heights[..., 0], spans_scene)
+                      "ways; flip the normals of one of them", stacklevel=3)
+    return normals_out, heights, hits
 
 
 def _outside_map(uvs, faces) -> int:
