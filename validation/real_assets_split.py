@@ -162,8 +162,7 @@ def render_cell(cell: RA.Cell, prepared: dict, methods, frame: str, res: int, sp
         out["metrics"][m.key] = split_metrics(render_halves(s, spp, seed), truth, mask)
         del s
         gc.collect()
-    best = min(out["metrics"][c]["rel_mse"] for c in CLASSIC if c in out["metrics"]) if any(
-        c in out["metrics"] for c in CLASSIC) else float("nan")
+    best = min(out["metrics"][c]["rel_mse"] for c in CLASSIC if c in out["metrics"])   # main() needs one
     out["best_classic"] = best
     out["resolved"] = bool(floor <= RESOLVED * best)
     for r in out["metrics"].values():

@@ -19,9 +19,8 @@ from pathlib import Path
 from typing import Callable, TextIO
 
 from mfnormal.io.bake import (BakeError, HIGH_NORMALS, MESH_SUFFIXES, SIZE_RANGE, TANGENT_FRAMES,
-                              TEXELS_PER_PASS, bake, check_low_poly, load_mesh, memory_needed, mesh_arrays,
-                              tangent_mesh, unwrap,
-                              write_baked)
+                              TEXELS_PER_PASS, bake, load_mesh, memory_needed, mesh_arrays, tangent_mesh,
+                              unwrap, write_baked)
 from mfnormal.io.inputs import CLIError, check_output
 
 __all__ = ["add_bake", "cmd_bake", "progress_lines"]
@@ -169,7 +168,7 @@ def cmd_bake(args: argparse.Namespace) -> int:
               f"within the cage and are flat; {fix}", file=sys.stderr, flush=True)
     meshes = [(args.unwrap, lambda p: low.write_ply(str(p)))] if args.unwrap else []
     if args.tangent_mesh:
-        with_tangents = tangent_mesh("low", *check_low_poly(low))
+        with_tangents = tangent_mesh("low", *mesh_arrays(low))     # checked by bake()
         meshes.append((args.tangent_mesh, lambda p: with_tangents.write_ply(str(p))))
     write_baked(output, baked.normals, args.bits, args.heights, baked.heights, meshes)
     print(f"baked {args.size}x{args.size} ({args.tangents} frame, {covered} texels covered) "

@@ -489,8 +489,9 @@ def _heights_bytes(heights) -> bytes:
     from mfnormal.io.images import encode
 
     with np.errstate(over="ignore"):
-        _check_finite(np.asarray(heights, np.float32), "heights (in single precision)")
-    bitmap = mi.Bitmap(np.ascontiguousarray(heights, np.float32)[..., None], mi.Bitmap.PixelFormat.Y)
+        heights = np.ascontiguousarray(heights, np.float32)
+    _check_finite(heights, "heights (in single precision)")
+    bitmap = mi.Bitmap(heights[..., None], mi.Bitmap.PixelFormat.Y)
     return encode(bitmap, mi.Bitmap.FileFormat.OpenEXR)
 
 
