@@ -51,6 +51,7 @@ from pathlib import Path
 
 import numpy as np
 
+from mfnormal.cli.rendering import MIN_THREADS
 from mfnormal.io.messages import one_line
 from mfnormal.io.inputs import FILE_STRINGS, CLIError, check_regular_file
 
@@ -67,9 +68,6 @@ SECURE_SCHEMES = ("tls", "wss")
 #: How often a failed task is retried (on any worker); a lost worker's tasks are
 #: resubmitted by the scheduler on its own (``distributed.scheduler.allowed-failures``).
 RETRIES = 2
-#: The fewest Dr.Jit threads a worker renders with: with one (no pool thread, the caller
-#: alone) Mitsuba's OpenEXR reader and writer wait forever for a task no thread runs.
-MIN_THREADS = 2
 _ADDRESS = re.compile(r"^(?:(\w+)://)?(\[[0-9a-fA-F:]+\]|[\w.-]+):(\d{1,5})/?$")
 
 

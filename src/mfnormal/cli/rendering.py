@@ -34,9 +34,17 @@ __all__ = ["MAX_PASS_LANES", "pass_count", "pass_spp", "pass_seed", "schedule", 
 MAX_PASS_LANES = 1 << 24
 
 
+#: The fewest Dr.Jit threads the commands render with: with one (a one-core machine's default,
+#: no pool thread, the caller alone) Mitsuba's OpenEXR reader and writer wait for ever for a
+#: task no thread runs (`dr.set_thread_count(1); mi.Bitmap("x.exr")` hangs).
+MIN_THREADS = 2
+
+
 def use_variant(variant: str, error, unavailable: str, cannot: str):
-    """Mitsuba in ``variant`` with the plugins registered; ``error(unavailable)`` where this build
-    lacks it, ``error(cannot + ": " + the cause)`` where it cannot be set (e.g. cuda_* without a GPU)."""
+    """Mitsuba in ``variant`` with the plugins registered and at least :data:`MIN_THREADS` Dr.Jit
+    threads; ``error(unavailable)`` where this build lacks it, ``error(cannot + ": " + the
+    cause)`` where it cannot be set (e.g. cuda_* without a GPU)."""
+    import drjit as dr
     import mfnormal
     from mfnormal.io.messages import one_line
 
@@ -48,6 +56,8 @@ def use_variant(variant: str, error, unavailable: str, cannot: str):
         except Exception as exc:
             raise error(f"{cannot}: {one_line(exc)}") from None
     mfnormal.register()
+    if dr.thread_count() < MIN_THREADS:
+        dr.set_thread_count(MIN_THREADS)
     return mi
 
 
