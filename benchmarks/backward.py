@@ -1,7 +1,6 @@
-#!/usr/bin/env python
 r"""Reverse-mode cost of every method against Mitsuba's built-in ``normalmap``.
 
-    nice .venv/bin/python benchmarks/backward.py [--methods builtin,faithful,...] [--res 64]
+    nice .venv/bin/python -m benchmarks.backward [--methods builtin,faithful,...] [--res 64]
         [--spp 16] [--reps 3] [--variant llvm_ad_rgb] [--out benchmarks]
 
 The scene is the inverse-rendering one (:mod:`validation.inverse`: a plane under a 16² map,
@@ -40,7 +39,6 @@ def rss_mb() -> float:
 
 
 def worker(method, res, spp, reps, start="true", variant="llvm_ad_rgb"):
-    sys.path.insert(0, str(ROOT))   # the validation package of this checkout
     import mfnormal  # noqa: F401  (before mitsuba)
     import drjit as dr
     import mitsuba as mi
@@ -110,9 +108,9 @@ def main(argv=None):
         return 0
     rows = []
     for m in args.methods:
-        proc = subprocess.run([sys.executable, __file__, "--worker", m, "--res", str(args.res), "--spp",
-                               str(args.spp), "--reps", str(args.reps), "--map", args.map, "--variant", args.variant],
-                              capture_output=True, text=True)
+        proc = subprocess.run([sys.executable, "-m", "benchmarks.backward", "--worker", m, "--res", str(args.res),
+                               "--spp", str(args.spp), "--reps", str(args.reps), "--map", args.map,
+                               "--variant", args.variant], cwd=ROOT, capture_output=True, text=True)
         line = [x for x in proc.stdout.splitlines() if x.startswith("JSON ")]
         if proc.returncode != 0 or not line:
             rows.append({"method": m, "error": (proc.stderr or proc.stdout)[-500:]})
@@ -129,11 +127,11 @@ def main(argv=None):
 def write(args, rows):
     args.out.mkdir(parents=True, exist_ok=True)
     name = "backward" if args.map == "true" else "backward_flat"
-    (args.out / f"{name}.json").write_text(json.dumps({"command": " ".join(sys.argv), "res": args.res,
+    (args.out / f"{name}.json").write_text(json.dumps({"command": " ".join(["python -m benchmarks.backward", *sys.argv[1:]]), "res": args.res,
                                                        "spp": args.spp, "map": args.map, "rows": rows}, indent=1))
     base = next((r for r in rows if r["method"] == "builtin" and "error" not in r), None)
     lines = ["# Reverse-mode cost per method", "",
-             f"`benchmarks/backward.py --res {args.res} --spp {args.spp} --map {args.map}`: the inverse-rendering "
+             f"`python -m benchmarks.backward --res {args.res} --spp {args.spp} --map {args.map}`: the inverse-rendering "
              f"plane (16² map, {'the true map' if args.map == 'true' else 'a flat map'}, roughplastic α 0.2, one "
              f"sun, `prb` max_depth 2), {args.variant}. Times: medians of "
              "warm runs; render+backward = a differentiable render and `dr.backward` of its MSE w.r.t. the "

@@ -1,8 +1,8 @@
 """The cost floor: what the least model of the default's kind costs against Mitsuba's ``normalmap``.
 
-    python benchmarks/cost_floor.py [--quick] [--scenes demo,model] [--reps 4] [--out benchmarks/cost_floor]
+    python -m benchmarks.cost_floor [--quick] [--scenes demo,model] [--reps 4] [--out benchmarks/cost_floor]
 
-The production profile's scenes (``benchmarks/run.py --profile production``: 1280×720, 16 spp,
+The production profile's scenes (``python -m benchmarks.run --profile production``: 1280×720, 16 spp,
 the scenes' own materials) rendered with the built-in and, interleaved with it at equal spp,
 
 - ``faithful``: the default model;
@@ -30,8 +30,7 @@ import tempfile
 import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-import run as R      # noqa: E402  (benchmarks/run.py: scenes, timing, path vertices)
+from benchmarks import run as R      # scenes, timing, path vertices
 
 OUT = Path(__file__).resolve().parents[1] / "out" / "benchmarks" / "cost_floor"   # --out benchmarks/cost_floor: the committed one
 SHELLS = ("bench_shell_classic", "bench_shell_hidden")
@@ -52,7 +51,7 @@ def method_dict(name: str, assets: dict, method: str, width: int, height: int, s
 
 
 def vertices(name: str, assets: dict, method: str, size, spp: int) -> float:
-    import probes
+    from benchmarks import probes
     w, h = size
     return probes.path_vertices(probes.count_calls(method_dict(name, assets, method, w, h, spp), spp, w * h * spp))
 
@@ -132,7 +131,7 @@ def main(argv=None):
         assets = R.prepare_assets(Path(tmp), args.scenes)
         for name in args.scenes:
             rows += measure(name, assets, width, height, spp, reps, vertex_size)
-    report = {"settings": {"command": "python benchmarks/cost_floor.py " + " ".join(argv or sys.argv[1:]),
+    report = {"settings": {"command": "python -m benchmarks.cost_floor " + " ".join(argv or sys.argv[1:]),
                            "machine": _machine(),
                            "variant": args.variant, "started": started, "minutes": (time.time() - t0) / 60,
                            "width": width, "height": height, "spp": spp, "reps": reps,

@@ -1,7 +1,6 @@
-#!/usr/bin/env python
 r"""Measurements behind the optimisation suggestions of RESULTS.md, on the plugin as it is.
 
-    python benchmarks/experiments.py [--queries 20] [--out benchmarks]
+    python -m benchmarks.experiments [--queries 20] [--out benchmarks]
 
 Each experiment measures the BSDF on the queries of ``run.py``'s metric 4 or on its
 scenes, through the plugin's own parameters and the nested BSDFs of ``probes.py``
@@ -36,11 +35,10 @@ from pathlib import Path
 HERE = Path(__file__).resolve().parent
 _cache = tempfile.mkdtemp(prefix="mfnormal_exp_drjit_")
 os.environ["DRJIT_CACHE_DIR"] = _cache          # cold kernel cache for the compile timings
-sys.path.insert(0, str(HERE))
 
 import numpy as np  # noqa: E402
 
-import run as bench  # noqa: E402
+from benchmarks import run as bench  # noqa: E402
 
 mfnormal, mi, dr = bench.import_mitsuba()
 
@@ -340,7 +338,7 @@ def main(argv=None):
                     help="re-measure only the --only sections and keep the others from --out's experiments.json")
     args = ap.parse_args(argv)
     b = Bench(1 << args.queries, args.reps)
-    command = " ".join(["python", "benchmarks/experiments.py", *(argv or sys.argv[1:])])
+    command = " ".join(["python", "-m", "benchmarks.experiments", *(argv or sys.argv[1:])])
     res = {"command": command, "machine": bench.machine_info(), "queries": b.n}
     only = args.only.split(",")
     old = Path(args.out) / "experiments.json"

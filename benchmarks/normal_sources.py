@@ -1,7 +1,6 @@
-#!/usr/bin/env python
 r"""Cost per query of the other normal sources against the normal-map path.
 
-    nice .venv/bin/python benchmarks/normal_sources.py [--queries 20] [--reps 9] [--out benchmarks]
+    nice .venv/bin/python -m benchmarks.normal_sources [--queries 20] [--reps 9] [--out benchmarks]
 
 For every model (faithful, analytic, separable, nonseparable) and nested BSDF (diffuse,
 roughplastic), times ``eval``, ``eval_pdf`` and ``sample`` of ``normalmap_microfacet`` on

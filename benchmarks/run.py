@@ -1,7 +1,6 @@
-#!/usr/bin/env python
 r"""Benchmark ``normalmap_microfacet`` against Mitsuba's built-in ``normalmap``.
 
-    python benchmarks/run.py [--quick] [--profile full|production|water|all] [--variant V] [--out benchmarks]
+    python -m benchmarks.run [--quick] [--profile full|production|water|all] [--variant V] [--out benchmarks]
 
 One run measures, side by side, every method on every scene and nested BSDF:
 
@@ -83,7 +82,7 @@ import numpy as np
 
 HERE = Path(__file__).resolve().parent
 
-# The methods measured, by their key in the catalogue mfnormal.report.methods (which defines them;
+# The methods measured, by their key in the catalogue mfnormal.methods (which defines them;
 # only the names here: Mitsuba is imported later, see import_mitsuba). "builtin" is Mitsuba's
 # normalmap with its default fixes on, the catalogue's classic_fixed.
 METHOD_KEYS = ("builtin", "faithful", "analytic", "separable_specular", "separable_same",
@@ -91,8 +90,8 @@ METHOD_KEYS = ("builtin", "faithful", "analytic", "separable_specular", "separab
 
 
 def catalogue_method(key: str):
-    """The mfnormal.report.methods.Method measured as ``key``."""
-    from mfnormal.report.methods import METHOD_BY_KEY
+    """The mfnormal.methods.Method measured as ``key``."""
+    from mfnormal.methods import METHOD_BY_KEY
     return METHOD_BY_KEY["classic_fixed" if key == "builtin" else key]
 
 
@@ -215,7 +214,7 @@ def import_mitsuba(variant: str | None = None):
     import mitsuba as mi
     from mfnormal.cli.commands import setup_variant
     setup_variant(variant or VARIANT)
-    import probes            # benchmarks/probes.py, beside this script
+    from benchmarks import probes
     probes.register()
     return mfnormal, mi, dr
 
@@ -493,9 +492,8 @@ def run_worker(args: dict, timeout: float = 900.0) -> dict:
     cache = tempfile.mkdtemp(prefix="mfnormal_bench_drjit_")
     env = dict(os.environ, DRJIT_CACHE_DIR=cache)
     try:
-        proc = subprocess.run([sys.executable, str(Path(__file__).resolve()), "--worker",
-                               json.dumps(args)], env=env, capture_output=True, text=True,
-                              timeout=timeout)
+        proc = subprocess.run([sys.executable, "-m", "benchmarks.run", "--worker", json.dumps(args)],
+                              cwd=HERE.parent, env=env, capture_output=True, text=True, timeout=timeout)
     finally:
         shutil.rmtree(cache, ignore_errors=True)
     for line in reversed(proc.stdout.splitlines()):
@@ -563,7 +561,7 @@ def make_queries(n: int, coherent: int = 1, seed: int = 11):
 
 def make_bsdf(method: str, nested: str, texture, probe: str | None = None, **params):
     """``method`` around the nested BSDF ``nested`` (see nested_spec), with plugin ``params``."""
-    from mfnormal.report.methods import plugin_bsdf
+    from mfnormal.methods import plugin_bsdf
     m = catalogue_method(method)
     if m.kind == "classic":
         return mi.load_dict(m.bsdf(nested_spec(nested, probe), texture))
@@ -751,7 +749,7 @@ def path_vertices(scene, nested, method, assets, prof) -> float:
     """Path vertices per camera sample of ``method`` (probes.path_vertices) in a counted render at
     ``prof.vertex_size``: the same camera, so the same count as at the profile's own size up to
     the sampling noise of a 192×144 render (under 0.1 % at 16 spp)."""
-    import probes            # benchmarks/probes.py (registered by import_mitsuba)
+    from benchmarks import probes      # (registered by import_mitsuba)
     W, H = prof.vertex_size
     d = scene_dict(scene, assets, method, nested, W, H, prof.spp)
     return probes.path_vertices(probes.count_calls(with_integrator(d, method_integrator(prof, method)), prof.spp,
@@ -1127,7 +1125,7 @@ def write_markdown(results: dict, path: Path):
         if (path.parent / "experiments.md").exists():
             L += ["What-if variants of the model code (RNG, bounce cap, merged nested calls, reuse of "
                   "the sampled term) and the noise diagnostics: [experiments.md](experiments.md) "
-                  "(`python benchmarks/experiments.py`).", ""]
+                  "(`python -m benchmarks.experiments`).", ""]
     L += ["## Reproduce", "", "```sh", results["command"], "```", ""]
     path.write_text("\n".join(L))
 
@@ -1267,11 +1265,10 @@ def main(argv=None) -> int:
         import_mitsuba(args.variant)
     except CLIError as exc:
         ap.error(str(exc))
-    script = os.path.relpath(Path(__file__).resolve(), Path.cwd())
     exe = sys.executable
     py = os.path.relpath(exe) if exe.startswith(os.getcwd() + os.sep) else exe
     results = {
-        "command": shlex.join([py, script, *argv]),
+        "command": shlex.join([py, "-m", "benchmarks.run", *argv]),
         "started": time.strftime("%Y-%m-%d %H:%M:%S %Z"),
         "machine": machine_info(),
         "git": git_state(),
@@ -1382,15 +1379,15 @@ def compile_metrics(s: str, nested: str, assets: dict, prof: Profile, variant: s
 
 
 def run_backward(out: Path, variant: str) -> dict:
-    """benchmarks/backward.py (its defaults) into ``out``: its files there (names relative to
+    """``python -m benchmarks.backward`` (its defaults) into ``out``: its files there (names relative to
     ``out``), or why not."""
-    cmd = [sys.executable, str(HERE / "backward.py"), "--out", str(out), "--variant", variant]
+    cmd = [sys.executable, "-m", "benchmarks.backward", "--out", str(Path(out).resolve()), "--variant", variant]
     log("[backward] " + shlex.join(cmd))
     t0 = time.time()
-    proc = subprocess.run(cmd, capture_output=True, text=True)
+    proc = subprocess.run(cmd, cwd=HERE.parent, capture_output=True, text=True)
     if proc.returncode != 0:
         return {"error": f"backward.py exited {proc.returncode}: {(proc.stderr or proc.stdout).strip()[-300:]}"}
-    return {"command": f"benchmarks/backward.py --variant {variant}", "md": "backward.md",
+    return {"command": f"python -m benchmarks.backward --variant {variant}", "md": "backward.md",
             "json": "backward.json", "duration_s": time.time() - t0}
 
 

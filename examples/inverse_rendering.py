@@ -1,6 +1,6 @@
 """Inverse rendering: recover a 16² normal map from 3 renders, starting from a flat map.
 
-    python examples/inverse_rendering.py [--method faithful] [--iterations 40] [--out inverse.png]
+    python -m examples.inverse_rendering [--method faithful] [--iterations 40] [--out inverse.png]
 
 A plane under a roughplastic (GGX α 0.2) normal-mapped with ``normalmap_microfacet`` is
 rendered with the true map under three directional suns (the targets); then the map is
@@ -15,10 +15,8 @@ laptop's CPU (llvm_ad_rgb) with the defaults. See ``validation.inverse`` for the
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))   # the validation package of this checkout
 
 import mfnormal  # noqa: E402  (before mitsuba: selects a working libLLVM)
 import mitsuba as mi  # noqa: E402

@@ -1,8 +1,9 @@
-#!/usr/bin/env python
 """Record the plugin's outputs on a fixed query set, or check them bit for bit.
 
-    .venv/bin/python scripts/bit_identity.py record OUT.npz
-    .venv/bin/python scripts/bit_identity.py compare OUT.npz [--only SUBSTRING]
+    .venv/bin/python -m scripts.bit_identity record OUT.npz
+    .venv/bin/python -m scripts.bit_identity compare OUT.npz [--only SUBSTRING]
+
+(from the repository's root: the naive estimator is ``validation.reference``'s).
 
 For refactors that must not change behaviour: record on the code before the
 change (keep the file outside git), compare after it. Every configuration
@@ -29,7 +30,6 @@ from __future__ import annotations
 
 import argparse
 import sys
-from pathlib import Path
 
 import mfnormal  # first: selects a working libLLVM
 
@@ -227,8 +227,8 @@ def run_scalar(bsdf, q):
 
 def naive_estimates(tf, nested, q, tex):
     """The non-separable naive sampled-height estimator on the queries (ω_p from ``tex``)."""
-    from mfnormal.models.microsurface import decode_normal
-    from mfnormal.models.shading import ShadingPoint
+    from mfnormal.surface.microsurface import decode_normal
+    from mfnormal.surface.shading import ShadingPoint
     si = interaction(q)
     wo = mi.Vector3f(*(_f(q["wo"][:, i]) for i in range(3)))
     rgb = mi.load_dict(_texture(tex)).eval_3(si)
@@ -237,8 +237,7 @@ def naive_estimates(tf, nested, q, tex):
 
 
 def naive_eval(sp, wo, specular):
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
-    from reference.naive_walk import naive_eval as naive
+    from validation.reference.naive_walk import naive_eval as naive
     return naive(sp, wo, specular)
 
 

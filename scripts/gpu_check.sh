@@ -69,7 +69,7 @@ if [[ " $parts " == *" suite "* ]]; then
 fi
 if [[ " $parts " == *" bench "* ]]; then
     start=$(date +%s)
-    timeout "${BENCH_TIMEOUT:-240}" .venv/bin/python benchmarks/run.py --quick --variant cuda_ad_rgb \
+    timeout "${BENCH_TIMEOUT:-240}" .venv/bin/python -m benchmarks.run --quick --variant cuda_ad_rgb \
         --out "$out/bench_quick" > "$out/bench_quick.log" 2>&1
     rc=$?
     log "benchmarks/run.py --quick --variant cuda_ad_rgb: exit $rc after $(( $(date +%s) - start )) s"

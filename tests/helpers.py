@@ -18,6 +18,8 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
+from validation.reference.arrays import aligned, floats, uints, vec3  # noqa: F401  (the tests' inputs too)
+
 WHITE = {"type": "diffuse", "reflectance": {"type": "rgb", "value": [1.0, 1.0, 1.0]}}
 #: The nested BSDFs the models' tests run on (those the acceptance criteria name).
 NESTED = {
@@ -66,41 +68,9 @@ def p_two_sided(z):
 # -- Dr.Jit <-> numpy ------------------------------------------------------------------------
 
 
-def aligned(a, dtype=np.float32):
-    """``a`` as a contiguous numpy array of ``dtype`` that starts on a 64-byte boundary.
-
-    Dr.Jit reads a numpy array where it lies, and its LLVM backend compiles the loads from it
-    as aligned or unaligned depending on where the array starts: the same computation on
-    arrays that start elsewhere is another kernel, compiled again and missing the kernel
-    cache (every input a coin flip with numpy's 16-byte-aligned allocations). Inputs built
-    here always give the same kernel."""
-    a = np.asarray(a, dtype)
-    buf = np.empty(a.nbytes + 64, np.uint8)
-    start = (-buf.ctypes.data) % 64
-    out = buf[start:start + a.nbytes].view(dtype).reshape(a.shape)
-    out[...] = a
-    return out
-
-
-def floats(a):
-    """mi.Float from values (as float32, :func:`aligned`)."""
-    return mi.Float(aligned(np.ravel(a)))
-
-
-def uints(a):
-    """mi.UInt32 from values (:func:`aligned`)."""
-    return mi.UInt32(aligned(np.ravel(a), np.uint32))
-
-
 def tensor(a):
     """mi.TensorXf from a float32 numpy array of any shape (:func:`aligned`)."""
     return mi.TensorXf(aligned(a))
-
-
-def vec3(a):
-    """mi.Vector3f from (n, 3) or (3,) values (as float32, :func:`aligned`)."""
-    a = np.asarray(a, np.float32).reshape(-1, 3)
-    return mi.Vector3f(*(aligned(a[:, i]) for i in range(3)))
 
 
 def point2(a):

@@ -3,7 +3,7 @@
 Every query runs vectorised in ``llvm_ad_rgb``. Per-query normals come from an
 N×1 float32 bitmap with nearest filtering, query k reading texel k. References
 are computed here in float64 numpy from the formulas of docs/model.md §2.1/§3,
-independently of ``mfnormal.models.microsurface``. Every seed is fixed.
+independently of ``mfnormal.surface.microsurface``. Every seed is fixed.
 """
 
 import functools
@@ -577,7 +577,7 @@ def test_bad_texels_decode_to_flat_or_clamped_normal():
     is the pair's smallest cosine with a facet (a 1e-7 shift of ω_p changes a
     cosine c by ~1e-7/c relative; measured worst ≈ 1e-7/c).
     """
-    from mfnormal.models.microsurface import COS_P_MIN
+    from mfnormal.surface.microsurface import COS_P_MIN
 
     def clamped(x, y):
         r = np.hypot(x, y)

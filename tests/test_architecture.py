@@ -1,16 +1,15 @@
 """The package's shape: data flows one way, and every function fits on a screen.
 
 Read from the source with ``ast`` (nothing is imported): the import graph of
-``src/mfnormal`` (modules named by their dotted path below it, ``models.walk``)
-has no cycle, counting every import statement, those inside functions too (a
-deferred import is still a dependency), except the ones under ``if __name__ ==
-"__main__":`` (a module run as a program is not imported); the core (``models``,
-``normals``, ``plugins``) imports no tool, and nothing below the plugin reaches
-back into it (``models`` imports only ``models``; ``normals`` only ``models`` and
-``normals``); the installed package imports nothing of the repository's
-``validation`` harnesses; ``report.html`` imports nothing of the package but image
-writing (it only writes HTML); no function in ``src/`` is longer than
-``MAX_FUNCTION_LINES``; nothing in the repository monkeypatches.
+``src/mfnormal`` (modules named by their dotted path below it, ``models.walk``; the package's
+face, ``mfnormal/__init__.py``, is ``""``) has no cycle, counting every import statement, those
+inside functions too (a deferred import is still a dependency), except the ones under ``if
+__name__ == "__main__":`` (a module run as a program is not imported); every import runs down
+the layers of :data:`LAYERS` (a module imports its own package and those below it, never one
+above); the installed package imports nothing of the repository's ``validation`` harnesses;
+``report.html`` imports nothing of the package but file and image writing (it only writes
+HTML); no function in ``src/`` is longer than ``MAX_FUNCTION_LINES``; nothing in the
+repository monkeypatches, and no harness, benchmark, script or example edits ``sys.path``.
 """
 
 import ast
@@ -20,7 +19,13 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGE = ROOT / "src" / "mfnormal"
 MAX_FUNCTION_LINES = 60
-CORE = ("models", "normals", "plugins")
+#: The package's layers, lowest first: a module imports its own package and those below it.
+#: Data flows one way, scene → plugin → model → microsurface (STYLE.md), and the tools sit on
+#: top: the bundled scenes and the methods' catalogue below the input and output, rendering
+#: (here or on a cluster) below both the report and the command line. ``""`` is the package's
+#: face (``mfnormal/__init__.py``: ``register``, the plugins); a top-level module is its own package.
+LAYERS = ("_llvm", "files", "surface", "models", "normals", "plugins", "", "methods", "scenes", "io",
+          "render", "report", "cli", "__main__")
 
 
 def _is_main_guard(node) -> bool:
@@ -37,8 +42,8 @@ def module_name(path: Path) -> str:
 def _targets(node, here: str) -> list:
     """The dotted module names (below ``mfnormal``, or ``validation...``) that one import names."""
     if isinstance(node, ast.Import):
-        return [a.name.partition(".")[2] if a.name.startswith("mfnormal.") else a.name
-                for a in node.names if a.name.startswith(("mfnormal.", "validation"))]
+        return [a.name.partition(".")[2] if a.name.startswith("mfnormal.") else a.name.replace("mfnormal", "")
+                for a in node.names if a.name.startswith(("mfnormal.", "validation")) or a.name == "mfnormal"]
     if node.level:
         base = here.split(".")[:len(here.split(".")) - node.level + (1 if here.endswith("__init__") else 0)]
         module = ".".join(base + ([node.module] if node.module else []))
@@ -63,7 +68,7 @@ def _imported_modules(path: Path, modules: set) -> set:
         for target in _targets(node, here):
             if target.startswith("validation") or target in modules:
                 found.add(target)
-    return found - {here, ""}
+    return found - {here}
 
 
 def import_graph() -> dict:
@@ -117,12 +122,40 @@ def _package(module: str) -> str:
     return module.split(".")[0]
 
 
-def test_the_core_imports_no_tool_and_nothing_reaches_back_into_the_plugin():
-    allowed = {"models": {"models"}, "normals": {"models", "normals"},
-               "plugins": {"models", "normals", "plugins"}}
-    wrong = [f"{m} imports {t}" for m, targets in import_graph().items() if _package(m) in allowed
-             for t in targets if _package(t) not in allowed[_package(m)]]
-    assert wrong == []
+def upward_imports(graph: dict) -> list:
+    """``"a imports b"`` for each import in ``graph`` whose target lies in a higher layer of
+    :data:`LAYERS` than its importer (or in a package that no layer names)."""
+    rank = {package: i for i, package in enumerate(LAYERS)}
+    return [f"{m} imports {t}" for m, targets in sorted(graph.items()) for t in sorted(targets)
+            if not t.startswith("validation")
+            and rank.get(_package(t), len(LAYERS)) > rank.get(_package(m), -1)]
+
+
+def test_every_package_has_its_layer():
+    assert {_package(m) for m in import_graph()} == set(LAYERS)
+
+
+def test_imports_run_down_the_layers():
+    assert upward_imports(import_graph()) == []
+
+
+def test_the_layer_check_sees_an_upward_import():
+    """What the check forbids, it finds: a model importing the plugin, the microsurface a model,
+    the catalogue the report, a package no layer names."""
+    graph = {"models.walk": {"plugins.normalmap_microfacet", "surface.shading"},
+             "surface.shading": {"models.walk"}, "methods": {"report.compare"}, "cli.demo": {"tools.x"},
+             "render.passes": {"", "io.messages"}}
+    assert upward_imports(graph) == ["cli.demo imports tools.x", "methods imports report.compare",
+                                     "models.walk imports plugins.normalmap_microfacet",
+                                     "surface.shading imports models.walk"]
+
+
+def test_no_harness_edits_sys_path():
+    """The harnesses, benchmarks, scripts and examples run as modules from the repository's root
+    (``python -m validation.run``) or as files beside what they import: none edits ``sys.path``."""
+    files = subprocess.run(["git", "ls-files", "validation/*.py", "benchmarks/*.py", "scripts/*.py",
+                            "examples/*.py"], cwd=ROOT, capture_output=True, text=True).stdout.split()
+    assert files and [f for f in files if (ROOT / f).exists() and "sys.path" in (ROOT / f).read_text()] == []
 
 
 def test_the_installed_package_imports_no_validation_harness():
@@ -130,7 +163,7 @@ def test_the_installed_package_imports_no_validation_harness():
 
 
 def test_the_report_only_writes_html():
-    assert import_graph()["report.html"] <= {"io.images", "io"}
+    assert import_graph()["report.html"] <= {"files", "io.images", "io"}
 
 
 def test_the_import_graph_sees_a_back_reference():

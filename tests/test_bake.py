@@ -4,7 +4,7 @@ The references are independent of the baker's own frame code: a map baked from M
 analytic sphere onto a low-poly UV sphere is read back the way renderers read it — Mitsuba
 intersects the low-poly, its ``bitmap`` texture looks the map up (bilinear) at ``si.uv``,
 and the texel is decoded in Mitsuba's ``si.sh_frame`` (``tangents="mitsuba"``) or in the
-vertex tangent frame by the plugin's own :func:`~mfnormal.models.shading.from_tangent_frame`
+vertex tangent frame by the plugin's own :func:`~mfnormal.surface.shading.from_tangent_frame`
 (``tangents="vertex_tangent"``) — and compared with the sphere's normal found in closed form
 along the low-poly's normal. A surface baked onto itself gives the flat map.
 """
@@ -20,7 +20,7 @@ from cli_checks import assert_error_line
 from helpers import uv_sphere
 from mfnormal.io import bake as B
 from mfnormal.io.gltf import mitsuba_mesh
-from mfnormal.models.shading import from_tangent_frame
+from mfnormal.surface.shading import from_tangent_frame
 
 SIZE = 128
 

@@ -1,9 +1,9 @@
-"""Smoke test of ``benchmarks/run.py``: its ``--quick`` profile runs and reports every method.
+"""Smoke test of ``python -m benchmarks.run``: its ``--quick`` profile runs and reports every method.
 
 Only the quick profile runs here (tiny image, one scene, one nested BSDF, under
 two minutes): it proves the benchmark still works against the current plugin,
 not how fast the plugin is. The full benchmark is run by hand
-(``python benchmarks/run.py``). The quick run takes about two minutes, so the tests on its
+(``python -m benchmarks.run``). The quick run takes about two minutes, so the tests on its
 output run with MFNORMAL_SLOW=1; the benchmark's pure functions are checked in the default run.
 """
 
@@ -15,25 +15,20 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-SCRIPT = ROOT / "benchmarks" / "run.py"
 METHODS = ("builtin", "faithful", "analytic", "separable_specular", "separable_same",
            "nonseparable_specular", "nonseparable_same")
 
 
 def run_module():
-    """``benchmarks/run.py`` imported as a module (for its pure functions)."""
-    sys.path.insert(0, str(SCRIPT.parent))
-    try:
-        import run
-    finally:
-        sys.path.remove(str(SCRIPT.parent))
+    """``benchmarks.run`` (for its pure functions)."""
+    from benchmarks import run
     return run
 
 
 @pytest.fixture(scope="module")
 def quick_run(tmp_path_factory):
     out = tmp_path_factory.mktemp("bench")
-    proc = subprocess.run([sys.executable, str(SCRIPT), "--quick", "--out", str(out)], cwd=ROOT,
+    proc = subprocess.run([sys.executable, "-m", "benchmarks.run", "--quick", "--out", str(out)], cwd=ROOT,
                           capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
     return out
@@ -44,7 +39,7 @@ def test_quick_benchmark_writes_json_with_every_method_and_metric(quick_run):
     results = json.loads((quick_run / "results.json").read_text())
     assert results["config"]["name"] == "quick"
     assert {"cpu", "cores", "variant", "llvm_path"} <= set(results["machine"])
-    assert "benchmarks/run.py --quick" in results["command"]
+    assert "-m benchmarks.run --quick" in results["command"]
     for metric in ("render_time", "noise", "compile", "throughput"):
         methods = {row["method"] for row in results[metric]}
         expected = set(METHODS) - ({"builtin"} if metric == "render_time" else set())
@@ -116,15 +111,15 @@ def test_quick_benchmark_counts_path_vertices_of_every_method(quick_run):
 @pytest.mark.slow
 def test_quick_benchmark_writes_markdown_table_with_every_method(quick_run):
     text = (quick_run / "RESULTS.md").read_text()
-    assert "## Targets" in text and "benchmarks/run.py --quick" in text
+    assert "## Targets" in text and "-m benchmarks.run --quick" in text
     for method in METHODS:
         assert f"| {method} |" in text, method
 
 
 def test_normal_sources_benchmark_runs_and_reports_every_config(tmp_path):
-    """``benchmarks/normal_sources.py`` at a tiny size (2^10 queries, one rep, one model): every
+    """``python -m benchmarks.normal_sources`` at a tiny size (2^10 queries, one rep, one model): every
     option × nested × call has a finite positive ratio (its timings mean nothing here)."""
-    proc = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "normal_sources.py"), "--queries", "10",
+    proc = subprocess.run([sys.executable, "-m", "benchmarks.normal_sources", "--queries", "10",
                            "--reps", "1", "--models", "analytic", "--out", str(tmp_path)], cwd=ROOT,
                           capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
@@ -170,11 +165,7 @@ def test_water_profile_times_the_default_against_the_builtin_on_the_same_dielect
     from variant import VARIANT
 
     R = run_module()
-    sys.path.insert(0, str(SCRIPT.parent))         # benchmarks/probes.py, which import_mitsuba registers
-    try:
-        R.import_mitsuba(VARIANT)
-    finally:
-        sys.path.remove(str(SCRIPT.parent))
+    R.import_mitsuba(VARIANT)
     assert R.WATER in R.PROFILES["all"] and R.WATER.nested == (R.NATIVE,)
     assets = R.prepare_assets(tmp_path, ("water",))
     for method, kind in (("builtin", "normalmap"), ("faithful", "normalmap_microfacet")):

@@ -438,7 +438,7 @@ def write(self, path, *args, **kwargs):       # Mitsuba writing the file itself
         slow()
     return real_write(self, path, *args, **kwargs)
 real_fsync = os.fsync
-def fsync(fd):                                # Python writing the file (mfnormal.io.images.write_bytes)
+def fsync(fd):                                # Python writing the file (mfnormal.files.write_bytes)
     if os.readlink(f"/proc/self/fd/{fd}").endswith(".png") and MODE == "slow":
         slow()
     return real_fsync(fd)
@@ -511,7 +511,7 @@ def test_passes_bound_the_paths_per_pass_and_keep_the_seeds():
     MAX_PASS_LANES paths unless one sample per pixel already does; the default stays 8
     passes (fewer below 8 spp); pass seeds are 32-bit, equal to seed·1000003 + i where that
     fits (the images of small seeds did not change), and distinct for distinct seeds."""
-    from mfnormal.cli.rendering import MAX_PASS_LANES, pass_count, pass_seed, pass_spp
+    from mfnormal.render.passes import MAX_PASS_LANES, pass_count, pass_seed, pass_spp
 
     for total, pixels in [(1, 384), (5, 384), (64, 1920 * 1080), (1000, 1920 * 1080), (1 << 31, 16),
                           (3, 1 << 25), (17, 1 << 24)]:

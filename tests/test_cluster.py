@@ -1,4 +1,4 @@
-"""``mfnormal render|compare --cluster``: rendering on a Dask.distributed cluster (mfnormal.cli.cluster).
+"""``mfnormal render|compare --cluster``: rendering on a Dask.distributed cluster (mfnormal.render.cluster).
 
 The cluster is a ``LocalCluster`` of two worker processes of one thread each on this
 machine, shared by the tests of this module (its address is what ``--cluster ADDRESS``
@@ -37,8 +37,8 @@ import mitsuba as mi  # noqa: E402
 from cli_checks import assert_error_line, assert_one_line_error  # noqa: E402
 from helpers import write_maps, xml_plugin, xml_scene  # noqa: E402
 from mfnormal.cli import commands as cli  # noqa: E402
-from mfnormal.cli.cluster import xml_bundle  # noqa: E402
-from mfnormal.cli.rendering import average_passes, film_image, schedule  # noqa: E402
+from mfnormal.render.bundle import xml_bundle  # noqa: E402
+from mfnormal.render.passes import average_passes, film_image, schedule  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 TOL = 1e-6
@@ -135,7 +135,7 @@ def test_unreachable_scheduler_is_one_line_and_writes_nothing(tmp_path, capsys):
 def _connect_seconds(address: str, tls: tuple, timeout: float) -> tuple:
     """(seconds, error) of connecting to ``address`` as ``render --cluster`` does, in a thread
     of its own (a connection that hangs fails the test instead of holding it)."""
-    from mfnormal.cli.cluster import Cluster, parse_cluster
+    from mfnormal.render.cluster import Cluster, parse_cluster
     from mfnormal.io.inputs import CLIError
 
     outcome = []
@@ -218,7 +218,7 @@ def test_a_tls_certificate_without_its_key_is_one_line_naming_the_option_and_the
     alone (OpenSSL said "[SSL] PEM lib") or a key alone is refused before any work, naming the
     option, the file and the fix; a PEM with both is taken. A key that does not match its
     certificate keeps OpenSSL's own words."""
-    from mfnormal.cli.cluster import parse_cluster
+    from mfnormal.render.cluster import parse_cluster
 
     cert, key = _certificate(tmp_path)
     both = tmp_path / "both.pem"
@@ -424,7 +424,7 @@ def test_with_shared_files_the_workers_read_the_scene_from_its_path(tmp_path, cl
                        "--shared-files", "--cluster", cluster[0].scheduler_address], capsys)
     assert rc == 0, err
     assert np.abs(_exr(tmp_path / "out.exr") - _sequential(scene, 16, 3, 0)).max() <= TOL
-    from mfnormal.cli.cluster import scene_spec
+    from mfnormal.render.bundle import scene_spec
 
     spec, files = scene_spec(scene, {"nm": "gray.png"}, shared=True)
     assert files == {} and spec.shared and spec.source == str(scene.resolve())
@@ -438,7 +438,7 @@ def test_workers_with_another_mfnormal_are_refused_with_one_line(tmp_path, capsy
     import shutil
 
     import mfnormal
-    from mfnormal.cli.cluster import _package_version
+    from mfnormal.render.tasks import _package_version
 
     scene = _scene(tmp_path)
     other = tmp_path / "other"
@@ -634,7 +634,9 @@ def test_a_worker_never_renders_with_one_dr_jit_thread():
     and a worker whose own count is one is raised to two."""
     import drjit as dr
 
-    from mfnormal.cli.cluster import MIN_THREADS, Cluster, Env, _prepare, parse_cluster, versions
+    from mfnormal.render.cluster import Cluster, parse_cluster
+    from mfnormal.render.passes import MIN_THREADS
+    from mfnormal.render.tasks import Env, _prepare, versions
 
     assert MIN_THREADS >= 2
     assert Cluster(parse_cluster(f"local:{os.cpu_count() or 1}"), mi.variant()).env.threads >= MIN_THREADS
@@ -663,7 +665,7 @@ def test_compare_on_a_local_cluster_shows_the_methods_that_refuse_the_scene(tmp_
     assert all((tmp_path / "water" / f"{key}.exr").is_file() for key in ("flat", "faithful"))
 
 
-# -- A worker's own variant (mfnormal.cli.worker) -----------------------------------------------------
+# -- A worker's own variant (mfnormal.render.worker) -----------------------------------------------------
 
 
 def _preloaded_cluster(variant: str):
@@ -671,7 +673,7 @@ def _preloaded_cluster(variant: str):
 
     return distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=True,
                                     dashboard_address=":0", silence_logs=logging.CRITICAL,
-                                    preload=["mfnormal.cli.worker"], preload_argv=["--variant", variant])
+                                    preload=["mfnormal.render.worker"], preload_argv=["--variant", variant])
 
 
 def test_a_worker_started_with_a_variant_renders_its_chunks_in_it(tmp_path, capsys):
@@ -700,7 +702,7 @@ def test_a_worker_that_cannot_use_its_variant_is_refused_with_one_line(tmp_path,
 def test_a_gltf_bundle_holds_its_buffers_and_images_and_nothing_else(tmp_path):
     import json
 
-    from mfnormal.cli.cluster import scene_spec
+    from mfnormal.render.bundle import scene_spec
 
     (tmp_path / "mesh.bin").write_bytes(b"\0" * 12)
     (tmp_path / "albedo map.png").write_bytes(b"png bytes")

@@ -1,29 +1,21 @@
-"""The shells that ``benchmarks/cost_floor.py`` times (``benchmarks/probes.py``) are honest models:
+"""The shells that ``python -m benchmarks.cost_floor`` times (``benchmarks/probes.py``) are honest models:
 their samples' mean weight is the integral of their ``eval`` (so the sampler draws the density its
 pdf states), and the hidden shell shows the macro surface where the texel is hidden. A floor timed
 on a sampler that skipped work would not bound anything."""
 
 import math
-import sys
-from pathlib import Path
 
 import drjit as dr
 import mitsuba as mi
 import numpy as np
 import pytest
 
-BENCH = Path(__file__).resolve().parents[1] / "benchmarks"
-
 N = 1 << 18
 
 
 @pytest.fixture(scope="module")
 def probes():
-    sys.path.insert(0, str(BENCH))
-    try:
-        import probes
-    finally:
-        sys.path.remove(str(BENCH))
+    from benchmarks import probes
     probes.register()
     return probes
 

@@ -836,7 +836,7 @@ def test_directions_within_1e_12_of_the_horizon_lie_on_it():
     eval = pdf = 0 for every model, from either side (``twosided``), so eval > 0 ⇒ pdf > 0 holds
     there; just outside the band, queries answer as before (bit for bit: scripts/bit_identity.py)."""
     ctx, z_min = mi.BSDFContext(), float(np.finfo(np.float32).tiny)
-    band = 1e-12                                   # mfnormal.models.shading.HORIZON_COS
+    band = 1e-12                                   # mfnormal.surface.shading.HORIZON_COS
     wi = [[0.738468587398529, 0.6742879152297974, z_min], [0.738468587398529, 0.6742879152297974, -z_min],
           [1.0, 0.0, 1e-7], [0.6, 0.8, 0.5 * band], [0.6, 0.8, 0.5]]
     wo = [wi[0], wi[1], [0.22017772495746613, -0.9754597544670105, 1.9257723792436607e-28],

@@ -34,7 +34,8 @@ from gltf_writer import Material, Primitive, png_bytes, write_glb  # noqa: E402
 import helpers  # noqa: E402
 
 
-from mfnormal.cli import commands as cli, rendering  # noqa: E402
+from mfnormal.cli import commands as cli  # noqa: E402
+from mfnormal.render import passes as rendering  # noqa: E402
 from mfnormal.io.gltf import load_gltf  # noqa: E402
 from mfnormal.normals.mikktspace import mikktspace, split_vertices  # noqa: E402
 

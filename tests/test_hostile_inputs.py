@@ -271,7 +271,7 @@ def test_signals_end_the_process_during_a_pass_and_are_restored_after():
     """In a child: inside ``signals_end_the_process`` SIGTERM ends the process at once (a native
     call that Python's handlers could not interrupt: here a blocking read); after the block the
     handlers before it are back. Outside the main thread it changes nothing."""
-    code = ("import signal, sys, os, threading\nfrom mfnormal.cli.rendering import signals_end_the_process\n"
+    code = ("import signal, sys, os, threading\nfrom mfnormal.render.passes import signals_end_the_process\n"
             "mine = lambda *a: None\nsignal.signal(signal.SIGTERM, mine)\n"
             "with signals_end_the_process(False):\n    assert signal.getsignal(signal.SIGTERM) is mine\n"
             "def other():\n    with signals_end_the_process():\n        assert signal.getsignal(signal.SIGTERM) is mine\n"

@@ -1,6 +1,6 @@
 """The random-walk models of ``normalmap_microfacet`` against Mitsuba ray tracing real microgeometry.
 
-The reference (``tests/reference/microgeometry.py``) builds the sawtooth microsurface of
+The reference (``validation/reference/microgeometry.py``) builds the sawtooth microsurface of
 docs/model.md §2.2 as two triangle meshes (p facets and t walls, each with its own
 Mitsuba BSDF), shoots a parallel beam from ω_i at it with ``scene.ray_intersect``
 and scatters with the facets' own ``bsdf.sample`` until the rays escape. It shares
@@ -27,7 +27,7 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from reference import microgeometry as mg  # noqa: E402  (imports mfnormal first: libLLVM)
+from validation.reference import microgeometry as mg  # noqa: E402  (imports mfnormal first: libLLVM)
 import mitsuba as mi
 
 N = 500_000          # rays traced and plugin samples per case

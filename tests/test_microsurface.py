@@ -1,6 +1,6 @@
-"""Tests of ``mfnormal.models.microsurface`` against an independent brute-force sawtooth tracer.
+"""Tests of ``mfnormal.surface.microsurface`` against an independent brute-force sawtooth tracer.
 
-The reference is ``tests/reference/sawtooth.py`` (numpy only, no mfnormal code, no closed-form
+The reference is ``validation/reference/sawtooth.py`` (numpy only, no mfnormal code, no closed-form
 λ or G1): it intersects rays with the line segments of the periodic sawtooth of
 docs/model.md §2.2. Statistical tolerances are binomial: an estimate from N independent
 rays has standard deviation σ = sqrt(p(1−p)/N); we allow 5σ plus a tiny absolute
@@ -17,10 +17,10 @@ from variant import VARIANT  # noqa: E402  (MFNORMAL_VARIANT, tests/variant.py)
 mi.set_variant(VARIANT)
 mfnormal.register()
 
-from mfnormal.models import microsurface as ms  # noqa: E402
+from mfnormal.surface import microsurface as ms  # noqa: E402
 
 from helpers import np3, vec3  # noqa: E402
-from reference import sawtooth as sw  # noqa: E402
+from validation.reference import sawtooth as sw  # noqa: E402
 
 N_RAYS = 40_000
 # Directions within this of a facet's plane see that facet edge-on (see below).

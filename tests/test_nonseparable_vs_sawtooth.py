@@ -1,6 +1,6 @@
 """The non-separable walk against brute-force ray tracing of the sawtooth (docs/model.md §2.2, §4).
 
-The reference is ``tests/reference/sawtooth.py``: numpy ray tracing of the periodic sawtooth
+The reference is ``validation/reference/sawtooth.py``: numpy ray tracing of the periodic sawtooth
 microsurface, sharing no code with ``mfnormal``. docs/model.md §2.2 states that the
 non-separable model *equals* that ray tracing, while the separable model forgets
 the height correlation between bounces (§4.1, §7). Both claims are tested here for
@@ -37,7 +37,7 @@ mi.set_variant(VARIANT)
 mfnormal.register()
 
 from helpers import floats, vec3  # noqa: E402
-from reference import sawtooth_compare as C  # noqa: E402
+from validation.reference import sawtooth_compare as C  # noqa: E402
 
 N_PATHS = 400_000       # paths per side (tracer and model) per case
 EVAL_PER_CELL = 8192    # eval() queries per histogram cell per case

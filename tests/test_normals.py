@@ -603,7 +603,7 @@ def test_facet_normal_turned_into_the_triangles_frame_is_clamped_above_its_horiz
     where the turned ω_p is still ≥ 1.1° from straight down (sin²θ ≥ 4e-4, the premise of
     to_upper_hemisphere having no straight-down case). Tolerance 2e-6 (float32)."""
     from mfnormal.normals import macro as normals
-    from mfnormal.models.microsurface import COS_P_MIN
+    from mfnormal.surface.microsurface import COS_P_MIN
     rng = np.random.default_rng(41)
     k = 20_000
     t_p = np.concatenate([np.full(k // 2, math.acos(COS_P_MIN)), np.arccos(rng.uniform(COS_P_MIN, 1, k - k // 2))])

@@ -90,14 +90,12 @@ def test_the_command_line_prints_the_same_message_as_one_line(tmp_path):
     assert line in TROUBLESHOOTING.read_text(encoding="utf-8"), line
 
 
-# Every harness with an --out option: run as a user runs it (python -m ... for a package's module,
-# else the file), with no arguments, up to the parsing of its command line.
-HARNESSES = ("validation/run.py", "validation/true_geometry.py", "validation/real_assets.py",
-             "validation/real_assets_split.py",
-             "validation/dielectric.py", "validation/furnace_glass.py", "validation/normal_sources.py",
-             "validation/inverse_rendering.py", "validation/inverse_water.py", "benchmarks/run.py",
-             "benchmarks/backward.py", "benchmarks/cost_floor.py", "benchmarks/experiments.py",
-             "benchmarks/normal_sources.py")
+# Every harness with an --out option: run as a user runs it (python -m MODULE, from the repository's
+# root), with no arguments, up to the parsing of its command line.
+HARNESSES = ("validation.run", "validation.true_geometry", "validation.real_assets", "validation.real_assets_split",
+             "validation.dielectric", "validation.furnace_glass", "validation.normal_sources",
+             "validation.inverse_rendering", "validation.inverse_water", "benchmarks.run", "benchmarks.backward",
+             "benchmarks.cost_floor", "benchmarks.experiments", "benchmarks.normal_sources")
 
 DEFAULT_OUTS = """
 import argparse, runpy, sys
@@ -111,18 +109,14 @@ def parse_only(self, args=None, namespace=None):
     raise Parsed(getattr(parse(self, [], namespace), "out", None))
 
 argparse.ArgumentParser.parse_args = parse_only
-for script in sys.argv[1:]:
-    path = Path(script)
-    sys.argv = [script]
+for module in sys.argv[1:]:
+    sys.argv = [module]
     try:
-        if (path.parent / "__init__.py").exists():
-            runpy.run_module(".".join(path.with_suffix("").parts), run_name="__main__", alter_sys=True)
-        else:
-            runpy.run_path(script, run_name="__main__")
+        runpy.run_module(module, run_name="__main__", alter_sys=True)
     except Parsed as parsed:
-        print(script, Path(str(parsed.args[0])).resolve())
+        print(module, Path(str(parsed.args[0])).resolve())
     else:
-        print(script, "no --out parsed")
+        print(module, "no --out parsed")
 """
 
 
@@ -141,7 +135,7 @@ def test_harnesses_write_outside_the_tracked_tree_by_default():
 
 
 def test_real_assets_without_its_extra_says_which_extra_in_one_line(tmp_path):
-    """``validation/real_assets.py`` without fast-simplification (the ``assets`` extra) stops
+    """``python -m validation.real_assets`` without fast-simplification (the ``assets`` extra) stops
     before any work with one line that names the extra, not a ModuleNotFoundError traceback."""
     code = ("import sys\nsys.modules['fast_simplification'] = None   # as if not installed\n"
             "from validation import real_assets\n"
@@ -171,7 +165,7 @@ def test_the_public_api_is_annotated():
     import importlib
     import inspect
     public = {"mfnormal": None, "mfnormal._llvm": ["ensure_llvm"], "mfnormal.io.bake": None,
-              "mfnormal.cli.commands": None, "mfnormal.cli.bake": None}
+              "mfnormal.cli.commands": None, "mfnormal.cli.loading": None, "mfnormal.cli.bake": None}
     missing = []
     for name, names in public.items():
         module = importlib.import_module(name)

@@ -1,4 +1,4 @@
-"""The real-asset harness's equal-time mode (``validation/real_assets.py --equal-time``).
+"""The real-asset harness's equal-time mode (``python -m validation.real_assets --equal-time``).
 
 The spp rule alone (no rendering), and one quick cell end to end: the small npm ``bunny``
 (fetched into the asset cache on first use), 300 triangles, a 256² map, the limb view at 32²

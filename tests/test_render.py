@@ -19,7 +19,7 @@ mfnormal.register()
 from helpers import bumps_normalmap, light_tracing_agrees, small_scene  # noqa: E402
 from mfnormal.scenes import assets  # noqa: E402
 from mfnormal.cli import commands as cli, demo
-from mfnormal.report.methods import PLUGIN  # noqa: E402
+from mfnormal.methods import PLUGIN  # noqa: E402
 from mfnormal.io.scene_xml import dicts_of_type  # noqa: E402
 
 

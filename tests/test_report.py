@@ -34,7 +34,7 @@ mfnormal.register()
 from mfnormal.scenes import assets  # noqa: E402
 from mfnormal.report import compare, coverage, metrics
 from mfnormal.io import scene_xml
-from mfnormal.report.methods import METHODS, PLUGIN  # noqa: E402
+from mfnormal.methods import METHODS, PLUGIN  # noqa: E402
 from mfnormal.io.images import png_bytes  # noqa: E402
 from cli_checks import assert_one_line_error  # noqa: E402
 

@@ -11,7 +11,7 @@ import mfnormal, drjit as dr, mitsuba as mi, numpy as np, sys
 mi.set_variant("llvm_ad_rgb")
 mi.Bitmap(np.ones((4, 4, 3), np.float32)).write(sys.argv[1])
 dr.set_thread_count(1)
-from mfnormal.cli.rendering import MIN_THREADS, use_variant
+from mfnormal.render.passes import MIN_THREADS, use_variant
 use_variant("llvm_ad_rgb", RuntimeError, "unavailable", "cannot")
 assert dr.thread_count() >= MIN_THREADS >= 2, dr.thread_count()
 print(np.array(mi.Bitmap(sys.argv[1])).mean())

@@ -33,8 +33,9 @@ mfnormal.register()
 
 from helpers import (WHITE, encode, floats, make_bsdf, make_si, np1, np3, p_two_sided, point2,  # noqa: E402
                      random_hemisphere, sph, vec3)
-from mfnormal.models import shading, walk, walk_pdf  # noqa: E402
-from reference.naive_walk import naive_eval  # noqa: E402
+from mfnormal.models import walk, walk_pdf  # noqa: E402
+from mfnormal.surface import shading  # noqa: E402
+from validation.reference.naive_walk import naive_eval  # noqa: E402
 
 WALKS = [("separable", "specular"), ("separable", "same"),
          ("nonseparable", "specular"), ("nonseparable", "same")]
@@ -724,7 +725,7 @@ def variance_grid():
 def test_interval_tracking_beats_sampled_height(tangent_facet):
     """Supplemental §3: evaluating the non-separable model with height intervals
     (Algorithms 2/3) has the same mean as the naive estimator (one sampled height,
-    binary shadow tests; ``tests/reference/naive_walk.py``) and less variance.
+    binary shadow tests; ``validation/reference/naive_walk.py``) and less variance.
 
     Why it must win: both estimators follow the same distribution of paths, and the
     interval estimator's NEE weight |H ∩ visible|/|H| is the expectation of the naive

@@ -49,7 +49,6 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))   # the validation package (harnesses) of this checkout
 
 import mfnormal  # noqa: E402  (first: selects a working libLLVM)
 
@@ -61,7 +60,7 @@ mfnormal.register()
 
 from validation import heightfield as H  # noqa: E402
 from validation import true_geometry as TG  # noqa: E402
-from mfnormal.io.images import atomic_write  # noqa: E402
+from mfnormal.files import atomic_write  # noqa: E402
 
 #: Max tilt (degrees) of the egg crate per steepness.
 STEEPNESS = {"mild": 20.0, "steep": 50.0}

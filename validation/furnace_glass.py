@@ -26,12 +26,7 @@ from __future__ import annotations
 
 import functools
 import math
-import sys
 import time
-from pathlib import Path
-
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))   # the validation package (harnesses) of this checkout
 
 import mfnormal  # noqa: E402  (first: selects a working libLLVM)
 

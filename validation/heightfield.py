@@ -57,9 +57,9 @@ import mfnormal  # noqa: F401  (before mitsuba: selects a working libLLVM)
 import mitsuba as mi
 
 from mfnormal.scenes import sky
-from mfnormal.report.methods import METHODS as CATALOGUE, METHOD_BY_KEY, plugin_bsdf
+from mfnormal.methods import METHODS as CATALOGUE, METHOD_BY_KEY, plugin_bsdf
 from mfnormal.report.metrics import REL_MSE_EPS, luminance, rel_mse
-from mfnormal.cli.rendering import render_rgb
+from mfnormal.render.passes import render_rgb
 
 __all__ = [
     "Heightfield", "bumps", "egg_crate", "noise", "make_heightfield", "KINDS", "STEEPNESS",
@@ -770,12 +770,12 @@ def heightmap_method(model: str | None = None, key: str | None = None, **params)
 
 
 def _catalogued(key: str, about: str, new_key: str | None = None, label: str | None = None) -> Method:
-    """A method of :mod:`mfnormal.report.methods` with this harness's description (and key, label)."""
+    """A method of :mod:`mfnormal.methods` with this harness's description (and key, label)."""
     m = METHOD_BY_KEY[key]
     return Method(new_key or m.key, label or m.label, m.bsdf, about)
 
 
-#: The catalogue's methods (:mod:`mfnormal.report.methods`; its ``flat`` is ``nomap`` here, and its
+#: The catalogue's methods (:mod:`mfnormal.methods`; its ``flat`` is ``nomap`` here, and its
 #: ``normalmap_microfacet`` methods are :func:`plugin_method`'s), and ``bumpmap``.
 METHODS = {m.key: m for m in (
     _catalogued("flat", "the nested BSDF alone on the plane", "nomap", "no map"),

@@ -1,6 +1,6 @@
 """Inverse rendering of a normal map from a flat start, every method, both targets.
 
-    nice .venv/bin/python validation/inverse_rendering.py [--methods builtin,faithful,...]
+    nice .venv/bin/python -m validation.inverse_rendering [--methods builtin,faithful,...]
         [--targets same,true] [--iterations 80] [--walk-iterations 40] [--res 32] [--spp 8]
         [--out validation/results]
 
@@ -20,11 +20,9 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))   # the validation package (harnesses) of this checkout
 
 import mfnormal  # noqa: E402,F401  (before mitsuba: selects a working libLLVM)
 import mitsuba as mi  # noqa: E402

@@ -1,6 +1,6 @@
 """Inverse rendering against the true geometry, per optimisation seed.
 
-    nice .venv/bin/python validation/inverse_seeds.py builtin:0 faithful:0 builtin:1000 ... [--out FILE.json]
+    nice .venv/bin/python -m validation.inverse_seeds builtin:0 faithful:0 builtin:1000 ... [--out FILE.json]
 
 Each argument METHOD:SEED is one run of ``validation/inverse_rendering.py``'s true-geometry case
 (res 32², 8 spp, 3 suns, Adam lr 0.02, 80 iterations; the targets are rendered once, with their
@@ -18,11 +18,7 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 from pathlib import Path
-
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))   # the validation package (harnesses) of this checkout
 
 import mfnormal  # noqa: E402,F401  (before mitsuba: selects a working libLLVM)
 import mitsuba as mi  # noqa: E402

@@ -1,6 +1,6 @@
 """Every source of shading normals against true geometry.
 
-    nice .venv/bin/python validation/normal_sources.py [--quick] [--out validation/results]
+    nice .venv/bin/python -m validation.normal_sources [--quick] [--out validation/results]
         [--spp 512] [--res 128] [--levels 1,2,3] [--grid validation/results/heightmap/true_geometry.json]
 
 1. **Shadow terminator**: a smooth-shaded low-poly icosphere (80, 320, 1280 triangles) against
@@ -34,7 +34,6 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))   # the validation package (harnesses) of this checkout
 
 import mfnormal  # noqa: E402  (first: selects a working libLLVM)
 
@@ -47,7 +46,8 @@ mfnormal.register()
 
 from validation import heightfield as H  # noqa: E402
 from validation import terminator as T  # noqa: E402
-from mfnormal.io.images import atomic_write, tonemap  # noqa: E402
+from mfnormal.files import atomic_write  # noqa: E402
+from mfnormal.io.images import tonemap  # noqa: E402
 
 TERMINATOR_METHODS = ("plain", "normalmap_flat", "chiang", "geometric", "geometric_analytic",
                       "geometric_separable", "geometric_nonseparable", "flat")

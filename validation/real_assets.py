@@ -1,6 +1,6 @@
 """Normal-mapping methods on real assets, against the high-poly mesh the map was baked from.
 
-    nice .venv/bin/python validation/real_assets.py [--quick] [--out validation/results/real_assets]
+    nice .venv/bin/python -m validation.real_assets [--quick] [--out validation/results/real_assets]
         [--assets bunny,dragon,rock] [--materials aluminium,plastic,gold,diffuse]
         [--lightings sky_sun,grazing_sun] [--views frontal,limb] [--methods nomap,classic,...]
         [--faces 1000] [--map-size 1024] [--frame mikktspace|mitsuba] [--res 128] [--spp 64]
@@ -53,7 +53,7 @@ Markdown; without the flag the run is the equal-spp one alone, unchanged. Times 
 machine and on what else runs on it; in small images a fixed cost per render (tracing the
 integrator and the BSDFs' code) is a good part of them.
 
-    nice .venv/bin/python validation/real_assets.py --quick --equal-time --methods classic,classic_fixed,faithful
+    nice .venv/bin/python -m validation.real_assets --quick --equal-time --methods classic,classic_fixed,faithful
 """
 
 from __future__ import annotations
@@ -68,7 +68,6 @@ from dataclasses import dataclass
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))   # the validation package (harnesses) of this checkout
 
 import mfnormal  # noqa: E402  (first: selects a working libLLVM)
 
@@ -79,8 +78,8 @@ from validation import heightfield as H  # noqa: E402
 from validation import true_geometry as TG  # noqa: E402
 from validation.assets import ASSETS, cache_dir, load_asset  # noqa: E402
 from mfnormal.io import bake as B  # noqa: E402
-from mfnormal.io.images import atomic_write  # noqa: E402
-from mfnormal.report.methods import PLUGIN  # noqa: E402
+from mfnormal.files import atomic_write  # noqa: E402
+from mfnormal.methods import PLUGIN  # noqa: E402
 from mfnormal.report.metrics import luminance, near_black_fraction, rel_mse  # noqa: E402
 
 OUT = ROOT / "out" / "validation" / "real_assets"   # --out validation/results/real_assets: the committed one
@@ -763,7 +762,7 @@ def main(argv=None):
             r["equal_time"] = render_equal_time(c, prepared[c.asset], methods, args.frame, opts["res"], r,
                                                 reference, args.seed, args.equal_time_sampler)
     stem = "real_assets_quick" if args.quick else "real_assets"
-    command = "nice .venv/bin/python validation/real_assets.py" + "".join(f" {a}" for a in (argv or sys.argv[1:]))
+    command = "nice .venv/bin/python -m validation.real_assets" + "".join(f" {a}" for a in (argv or sys.argv[1:]))
     report = {"settings": {**opts, "quick": args.quick, "frame": args.frame, "variant": args.variant,
                            "integrator": args.integrator, "command": command, "elapsed_s": time.time() - t_start, "methods": keys},
               "assets": [{k: v for k, v in p.items() if k not in ("high", "low", "maps")}

@@ -57,7 +57,7 @@ from validation import real_assets as RA
 import mitsuba as mi  # noqa: E402  (after real_assets: it imports mfnormal first)
 
 from mfnormal.io import bake as B  # noqa: E402
-from mfnormal.io.images import atomic_write  # noqa: E402
+from mfnormal.files import atomic_write  # noqa: E402
 from mfnormal.report.metrics import luminance  # noqa: E402
 from validation import heightfield as H  # noqa: E402
 from validation import true_geometry as TG  # noqa: E402

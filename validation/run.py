@@ -1,11 +1,11 @@
 """Re-run the validation of the random-walk models and write its figures and tables.
 
-    .venv/bin/python validation/run.py [--out validation/results] [--quick]
+    .venv/bin/python -m validation.run [--out validation/results] [--quick]
 
 Writes PNG figures and ``RESULTS.md`` (tables with the measured numbers) to ``--out``:
 
 - ``microgeometry_polar.png``: exit distributions of the ray-traced sawtooth mesh
-  (Mitsuba's own ray tracer on real microgeometry, ``tests/reference/microgeometry.py``) next to
+  (Mitsuba's own ray tracer on real microgeometry, ``validation/reference/microgeometry.py``) next to
   the ``nonseparable`` and ``separable`` models, on polar axes;
 - ``l1_distances.png``: L1 distance of each model to the ray-traced reference;
 - ``furnace.png``: white-furnace albedo of every model against θ_i;
@@ -14,9 +14,8 @@ Writes PNG figures and ``RESULTS.md`` (tables with the measured numbers) to ``--
 - ``mis_pdf.png``: total-variation distance between the MIS pdf (its density part,
   ``mis_boost_max=1``) and the walk's actual sampling density.
 
-The references are the package ``tests/reference`` (independent of the model code:
-a ray tracer of real microgeometry, the naive sampled-height estimator); this script
-puts ``tests/`` on its path to import that package and nothing else from the tests.
+The references are :mod:`validation.reference` (independent of the model code: a ray
+tracer of real microgeometry, the naive sampled-height estimator), which the tests share.
 """
 
 from __future__ import annotations
@@ -28,8 +27,6 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))   # the validation package (harnesses) of this checkout
-sys.path.insert(0, str(ROOT / "tests"))   # for the package tests/reference
 
 import mfnormal  # noqa: E402  (first: selects a working libLLVM)
 
@@ -108,7 +105,7 @@ def cosine_directions(n, seed):
 
 def microgeometry(out, quick, results):
     import matplotlib.pyplot as plt
-    from reference import microgeometry as mg
+    from validation.reference import microgeometry as mg
 
     n = 200_000 if quick else 1_000_000
     cases = [(60, 70, 0, WHITE, "specular", "Lambert p, mirror t"),
@@ -174,9 +171,9 @@ def furnace(out, quick, results):
 
 def variance(out, quick, results):
     from mfnormal.models import walk
-    from mfnormal.models.microsurface import decode_normal
-    from mfnormal.models.shading import ShadingPoint
-    from reference.naive_walk import naive_eval
+    from mfnormal.surface.microsurface import decode_normal
+    from mfnormal.surface.shading import ShadingPoint
+    from validation.reference.naive_walk import naive_eval
 
     n = 50_000 if quick else 200_000
     nested = mi.load_dict(WHITE)

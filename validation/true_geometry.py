@@ -1,6 +1,6 @@
 """Normal-mapping methods against the true geometry the map was baked from.
 
-    nice .venv/bin/python validation/true_geometry.py [--quick] [--out validation/results]
+    nice .venv/bin/python -m validation.true_geometry [--quick] [--out validation/results]
         [--heightfields bumps,eggcrate,noise] [--steepness mild,steep]
         [--materials diffuse,plastic,aluminium,gold] [--lightings sky_sun,grazing_sun]
         [--views frontal,grazing] [--magnifications magnified,minified]
@@ -47,7 +47,6 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))   # the validation package (harnesses) of this checkout
 
 import mfnormal  # noqa: E402  (first: selects a working libLLVM)
 
@@ -58,7 +57,8 @@ mi.set_variant("llvm_ad_rgb")
 mfnormal.register()
 
 from validation import heightfield as H  # noqa: E402
-from mfnormal.io.images import atomic_write, tonemap  # noqa: E402
+from mfnormal.files import atomic_write  # noqa: E402
+from mfnormal.io.images import tonemap  # noqa: E402
 
 FULL = dict(heightfields=list(H.KINDS), steepness=["mild", "steep"],
             materials=["diffuse", "plastic", "aluminium", "gold"],
@@ -455,7 +455,7 @@ def main(argv=None):
             print(f"[scene {name}] {time.time() - t0:.1f} s", flush=True)
 
     elapsed = time.time() - t_start
-    cmd = "nice .venv/bin/python validation/true_geometry.py" + (" " + " ".join(sys.argv[1:]) if sys.argv[1:] else "")
+    cmd = "nice .venv/bin/python -m validation.true_geometry" + (" " + " ".join(sys.argv[1:]) if sys.argv[1:] else "")
     settings = {"command": cmd, "elapsed_s": elapsed, "cells": len(cells), "res": res, "spp": spp,
                 "ref_factor": rf, "methods": keys, "seed": args.seed, "registered": args.registered,
                 "method_about": {m.key: m.about for m in methods},

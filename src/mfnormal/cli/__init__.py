@@ -1,2 +1,2 @@
 """The ``mfnormal`` command line (:mod:`mfnormal.cli.commands`): ``render``, ``demo`` and
-``compare``, locally or on a Dask cluster (:mod:`mfnormal.cli.cluster`)."""
+``compare``, locally or on a Dask cluster (:mod:`mfnormal.render.cluster`)."""

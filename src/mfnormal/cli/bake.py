@@ -142,7 +142,7 @@ def progress_lines(size: int, started: float, stream: TextIO = sys.stderr,
 
 def cmd_bake(args: argparse.Namespace) -> int:
     """Bake HIGH's normals onto LOW's UVs; write the PNG."""
-    from mfnormal.cli.rendering import use_variant
+    from mfnormal.render.passes import use_variant
     import mitsuba as mi
 
     output = _check_bake(args)

@@ -12,7 +12,8 @@
 
 Every error is one line on stderr and exit code 2, reported before the render
 starts wherever it can be known then (:mod:`mfnormal.io.inputs`); outputs are
-written as a pair (a linear EXR and a tonemapped PNG), atomically.
+written as a pair (a linear EXR and a tonemapped PNG), atomically. The scene a command names is
+loaded by :mod:`mfnormal.cli.loading`; it renders through :mod:`mfnormal.render`, here or on a cluster.
 """
 
 from __future__ import annotations
@@ -26,22 +27,19 @@ import time
 import warnings
 from pathlib import Path
 from types import ModuleType
-from typing import TYPE_CHECKING, Callable, Sequence
+from typing import Callable, Sequence
 
 import numpy as np
 
-if TYPE_CHECKING:
-    import mitsuba as mi
-
+from mfnormal.cli.loading import gltf_options, load_scene, parse_defines
 from mfnormal.io.messages import one_line
-from mfnormal.report.methods import METHOD_BY_KEY, METHODS
-from mfnormal.cli.rendering import render_scene, use_variant
-from mfnormal.io.inputs import (CLIError, DEFAULT_LIMITS, LIMIT_HELP, Limits, Terminated, check_int32,
-                       check_output, check_regular_file, check_render_size, check_scene_before_render,
-                       check_seed, check_spp, check_xml_scene, parse_limits, raise_on_sigterm)
+from mfnormal.methods import METHOD_BY_KEY, METHODS
+from mfnormal.render.passes import render_scene, use_variant
+from mfnormal.io.inputs import (CLIError, LIMIT_HELP, Limits, Terminated, check_int32, check_output,
+                                check_regular_file, check_render_size, check_scene_before_render, check_seed,
+                                check_spp, check_xml_scene, parse_limits, raise_on_sigterm)
 
-__all__ = ["CLIError", "main", "demo_main", "build_parser", "load_scene", "setup_variant",
-           "parse_defines", "run_command"]
+__all__ = ["CLIError", "main", "demo_main", "build_parser", "setup_variant", "run_command"]
 
 DEFAULT_VARIANT = "llvm_ad_rgb"
 DEMO_OUTPUT = os.path.join("out", "demo.png")
@@ -55,84 +53,6 @@ def setup_variant(variant: str) -> ModuleType:
                        f"variant '{variant}' is not available in this Mitsuba build; "
                        f"choose one of: {', '.join(v for v in mi.variants() if 'rgb' in v)}",
                        f"cannot use variant '{variant}'")
-
-
-def parse_defines(defines: list[str]) -> dict[str, str]:
-    params = {}
-    for item in defines or []:
-        if "=" not in item:
-            raise CLIError(f"-D expects key=value, got '{item}'")
-        key, value = item.split("=", 1)
-        key = key.strip()
-        if not key.isidentifier():
-            raise CLIError(f"-D {item}: '{key}' is not a parameter name (letters, digits and _)")
-        params[key] = value
-    return params
-
-
-def _flag(text: str) -> bool:
-    if text.strip().lower() in ("1", "true", "yes", "on"):
-        return True
-    if text.strip().lower() in ("0", "false", "no", "off"):
-        return False
-    raise ValueError(f"expected true or false, got '{text}'")
-
-
-# -- D options of a glTF file: load_gltf's keyword arguments, parsed from text, with their ranges.
-GLTF_OPTIONS = {"width": int, "height": int, "spp": int, "max_depth": int, "model": str,
-                "tangents": str, "normal_maps": _flag, "lights": _flag, "macro_normal": str}
-_GLTF_RANGES = {"width": (1, None), "height": (1, None), "spp": (1, None), "max_depth": (-1, None)}
-
-
-def gltf_options(params: dict[str, str]) -> dict:
-    """``-D`` values as :func:`mfnormal.io.gltf.load_gltf` keyword arguments, checked."""
-    options = {}
-    for key, value in params.items():
-        if key not in GLTF_OPTIONS:
-            raise CLIError(f"unknown -D option '{key}' for a glTF scene; use one of "
-                           f"{', '.join(GLTF_OPTIONS)}")
-        try:
-            options[key] = GLTF_OPTIONS[key](value.strip() if GLTF_OPTIONS[key] is int else value)
-        except ValueError:
-            raise CLIError(f"-D {key}={value}: not a valid {key}") from None
-        if key in _GLTF_RANGES:
-            lo, _ = _GLTF_RANGES[key]
-            check_int32(options[key], f"-D {key}={value}", lo=lo)
-    return options
-
-
-def _gltf_scene(mi, path: Path, params: dict[str, str], limits: Limits):
-    """The scene dict of a glTF file, with -D key=value as load_gltf options."""
-    from mfnormal.io.gltf import load_gltf
-
-    options = gltf_options(params)
-    return mi.load_dict(load_gltf(path, limits=limits, **options))
-
-
-def load_scene(mi: ModuleType, path: str | os.PathLike, params: dict[str, str],
-               limits: Limits = DEFAULT_LIMITS) -> mi.Scene:
-    """A Mitsuba XML scene (``-D`` sets its ``$key`` defaults) or a glTF 2.0 file (``.gltf``, ``.glb``)."""
-    from mfnormal.io.gltf import GLTF_SUFFIXES, GLTFError
-
-    path = Path(path)
-    check_regular_file(path, f"the scene {path}", f"scene file not found: {path}")
-    gltf = path.suffix.lower() in GLTF_SUFFIXES
-    if not gltf:
-        check_xml_scene(path, params, limits)
-    try:
-        if gltf:
-            scene = _gltf_scene(mi, path, params, limits)
-        else:
-            scene = mi.load_file(str(path), **params)
-    except CLIError:
-        raise
-    except GLTFError as exc:
-        raise CLIError(f"{path.name}: {exc}") from None
-    except Exception as exc:
-        raise CLIError(f"cannot load {path}: {one_line(exc)}") from None
-    from mfnormal.io.scene_checks import check_scene
-    check_scene(scene, CLIError, str(path))
-    return scene
 
 
 class Progress:
@@ -189,16 +109,17 @@ def _check_cluster_args(args):
         if any(tls):
             raise CLIError("--cluster-tls-ca, --cluster-tls-cert and --cluster-tls-key go with --cluster")
         return None
-    from mfnormal.cli.cluster import parse_cluster
+    from mfnormal.render.cluster import parse_cluster
     return parse_cluster(args.cluster, tls)
 
 
 def _render_on_cluster(args, target, scene, spp: int, params: dict, limits: Limits):
-    """``mfnormal render --cluster``: the chunks of :func:`mfnormal.cli.rendering.schedule`
+    """``mfnormal render --cluster``: the chunks of :func:`mfnormal.render.passes.schedule`
     rendered on the workers, merged in order; returns (image, what it ran on)."""
-    from mfnormal.cli.cluster import Cluster, scene_spec
+    from mfnormal.render.bundle import scene_spec
+    from mfnormal.render.cluster import Cluster
     from mfnormal.io.gltf import GLTF_SUFFIXES
-    from mfnormal.cli.rendering import film_image, schedule
+    from mfnormal.render.passes import film_image, schedule
 
     gltf = Path(args.scene).suffix.lower() in GLTF_SUFFIXES
     spec, files = scene_spec(args.scene, params, gltf_options(params) if gltf else None,
@@ -274,7 +195,7 @@ def cmd_demo(args) -> int:
     from mfnormal.cli import demo
     from mfnormal.scenes.assets import DEMO_XML
     from mfnormal.io.images import output_paths
-    from mfnormal.cli.rendering import MAX_PASS_LANES, average_passes
+    from mfnormal.render.passes import MAX_PASS_LANES, average_passes
 
     _check_demo(args, parse_limits(args.limit))
     exr_path, _ = output_paths(args.output)
@@ -378,7 +299,7 @@ def cmd_compare(args) -> int:
             report = compare.compare(args.scenes, out, settings, methods, validation=args.validation,
                                      params=params, command=command, limits=limits)
         else:
-            from mfnormal.cli.cluster import Cluster
+            from mfnormal.render.cluster import Cluster
             with Cluster(target, args.variant, args.cluster_timeout) as cluster:
                 report = compare.compare(args.scenes, out, settings, methods, validation=args.validation,
                                          params=params, command=command, limits=limits,
@@ -414,7 +335,7 @@ def _add_scene_options(p):
     _add_seed(p)
     p.add_argument("-D", "--define", action="append", metavar="KEY=VALUE", help="scene parameter ($KEY)")
     _add_limit(p)
-    from mfnormal.cli.cluster import CLUSTER_HELP
+    from mfnormal.render.cluster import CLUSTER_HELP
     p.add_argument("--cluster", metavar="local:N|ADDRESS", help=CLUSTER_HELP)
     p.add_argument("--cluster-timeout", type=float, default=60.0, metavar="S",
                    help="seconds to wait for the scheduler, for a first worker, and with no "
@@ -561,7 +482,7 @@ def run_command(prog: str, command: Callable[[], int]) -> int:
     missing libLLVM, or a path the system refuses) is one line ``PROG: error: ...`` and
     exit 2; Ctrl-C exits 130 and
     SIGTERM 143 (temporary files removed; during a render pass both end the process at once,
-    :func:`mfnormal.cli.rendering.signals_end_the_process`); warnings are one line each; anything else
+    :func:`mfnormal.render.passes.signals_end_the_process`); warnings are one line each; anything else
     is one line and exit 1 (``MFNORMAL_DEBUG=1`` re-raises it with its traceback)."""
     raise_on_sigterm()
     with warnings.catch_warnings():

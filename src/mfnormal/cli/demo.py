@@ -21,7 +21,7 @@ from pathlib import Path
 import mitsuba as mi
 
 from mfnormal.scenes.assets import DEMO_XML, generate_demo_assets
-from mfnormal.report.methods import PLUGIN
+from mfnormal.methods import PLUGIN
 from mfnormal.io.scene_xml import dicts_of_type, xml_to_dict
 
 __all__ = ["CLASSIC", "scene_parameters", "demo_scene", "load_scene", "default_assets_dir"]

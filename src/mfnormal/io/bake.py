@@ -505,7 +505,7 @@ def write_heights(path: PathLike, heights: np.ndarray) -> Path:
     """Write the heights (H, W, world units) as a one-channel 32-bit float OpenEXR, atomically
     (what Mitsuba's ``bitmap`` reads with ``raw=True``); returns the path. :class:`BakeError`
     (nothing written) for heights that are not finite in single precision."""
-    from mfnormal.io.images import atomic_write, write_bytes
+    from mfnormal.files import atomic_write, write_bytes
 
     data = _heights_bytes(heights)
     return atomic_write(path, lambda p: write_bytes(p, data))
@@ -516,8 +516,8 @@ def write_baked(path: PathLike, normals: np.ndarray, bits: int = 8, heights_path
                 more: Sequence[tuple[PathLike, Callable[[Path], None]]] = ()) -> list:
     """The normal map PNG at ``path`` and, with ``heights_path``, the ``heights`` EXR there (and
     ``more`` (path, write(tmp_path)) items), written as one (all or none:
-    :func:`mfnormal.io.images.atomic_write_all`); returns the paths."""
-    from mfnormal.io.images import atomic_write_all, write_bytes
+    :func:`mfnormal.files.atomic_write_all`); returns the paths."""
+    from mfnormal.files import atomic_write_all, write_bytes
 
     map_data = _map_bytes(normals, bits)
     items = [(path, lambda p: write_bytes(p, map_data))]

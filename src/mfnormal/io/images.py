@@ -15,15 +15,13 @@ PNG, and no temporary file.
 
 from __future__ import annotations
 
-import os
-import signal
 import struct
-import tempfile
 import zlib
-from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
+
+from mfnormal.files import atomic_write_all, write_bytes
 
 _STANDARD = {("Y",): "Y", ("Y", "A"): "YA", ("R", "G", "B"): "RGB", ("R", "G", "B", "A"): "RGBA"}
 
@@ -90,76 +88,6 @@ def tonemap(rgb: np.ndarray, exposure: float = 0.0) -> np.ndarray:
     return np.round(srgb * 255.0).astype(np.uint8)
 
 
-def _temp_path(path: Path) -> str:
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix, dir=path.parent)
-    os.close(fd)
-    return tmp
-
-
-def _umask() -> int:
-    umask = os.umask(0)
-    os.umask(umask)
-    return umask
-
-
-@contextmanager
-def _signals_held():
-    """SIGINT and SIGTERM wait until the block is done (where the platform allows it)."""
-    sigs = {s for s in (getattr(signal, "SIGINT", None), getattr(signal, "SIGTERM", None)) if s}
-    can = hasattr(signal, "pthread_sigmask")
-    if can:
-        old = signal.pthread_sigmask(signal.SIG_BLOCK, sigs)
-    try:
-        yield
-    finally:
-        if can:
-            signal.pthread_sigmask(signal.SIG_SETMASK, old)
-
-
-def atomic_write_all(items) -> list[Path]:
-    """Write several files as one: ``items`` is a list of (path, write) where ``write(tmp)``
-    writes the file's content to the temporary path ``tmp``. Every file is written to
-    a temporary file next to its target first; then all are renamed, with SIGINT and
-    SIGTERM held back between the renames. On any error (or signal) before the renames,
-    the temporary files are removed and the targets are untouched."""
-    items = [(Path(p), w) for p, w in items]
-    umask = _umask()
-    temps = []
-    try:
-        for path, write in items:
-            path.parent.mkdir(parents=True, exist_ok=True)
-            with _signals_held():            # created and registered for removal as one step
-                temps.append(_temp_path(path))
-            write(temps[-1])
-            os.chmod(temps[-1], 0o666 & ~umask)   # mkstemp makes it private; give it the usual mode
-        with _signals_held():
-            done = []
-            try:
-                for (path, _), tmp in zip(items, temps):
-                    os.replace(tmp, path)
-                    done.append(path)
-            except BaseException:
-                for path in done:          # a half-renamed pair: remove its new half
-                    try:
-                        os.unlink(path)
-                    except OSError:
-                        pass
-                raise
-    except BaseException:
-        for tmp in temps:
-            try:
-                os.unlink(tmp)
-            except OSError:
-                pass
-        raise
-    return [p for p, _ in items]
-
-
-def atomic_write(path, write) -> Path:
-    """Call ``write(tmp_path)`` then rename onto ``path``: no half-written file on error."""
-    return atomic_write_all([(path, write)])[0]
-
-
 def output_paths(output) -> tuple[Path, Path]:
     """(EXR, PNG) paths for an output name given with or without extension."""
     output = Path(output)
@@ -169,7 +97,7 @@ def output_paths(output) -> tuple[Path, Path]:
 
 def save_render(img: np.ndarray, output, exposure: float = 0.0, names=None) -> tuple[Path, Path]:
     """Write a linear EXR (every channel, named ``names``) and a tonemapped PNG (the colour)
-    next to each other, as a pair (see :func:`atomic_write_all`)."""
+    next to each other, as a pair (see :func:`mfnormal.files.atomic_write_all`)."""
     import mitsuba as mi
 
     exr, png = output_paths(output)
@@ -200,15 +128,6 @@ def encode(bitmap, file_format) -> bytes:
     stream = mi.MemoryStream()
     bitmap.write(stream, file_format)
     return stream.raw_buffer()
-
-
-def write_bytes(path, data: bytes) -> None:
-    """Write ``data`` to ``path`` and make it durable: a full disk raises OSError here
-    (Mitsuba's own file streams can lose a failed final flush)."""
-    with open(path, "wb") as f:
-        f.write(data)
-        f.flush()
-        os.fsync(f.fileno())
 
 
 def png_bytes(rgb8: np.ndarray) -> bytes:

@@ -7,7 +7,7 @@
 - scene dicts: :func:`dicts_of_type` and :func:`rewrite_dict` (a copy with every
   plugin of one type rewritten, e.g. every ``normalmap_microfacet``'s nested BSDF);
 - XML trees: :func:`read_scene` and :func:`rewrite`, the scene with every
-  ``normalmap_microfacet`` BSDF rewritten for one :class:`mfnormal.report.methods.Method`
+  ``normalmap_microfacet`` BSDF rewritten for one :class:`mfnormal.methods.Method`
   (what ``mfnormal compare`` renders), and :func:`set_film_width`.
 """
 
@@ -19,7 +19,7 @@ import re
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
-from mfnormal.report.methods import PLUGIN, Method
+from mfnormal.methods import PLUGIN, Method
 
 __all__ = ["SceneError", "PARAMETER", "substitute", "references", "read_scene", "xml_to_dict",
            "dicts_of_type", "rewrite_dict", "rewrite", "film_size_parameters", "set_film_width"]

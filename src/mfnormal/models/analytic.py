@@ -17,7 +17,7 @@ import drjit as dr
 import mitsuba as mi
 
 from mfnormal.models import rng
-from mfnormal.models.microsurface import negate, score
+from mfnormal.surface.microsurface import negate, score
 
 
 def exit_split(sp, d, d_m):

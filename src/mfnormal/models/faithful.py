@@ -46,12 +46,12 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from mfnormal.models.microsurface import negate, replace_grad, score
+from mfnormal.surface.microsurface import negate, replace_grad, score
 from mfnormal.models.neighbourhood import (INV_PI, _held, blocked_table, field_lookup, local_scales, lookup,
                                            smith_lambda)
 from mfnormal.models.rng import (ONE_MINUS_EPS, SALT_FAITHFUL_SAMPLE, SLOT_FAITHFUL_BLOCKED, SLOT_FAITHFUL_RETRO,
                                  hash_floats, uniform)
-from mfnormal.models.shading import from_tangent_rotation, to_tangent_frame
+from mfnormal.surface.shading import from_tangent_rotation, to_tangent_frame
 
 
 # -- The model at one shading point ------------------------------------------------------------

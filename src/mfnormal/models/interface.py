@@ -1,8 +1,8 @@
 """The models behind one interface.
 
-Each model turns a :class:`~mfnormal.models.shading.ShadingPoint` (the two-facet microsurface
-at a hit, directions in its base frame) into a BSDF. The plugin calls every model the same way,
-without asking which it is:
+Each model turns a :class:`~mfnormal.surface.shading.ShadingPoint` (the two-facet microsurface
+at a hit, directions in its base frame) into a BSDF. The plugin calls every model the same way
+(:class:`Model`), without asking which it is:
 
 - ``eval_pdf(ctx, sp, wo, active, want_value, want_pdf)``: f·⟨ω_o, ω_g⟩ and the pdf (what is not
   wanted is 0); in ``TransportMode.Importance`` the model's adjoint;
@@ -20,13 +20,15 @@ without asking which it is:
 
 The models: :class:`Faithful` (the default, :mod:`mfnormal.models.faithful`), :class:`Analytic`
 (the paper's, :mod:`mfnormal.models.analytic`) and :class:`Walk` (the separable and
-non-separable random walks, :mod:`mfnormal.models.walk`). :func:`from_properties` builds one
-from the plugin's parameters.
+non-separable random walks, :mod:`mfnormal.models.walk`), each registered under its name in
+:data:`REGISTRY` with what it accepts (a tangent facet of the nested material, a transmitting
+nested BSDF); :func:`from_properties` builds one from the plugin's parameters.
 """
 
 from __future__ import annotations
 
 import dataclasses
+from typing import Protocol, runtime_checkable
 
 import drjit as dr
 import mitsuba as mi
@@ -34,10 +36,9 @@ import mitsuba as mi
 from mfnormal.models import analytic, faithful, walk
 from mfnormal.models.walk_pdf import mis_pdf
 from mfnormal.models.walk_replay import replays
-from mfnormal.models.microsurface import COS_P_MIN
+from mfnormal.surface.microsurface import COS_P_MIN
 from mfnormal.models.properties import INT32_MAX, Choice, Integer, Number
 
-MODELS = ("faithful", "analytic", "separable", "nonseparable")
 DEFAULT_MODEL = "faithful"
 TANGENT_FACETS = ("specular", "same")
 #: The faithful model's local statistics: the width of the window around a texel, in the map's
@@ -45,8 +46,8 @@ TANGENT_FACETS = ("specular", "same")
 NEIGHBOURHOOD = 8.0
 
 # The models' parameters (mfnormal.models.properties); the walk's are kernel inputs, exposed.
+# (``model``, :data:`MODEL`, is read from :data:`REGISTRY`, below the models.)
 PLUGIN = "normalmap_microfacet"
-MODEL = Choice(PLUGIN, "model", DEFAULT_MODEL, MODELS)
 TANGENT_FACET = Choice(PLUGIN, "tangent_facet", "specular", TANGENT_FACETS)
 NEIGHBOURHOOD_PARAM = Number(PLUGIN, "neighbourhood", NEIGHBOURHOOD,
                              "a finite number of texels >= 0 (0: the whole map)", lo=0.0)
@@ -62,14 +63,53 @@ def _fail(msg: str):
     raise ValueError(f"{PLUGIN}: {msg}")
 
 
+@runtime_checkable
+class Model(Protocol):
+    """What every model offers the plugin (the module docstring), and what :func:`make` reads of
+    its class: ``tangent_facets`` (the ``tangent_facet`` values it takes) and ``refracts``
+    (whether it takes a transmitting nested BSDF)."""
+
+    name: str
+    tangent_facet: str
+    ok: tuple                   # the walk parameters, checked (shown by the plugin's to_string)
+    deterministic: bool
+    stochastic_eval: bool
+    smooth_at_flat: bool
+    tangent_facets: tuple
+    refracts: bool
+
+    def eval_pdf(self, ctx, sp, wo, active, want_value=True, want_pdf=True) -> tuple: ...
+
+    def sample(self, ctx, sp, sample1, sample2, active) -> tuple: ...
+
+    def fuses(self, sp) -> bool: ...
+
+    def eval_pdf_sample(self, ctx, sp, wo, sample1, sample2, active) -> tuple: ...
+
+    def traverse(self, callback) -> None: ...
+
+    def parameters_changed(self, keys) -> None: ...
+
+    def map_changed(self, source) -> None: ...
+
+
 class _Deterministic:
-    """What the two deterministic models share: no fused call, no parameters of their own."""
+    """What the two deterministic models share: no fused call, no parameters of their own, a
+    mirror tangent facet only."""
 
     deterministic = True
     stochastic_eval = False
+    tangent_facets = ("specular",)
+
+    def __init__(self, tangent_facet, nested, source, walk_values, neighbourhood=0.0):
+        self.tangent_facet, self.ok = tangent_facet, walk_values    # the walk values, checked and shown
 
     def fuses(self, sp) -> bool:
         return False
+
+    def eval_pdf_sample(self, ctx, sp, wo, sample1, sample2, active):
+        """``eval_pdf`` then ``sample``: no call fuses them (:meth:`fuses`)."""
+        return (*self.eval_pdf(ctx, sp, wo, active), self.sample(ctx, sp, sample1, sample2, active))
 
     def traverse(self, callback):
         pass
@@ -87,6 +127,7 @@ class Analytic(_Deterministic):
 
     name = "analytic"
     smooth_at_flat = False
+    refracts = False
 
     def eval_pdf(self, ctx, sp, wo, active, want_value=True, want_pdf=True):
         return analytic.eval_pdf(sp, wo, active, want_value, want_pdf)
@@ -101,15 +142,17 @@ class Faithful(_Deterministic):
 
     name = "faithful"
     smooth_at_flat = True
+    refracts = True
 
-    def __init__(self, nested, source, neighbourhood=0.0):
+    def __init__(self, tangent_facet, nested, source, walk_values, neighbourhood=0.0):
+        super().__init__(tangent_facet, nested, source, walk_values)
         self.neighbourhood = neighbourhood
         self.core = faithful.Model(nested, source.slopes()[0], COS_P_MIN, local=self._local(source))
 
     def _local(self, source, attached=False):
         """The local statistics' field (faithful.Model.set_slopes), or None: the map's slopes for
         every texel (``neighbourhood`` 0, or a normal source without a map of normals)."""
-        if self.neighbourhood <= 0 or not hasattr(source, "local"):
+        if self.neighbourhood <= 0:
             return None
         return source.local(self.neighbourhood, attached)
 
@@ -142,9 +185,13 @@ class Walk:
     deterministic = False
     stochastic_eval = True
     smooth_at_flat = False
+    tangent_facets = TANGENT_FACETS
+    refracts = False
+    separable: bool             # the separable walk (:class:`SeparableWalk`), else the height-correlated one
 
-    def __init__(self, name, tangent_facet, values):
-        self.name, self.tangent_facet = name, tangent_facet
+    def __init__(self, tangent_facet, nested, source, values, neighbourhood=0.0):
+        self.tangent_facet = tangent_facet
+        self.specular_tangent = tangent_facet == "specular"
         self.max_bounces, self.rr_depth = mi.Float64(values[0]), mi.Float64(values[1])
         self.mis_boost_max = mi.Float(values[2])
         self.ok = values
@@ -154,8 +201,7 @@ class Walk:
     def params(self):
         """The walk's :class:`walk.WalkParams`; its values are this model's opaque arrays (cast to
         the walk counter's type), read when a kernel is traced."""
-        return walk.WalkParams(separable=self.name == "separable",
-                               specular_tangent=self.tangent_facet == "specular",
+        return walk.WalkParams(separable=self.separable, specular_tangent=self.specular_tangent,
                                max_bounces=mi.UInt32(self.max_bounces), rr_depth=mi.UInt32(self.rr_depth),
                                mis_boost_max=self.mis_boost_max)
 
@@ -201,6 +247,27 @@ class Walk:
         return value, mis_pdf(sp, params, wo, active), sampled
 
 
+class SeparableWalk(Walk):
+    """The walk with separable masking-shadowing: the height interval reset to [0, 1] at every
+    vertex (docs/model.md §2.5)."""
+
+    name = "separable"
+    separable = True
+
+
+class NonseparableWalk(Walk):
+    """The walk with height-correlated masking-shadowing (the supplemental's interval tracking)."""
+
+    name = "nonseparable"
+    separable = False
+
+
+#: Every model under its name (``model``), the default first.
+REGISTRY: dict[str, type[Model]] = {m.name: m for m in (Faithful, Analytic, SeparableWalk, NonseparableWalk)}
+MODELS = tuple(REGISTRY)
+MODEL = Choice(PLUGIN, "model", DEFAULT_MODEL, MODELS)
+
+
 def transmits(nested) -> bool:
     """Whether the nested BSDF has a transmitting component (Mitsuba's flags)."""
     return mi.has_flag(nested.flags(), mi.BSDFFlags.Transmission)
@@ -209,30 +276,25 @@ def transmits(nested) -> bool:
 def refusal(name, nested) -> str | None:
     """Why the model called ``name`` refuses the nested BSDF ``nested`` by design (one line), or
     None: the paper's models only reflect, so they refuse a transmitting one."""
-    if name != "faithful" and transmits(nested):
+    if not REGISTRY[name].refracts and transmits(nested):
         return (f"the nested BSDF {nested.class_name()} transmits light, but model='{name}' only "
                 "reflects; use model=\"faithful\" (the default), which refracts")
     return None
 
 
-def make(name, tangent_facet, nested, source, walk_values, neighbourhood=0.0):
-    """The model called ``name`` (``MODELS``) with its parameters (each already of its type and
-    range: :data:`MODEL`, :data:`TANGENT_FACET`, :data:`WALK_PARAMS`, :data:`NEIGHBOURHOOD_PARAM`),
+def make(name, tangent_facet, nested, source, walk_values, neighbourhood=0.0) -> Model:
+    """The model called ``name`` (:data:`REGISTRY`) with its parameters (each already of its type
+    and range: :data:`MODEL`, :data:`TANGENT_FACET`, :data:`WALK_PARAMS`, :data:`NEIGHBOURHOOD_PARAM`),
     checked together."""
-    if name in ("analytic", "faithful") and tangent_facet != "specular":
-        _fail(f"tangent_facet 'same' needs model='separable' or 'nonseparable'; the {name} "
+    model = REGISTRY[name]
+    if tangent_facet not in model.tangent_facets:
+        takers = " or ".join(f"'{n}'" for n, m in REGISTRY.items() if tangent_facet in m.tangent_facets)
+        _fail(f"tangent_facet '{tangent_facet}' needs model={takers}; the {name} "
               "model has no tangent facet of the nested material")
     refused = refusal(name, nested)
     if refused:
         _fail(refused)
-    if name == "faithful":
-        model = Faithful(nested, source, neighbourhood)
-    elif name == "analytic":
-        model = Analytic()
-    else:
-        return Walk(name, tangent_facet, walk_values)
-    model.tangent_facet, model.ok = tangent_facet, walk_values    # the walk values, checked and shown
-    return model
+    return model(tangent_facet, nested, source, walk_values, neighbourhood)
 
 
 def from_properties(props, nested, source):

@@ -48,11 +48,11 @@ from dataclasses import dataclass
 import drjit as dr
 import mitsuba as mi
 
-from mfnormal.models import microsurface as ms
-from mfnormal.models.microsurface import negate, replace_grad
+from mfnormal.surface import microsurface as ms
+from mfnormal.surface.microsurface import negate, replace_grad
 from mfnormal.models.rng import (SALT_WALK_EVAL, SALT_WALK_SAMPLE, SLOT_START_FACET, choose, hash_floats, slot_connect,
                   slot_escape, slot_nested, slot_roulette, uniform)
-from mfnormal.models.shading import broadcast, select_frame
+from mfnormal.surface.shading import broadcast, select_frame
 from mfnormal.models.walk_pdf import first_interval, mis_pdf
 from mfnormal.models.walk_replay import (Replay, _crest_jacobian, _g1_jacobian, _land_jacobian, attached_interval,
                                          calls, replays)

@@ -14,9 +14,9 @@ from dataclasses import replace
 import drjit as dr
 import mitsuba as mi
 
-from mfnormal.models import microsurface as ms
-from mfnormal.models.microsurface import negate
-from mfnormal.models.shading import select_frame
+from mfnormal.surface import microsurface as ms
+from mfnormal.surface.microsurface import negate
+from mfnormal.surface.shading import select_frame
 from mfnormal.models.walk_replay import calls
 
 

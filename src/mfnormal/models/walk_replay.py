@@ -14,8 +14,8 @@ from dataclasses import dataclass
 import drjit as dr
 import mitsuba as mi
 
-from mfnormal.models import microsurface as ms
-from mfnormal.models.microsurface import negate
+from mfnormal.surface import microsurface as ms
+from mfnormal.surface.microsurface import negate
 
 def _rel(f):
     """f/detach(f) − 1: value 0, derivative df/f (per channel)."""

@@ -24,8 +24,8 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from mfnormal.models.microsurface import upper_unit
-from mfnormal.models.shading import from_tangent_frame, tangent_rotation
+from mfnormal.surface.microsurface import upper_unit
+from mfnormal.surface.shading import from_tangent_frame, tangent_rotation
 from mfnormal.normals.strength import fail
 from mfnormal.normals.tangents import VertexTangents
 from mfnormal.normals.uv import check_uv_transforms, finite_uv
@@ -144,6 +144,10 @@ class HeightMap:
             res = min(2 * res, 2 * max(shape[0], shape[1]))
         scale = self.height_scale * self.strength.first()
         return principal_slopes(height_map_normals(self.texture, scale, res)), None
+
+    def local(self, width: float, attached=False):
+        """None: the faithful model reads a height map's slopes for every texel."""
+        return None
 
     def parameters_changed(self, keys):
         if not keys or any(k.startswith("heightmap") for k in keys):

@@ -30,8 +30,8 @@ import math
 import drjit as dr
 import mitsuba as mi
 
-from mfnormal.models.microsurface import COS_P_MIN
-from mfnormal.models.shading import ShadingPoint, tangent_rotation
+from mfnormal.surface.microsurface import COS_P_MIN
+from mfnormal.surface.shading import ShadingPoint, tangent_rotation
 
 MACRO_NORMALS = ("shading", "geometric")
 #: ``eval`` in light tracing is the adjoint times ⟨b,n_s⟩⟨a,n_g⟩/(⟨a,n_s⟩⟨b,n_g⟩), capped here
@@ -113,30 +113,29 @@ class Macro:
         k = dr.abs(b.z * a_m.z) / dr.select(valid, dr.abs(den), 1.0)
         return dr.select(valid & dr.isfinite(k), dr.minimum(k, ADJOINT_MAX), 0.0)
 
+    def weigh(self, ctx, sp, value, b, b_m):
+        """``value`` (``eval`` at ω_o = ``b``, ``b_m`` in G) times :meth:`adjoint` in light tracing."""
+        k = self.adjoint(ctx, sp, b, b_m)
+        return value if k is None else value * k
 
-def macro_of(sp):
-    """The :class:`Macro` of a shading point, None for the shading frame."""
-    return getattr(sp, "macro", None)
-
-
-def macro_of(sp):
-    """The :class:`Macro` of a shading point, None for the shading frame."""
-    return getattr(sp, "macro", None)
+    def to_shading(self, ctx, sp, bs, weight) -> tuple:
+        """A sample of the model in G, its direction in the shading frame (and its weight as
+        :meth:`weigh` gives a value)."""
+        wo_m = mi.Vector3f(bs.wo)          # a copy: assigning bs.wo writes into the struct
+        bs.wo = self.from_macro(wo_m)
+        return bs, self.weigh(ctx, sp, weight, bs.wo, wo_m)
 
 
 class ShadingMacro:
-    """``macro_normal="shading"``: the microsurface in ``si.sh_frame``."""
+    """``macro_normal="shading"``: the microsurface in ``si.sh_frame`` (its macro frame the null
+    :class:`~mfnormal.surface.shading.ShadingFrame`)."""
 
     name = "shading"
 
     def shading_point(self, source, nested, ctx, si, active, nudge=None):
         wp, rotation, attached = source.facet_normal(si, active, nudge)
-        sp = ShadingPoint(nested, ctx, si, wp)
-        sp.map_rotation = rotation
-        sp.attached = attached
-        sp.nudged = nudge is not None
-        sp.macro = None
-        return sp
+        return ShadingPoint(nested, ctx, si, wp, map_rotation=rotation, attached=attached,
+                            nudged=nudge is not None)
 
 
 class GeometricMacro:
@@ -152,14 +151,11 @@ class GeometricMacro:
         si_g = mi.SurfaceInteraction3f(si)
         si_g.sh_frame = mi.Frame3f(si.to_world(g.s), si.to_world(g.t), si.to_world(g.n))
         si_g.wi = macro.to_macro(si.wi)
-        sp = ShadingPoint(nested, ctx, si_g, to_upper_hemisphere(macro.to_macro(wp)))
         if source.tangents is not None and rotation is not None:
             tangent, sign = source.tangents.lookup(si, active)
             rotation = tangent_rotation(si_g.sh_frame, tangent, sign)
-        sp.map_rotation = rotation
-        sp.attached = False
-        sp.macro = macro
-        return sp
+        return ShadingPoint(nested, ctx, si_g, to_upper_hemisphere(macro.to_macro(wp)), map_rotation=rotation,
+                            macro=macro)
 
 
 def macro_normal(name: str):

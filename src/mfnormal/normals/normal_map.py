@@ -2,7 +2,7 @@
 
 A texel's RGB decodes to n = 2·rgb − 1 (``normalmap_convention="directx"`` inverts green), its
 x and y scaled by ``strength``, normalised and clamped to cosθ_p ≥ ``COS_P_MIN``
-(:func:`~mfnormal.models.microsurface.decode_normal`), in the base shading frame or the mesh's
+(:func:`~mfnormal.surface.microsurface.decode_normal`), in the base shading frame or the mesh's
 vertex tangent frame (:mod:`mfnormal.normals.tangents`).
 
 Two things beyond decoding live here. The map's uv transform (a bitmap's ``to_uv``) is applied
@@ -20,8 +20,8 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from mfnormal.models.microsurface import SIN_P_EPS, decode_normal
-from mfnormal.models.shading import from_tangent_frame, tangent_rotation
+from mfnormal.surface.microsurface import SIN_P_EPS, decode_normal
+from mfnormal.surface.shading import from_tangent_frame, tangent_rotation
 from mfnormal.normals.strength import fail
 from mfnormal.normals.tangents import VertexTangents
 from mfnormal.normals.uv import check_uv_transforms, finite_uv

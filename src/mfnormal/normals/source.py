@@ -1,7 +1,9 @@
 """The normal source of a plugin, from its parameters: the map, the frame it is decoded in, and
-the macro normal (the package docstring)."""
+the macro normal (the package docstring). Every source offers :class:`NormalSource`."""
 
 from __future__ import annotations
+
+from typing import Protocol, runtime_checkable
 
 import mitsuba as mi
 
@@ -27,6 +29,36 @@ MAP_FILES = {name: Text(PLUGIN, name, None, "a texture (a raw bitmap) or a file 
              for name in ("normalmap", "heightmap")}
 
 
+@runtime_checkable
+class NormalSource(Protocol):
+    """What every source of ω_p offers the plugin and the models: :class:`~mfnormal.normals.normal_map.NormalMap`,
+    :class:`~mfnormal.normals.height_map.HeightMap` and :class:`Flat`. None knows the plugin."""
+
+    texture: mi.Texture | None                  # the map (a plugin parameter), None without one
+    tangents: VertexTangents | None             # the vertex tangent frame it is decoded in, None: si.sh_frame
+
+    def facet_normal(self, si, active, nudge=None) -> tuple:
+        """(ω_p in si.sh_frame, the map frame's tangent_rotation or None, whether ω_p carries
+        derivatives); ``nudge``: a nudged ω_p, for a flat normal's derivatives."""
+
+    def flat_texels(self) -> bool:
+        """Whether the map may decode to the flat normal somewhere (docs/model.md §9)."""
+
+    def slopes(self, attached=False) -> tuple:
+        """((σ1, σ2, φ_e), the same as Dr.Jit values that carry derivatives or None): the map's
+        principal rms slopes, for the faithful model."""
+
+    def local(self, width: float, attached=False) -> tuple | None:
+        """The faithful model's local statistics of a window ``width`` texels wide, or None: the
+        map's slopes hold for every texel (docs/faithful.md §5)."""
+
+    def parameters_changed(self, keys) -> None:
+        """The plugin's parameters ``keys`` changed (``mi.traverse``)."""
+
+    def describe(self) -> str:
+        """The source's lines of the plugin's ``to_string``."""
+
+
 class Flat:
     """No map: ω_p is the shading normal itself (``macro_normal="geometric"`` without a map)."""
 
@@ -41,6 +73,9 @@ class Flat:
 
     def slopes(self, attached=False):
         return (0.0, 0.0, 0.0), None
+
+    def local(self, width: float, attached=False):
+        return None
 
     def parameters_changed(self, keys):
         pass
@@ -80,9 +115,9 @@ def _map_file(props, name):
     return None if filename is None else mi.load_dict({"type": "bitmap", "filename": filename, "raw": True})
 
 
-def from_properties(props):
-    """(nested BSDF, source, macro normal, strength) of a ``normalmap_microfacet``'s properties,
-    each checked (ValueError with a one-line message naming the fix)."""
+def from_properties(props) -> tuple:
+    """(nested BSDF, :class:`NormalSource`, macro normal, strength) of a ``normalmap_microfacet``'s
+    properties, each checked (ValueError with a one-line message naming the fix)."""
     if mi.is_polarized:
         fail(f"does not support polarized variants ({mi.variant()}); use an rgb, mono or spectral "
              "one (e.g. llvm_ad_rgb)")

@@ -2,7 +2,7 @@
 
 A normal map baked in MikkTSpace (glTF's convention) is decoded in the frame T, B = sign·(N×T),
 N, with T the interpolated 3-float mesh attribute ``NAME`` and sign the 1-float attribute
-``NAME_sign`` (glTF's ``TANGENT.w``). :func:`~mfnormal.models.shading.from_tangent_frame`
+``NAME_sign`` (glTF's ``TANGENT.w``). :func:`~mfnormal.surface.shading.from_tangent_frame`
 turns ω_p from it into the base shading frame; :func:`mfnormal.normals.mikktspace.mikktspace`
 computes the attributes for a mesh (``mfnormal.io.gltf.load_gltf`` adds them).
 """

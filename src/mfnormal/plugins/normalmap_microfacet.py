@@ -252,9 +252,8 @@ import mitsuba as mi
 
 from mfnormal.models import interface
 from mfnormal.models.interface import DEFAULT_MODEL, MODELS
-from mfnormal.models.microsurface import negate, replace_grad
-from mfnormal.models.shading import off_horizon
-from mfnormal.normals.macro import macro_of
+from mfnormal.surface.microsurface import negate, replace_grad
+from mfnormal.surface.shading import off_horizon
 from mfnormal.normals.normal_map import NUDGES, NormalMap
 from mfnormal.normals import source
 from mfnormal.normals.source import MITSUBA_TANGENTS, from_properties
@@ -353,34 +352,20 @@ class NormalMapMicrofacet:
                 "the central derivative; for a derivative that exists there use model=\"faithful\"")
 
     def _eval_pdf(self, ctx, sp, wo, active, want_value=True, want_pdf=True):
-        """The model's (eval, pdf) at the microsurface ``sp``, ``wo`` in the shading frame: with
-        ``macro_normal="geometric"`` turned into the macro frame, the value times the frame
-        change's adjoint factor (normals/macro.py)."""
-        macro = macro_of(sp)
-        if macro is None:
-            return self.model.eval_pdf(ctx, sp, off_horizon(wo), mi.Bool(active), want_value, want_pdf)
-        wo_m = macro.to_macro(wo)
+        """The model's (eval, pdf) at the microsurface ``sp``, ``wo`` in the shading frame, turned
+        into the macro frame and the value weighed as the frame change needs (``sp.macro``:
+        normals/macro.py; unchanged in the shading frame)."""
+        wo_m = sp.macro.to_macro(wo)
         value, pdf = self.model.eval_pdf(ctx, sp, off_horizon(wo_m), mi.Bool(active), want_value, want_pdf)
-        k = macro.adjoint(ctx, sp, wo, wo_m) if want_value else None
-        return (value if k is None else value * k), pdf
-
-    def _from_macro(self, ctx, sp, bs, weight):
-        """A sample of the model in the macro frame, its direction in the shading frame (and the
-        weight times the frame change's adjoint factor)."""
-        macro = macro_of(sp)
-        if macro is None:
-            return bs, weight
-        wo_m = mi.Vector3f(bs.wo)          # a copy: assigning bs.wo writes into the struct
-        bs.wo = macro.from_macro(wo_m)
-        k = macro.adjoint(ctx, sp, bs.wo, wo_m)
-        return bs, weight if k is None else weight * k
+        return (sp.macro.weigh(ctx, sp, value, wo, wo_m) if want_value else value), pdf
 
     def sample(self, ctx, si, sample1, sample2, active=True):
         sp = self.shading_point(ctx, si, active)
         bs, weight = self.model.sample(ctx, sp, sample1, sample2, active)
-        if macro_of(sp) is None and sp.attached and (self._flat_texels or max(self.strength.ok) == 0.0):
+        # The flat normal's derivatives (a point of the geometric macro normal carries none: not attached).
+        if sp.attached and (self._flat_texels or max(self.strength.ok) == 0.0):
             bs, weight = self._flat_sample(ctx, si, sp, bs, weight, active)
-        return self._from_macro(ctx, sp, bs, weight)
+        return sp.macro.to_shading(ctx, sp, bs, weight)
 
     def _flat_sample(self, ctx, si, sp, bs, weight, active):
         """A smooth lobe's sample (bs, weight) with the flat normal's derivatives
@@ -428,14 +413,11 @@ class NormalMapMicrofacet:
             value, pdf = self.eval_pdf(ctx, si, wo, active)
             bs, weight = self.sample(ctx, si, sample1, sample2, active)
             return value, pdf, bs, weight
-        macro = macro_of(sp)
         active = mi.Bool(active)
-        wo_m = off_horizon(wo if macro is None else macro.to_macro(wo))
+        wo_m = off_horizon(sp.macro.to_macro(wo))
         value, pdf, (bs, weight) = self.model.eval_pdf_sample(ctx, sp, wo_m, sample1, sample2, active)
-        if macro is not None:
-            k = macro.adjoint(ctx, sp, wo, wo_m)
-            value = value if k is None else value * k
-        bs, weight = self._from_macro(ctx, sp, bs, weight)
+        value = sp.macro.weigh(ctx, sp, value, wo, wo_m)
+        bs, weight = sp.macro.to_shading(ctx, sp, bs, weight)
         return value, pdf, bs, weight
 
     def eval_diffuse_reflectance(self, si, active=True):

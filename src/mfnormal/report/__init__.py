@@ -1,2 +1,2 @@
-"""``mfnormal compare``: the catalogue of normal-mapping methods, rendering each, the metrics,
+"""``mfnormal compare``: every method of the catalogue (:mod:`mfnormal.methods`) rendered, the metrics,
 and the self-contained HTML report."""

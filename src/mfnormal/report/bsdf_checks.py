@@ -1,6 +1,6 @@
 """The BSDFs alone: the white-furnace albedo and the reciprocity error of a method.
 
-:func:`bsdf_checks` measures a :class:`mfnormal.report.methods.Method` with a white
+:func:`bsdf_checks` measures a :class:`mfnormal.methods.Method` with a white
 Lambertian nested BSDF under constant normal maps (no scene, no renderer): what
 ``mfnormal compare`` reports next to its renders.
 """
@@ -12,7 +12,7 @@ import numpy as np
 import drjit as dr
 import mitsuba as mi
 
-from mfnormal.report.methods import Method
+from mfnormal.methods import Method
 
 __all__ = ["CHECK_TILTS", "CHECK_THETA_I", "bsdf_checks"]
 

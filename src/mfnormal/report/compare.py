@@ -3,7 +3,7 @@
 ``mfnormal compare SCENE`` (see :mod:`mfnormal.cli`) is a thin layer over
 :func:`compare`: it takes a Mitsuba XML scene whose normal-mapped materials are
 ``normalmap_microfacet`` BSDFs and renders it once per method of the catalogue
-(:data:`mfnormal.report.methods.METHODS`), every such BSDF rewritten for the method
+(:data:`mfnormal.methods.METHODS`), every such BSDF rewritten for the method
 (:func:`mfnormal.io.scene_xml.rewrite`).
 
 For each method it measures the render time, the relative MSE against a
@@ -41,11 +41,12 @@ from mfnormal.report import html as report
 from mfnormal.scenes.assets import BUNDLED
 from mfnormal.report.bsdf_checks import bsdf_checks
 from mfnormal.report.coverage import choose_crops, surface_maps
-from mfnormal.io.images import atomic_write, png_bytes, sanitize_counts, save_render, tonemap
+from mfnormal.files import atomic_write
+from mfnormal.io.images import png_bytes, sanitize_counts, save_render, tonemap
 from mfnormal.io.messages import one_line
-from mfnormal.report.methods import METHOD_BY_KEY, METHODS, PLUGIN, Method
+from mfnormal.methods import METHOD_BY_KEY, METHODS, PLUGIN, Method
 from mfnormal.report.metrics import luminance, near_black_fraction, rel_mse
-from mfnormal.cli.rendering import render_rgb
+from mfnormal.render.passes import render_rgb
 from mfnormal.io.scene_checks import check_scene, plugin_instances
 from mfnormal.models.interface import DEFAULT_MODEL, refusal
 from mfnormal.io.scene_xml import (SceneError, defaults, film_size_parameters, read_scene, references,
@@ -170,7 +171,7 @@ def compare_scene(src: SceneSource, out_dir, settings: Settings, methods=METHODS
     """Render ``src`` with each method; write EXR/PNG per method into ``out_dir``.
 
     Returns the data of one report section (see :func:`mfnormal.report.html.write_report`);
-    with ``cluster`` (a :class:`mfnormal.cli.cluster.Cluster`), a function that returns it
+    with ``cluster`` (a :class:`mfnormal.render.cluster.Cluster`), a function that returns it
     once the renders, submitted to the cluster now, are done.
     """
     with scene_folder(src.path):
@@ -193,7 +194,7 @@ def _sized_scene(src: SceneSource, settings: Settings, limits):
 
 
 def _seeds(settings: Settings) -> tuple:
-    """The (render, reference) seeds of :func:`mfnormal.cli.rendering.render_rgb`."""
+    """The (render, reference) seeds of :func:`mfnormal.render.passes.render_rgb`."""
     return settings.seed * 1000, settings.seed * 1000 + 500_000
 
 
@@ -234,7 +235,7 @@ def _submit_methods(src, root, values, methods, settings, out_dir, notes, log, c
     """:func:`_render_methods` on ``cluster``: each render and reference one task, submitted
     now (every scene checked here first, as a local run would); returns the function
     that collects and records them."""
-    from mfnormal.cli.cluster import SceneSpec, xml_bundle, files_digest
+    from mfnormal.render.bundle import SceneSpec, files_digest, xml_bundle
 
     bundles, files = [], {}
     for method in methods:
@@ -370,8 +371,8 @@ def compare(scenes, out_dir, settings: Settings = Settings(), methods=METHODS, v
             cluster=None) -> Path:
     """Compare ``methods`` on each scene (bundled name or XML path); write
     ``out_dir/report.html`` and the renders (``out_dir/<scene>/<method>.exr|png``).
-    With ``cluster`` (a :class:`mfnormal.cli.cluster.Cluster`) every scene's renders and
-    references are submitted first, then collected: the same seeds, the same numbers."""
+    With ``cluster`` (a :class:`mfnormal.render.cluster.Cluster`) every scene's renders and
+    references, and the BSDF checks, are submitted first, then collected: the same seeds, the same numbers."""
     out_dir = Path(out_dir)
     started = time.perf_counter()
     sections, names = [], []
@@ -386,7 +387,8 @@ def compare(scenes, out_dir, settings: Settings = Settings(), methods=METHODS, v
         sections.append(compare_scene(src, out_dir / src.name, settings, methods, log, limits, cluster))
     collect = None
     if cluster is not None:
-        collect = cluster.bsdf_checks(methods, settings.check_samples, settings.check_repeats)
+        collect = cluster.call_each(bsdf_checks, [((m, settings.check_samples), {"repeats": settings.check_repeats})
+                                                  for m in methods])
         sections = [finish() for finish in sections]
     checks = _checks(methods, settings, log, collect)
     figures = report.find_figures(validation) if validation else []

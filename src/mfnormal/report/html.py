@@ -20,7 +20,8 @@ from pathlib import Path
 
 import numpy as np
 
-from mfnormal.io.images import atomic_write, png_bytes
+from mfnormal.files import atomic_write
+from mfnormal.io.images import png_bytes
 
 __all__ = ["data_uri", "find_figures", "write_report"]
 

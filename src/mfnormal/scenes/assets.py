@@ -35,7 +35,7 @@ from typing import Callable
 import numpy as np
 
 from mfnormal.scenes import sky
-from mfnormal.io.images import atomic_write
+from mfnormal.files import atomic_write
 
 __all__ = ["BUNDLED", "Bundled", "DEMO_XML", "MODEL_XML", "EGGCRATE_XML", "encode_normalmap",
            "make_tiles_normalmap", "generate_demo_assets", "torus_knot_mesh", "write_ply",

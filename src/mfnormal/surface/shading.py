@@ -9,11 +9,13 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+from typing import Protocol, runtime_checkable
 
 import drjit as dr
 import mitsuba as mi
 
-from mfnormal.models import microsurface as ms
+from mfnormal.surface import microsurface as ms
+
 
 def tangent_rotation(frame, tangent, sign):
     """(tx, ty, s, ok): the vertex tangent frame T, B = sign·(N×T), N in ``frame``'s local
@@ -97,19 +99,77 @@ def off_horizon(w):
     return mi.Vector3f(w.x, w.y, dr.select(dr.abs(w.z) < HORIZON_COS, 0.0, w.z))
 
 
+@runtime_checkable
+class MacroFrame(Protocol):
+    """The microsurface's base frame G seen from the shading frame ``si.sh_frame`` (the macro
+    normal, :mod:`mfnormal.normals.macro`): how directions and values cross between the two."""
+
+    def to_macro(self, w):
+        """``w`` (shading frame) in G."""
+
+    def from_macro(self, w):
+        """``w`` (in G) in the shading frame."""
+
+    def weigh(self, ctx, sp: ShadingPoint, value, b, b_m):
+        """``value`` (a model's ``eval`` at ω_o = ``b`` in the shading frame, ``b_m`` in G) as the
+        integrator needs it: in light tracing, times the frame change's adjoint factor."""
+
+    def to_shading(self, ctx, sp: ShadingPoint, bs, weight) -> tuple:
+        """(bs, weight) of a model's sample in G, its direction in the shading frame (and the weight
+        as :meth:`weigh` gives a value)."""
+
+
+class ShadingFrame:
+    """The null :class:`MacroFrame` (``macro_normal="shading"``): G is the shading frame, so
+    directions and values pass unchanged."""
+
+    def to_macro(self, w):
+        return w
+
+    def from_macro(self, w):
+        return w
+
+    def weigh(self, ctx, sp, value, b, b_m):
+        return value
+
+    def to_shading(self, ctx, sp, bs, weight) -> tuple:
+        return bs, weight
+
+
+SHADING_FRAME = ShadingFrame()
+
+
 class ShadingPoint:
     """Microsurface geometry and nested-BSDF access at a batch of shading points.
 
     Its Dr.Jit arrays (``ARRAYS``) are what a model's loops read: they pass them as loop
     state (:meth:`state`, :meth:`with_state`), so that derivatives flow through the loops
     in both AD modes (a value a loop body captures from outside is not differentiated).
+    Every field is declared (``__slots__``): the normal source's (``map_rotation``, ``attached``,
+    ``nudged``) and the macro normal's (``macro``) are given when the point is made
+    (:mod:`mfnormal.normals.macro`).
     """
 
     ARRAYS = ("si", "wi", "wp", "wt", "sin_p", "frame_p", "frame_t", "cot_p")
-    indirect = False        # nested-BSDF calls through a callable (:meth:`_nested`), else inlined
-    nudged = False          # a nudged normal's point: evaluated only for a flat normal's derivatives
+    __slots__ = ARRAYS + ("nested", "ctx", "map_rotation", "attached", "nudged", "macro", "indirect")
+    nested: mi.BSDF                 # the nested BSDF, on both facets
+    ctx: mi.BSDFContext
+    si: mi.SurfaceInteraction3f     # the hit, its shading frame the base frame (ω_g = +z)
+    wi: mi.Vector3f                 # ω_i in the base frame, off the horizon (:func:`off_horizon`)
+    wp: mi.Vector3f                 # ω_p; ω_g where the tangent facet has no area
+    wt: mi.Vector3f                 # ω_t, the tangent facet's normal
+    sin_p: mi.Float
+    frame_p: mi.Frame3f             # the facets' frames (microsurface.facet_frame)
+    frame_t: mi.Frame3f
+    cot_p: mi.Float
+    map_rotation: tuple | None      # the vertex tangent frame the map was decoded in (tangent_rotation), None: this frame
+    attached: bool                  # ω_p carries derivatives (the map's or ``strength``'s)
+    nudged: bool                    # a nudged normal's point: evaluated only for a flat normal's derivatives
+    macro: MacroFrame               # the base frame seen from the shading frame
+    indirect: bool                  # nested-BSDF calls through a callable (:meth:`_nested`), else inlined
 
-    def __init__(self, nested, ctx, si, wp):
+    def __init__(self, nested, ctx, si, wp, map_rotation: tuple | None = None, attached: bool = False,
+                 nudged: bool = False, macro: MacroFrame = SHADING_FRAME):
         self.nested = nested
         self.ctx = ctx
         self.si = si
@@ -121,8 +181,8 @@ class ShadingPoint:
         self.frame_p = ms.facet_frame(self.wp)
         self.frame_t = ms.facet_frame(self.wt)
         self.cot_p = ms.cot_p(self.wp, self.sin_p)
-        # The vertex tangent frame the map was decoded in (tangent_rotation), None: this frame.
-        self.map_rotation = None
+        self.map_rotation, self.attached, self.nudged, self.macro = map_rotation, attached, nudged, macro
+        self.indirect = False
 
     def with_indirect_calls(self):
         """A copy of this point whose nested-BSDF calls are indirect (:meth:`_nested`)."""

@@ -1,4 +1,4 @@
-"""A Dask worker's mfnormal settings: ``dask worker ADDRESS --preload mfnormal.cli.worker --variant V``.
+"""A Dask worker's mfnormal settings: ``dask worker ADDRESS --preload mfnormal.render.worker --variant V``.
 
 The preload runs in each worker process before its first task; with ``--variant``
 every chunk that worker renders uses ``V`` (e.g. ``cuda_ad_rgb`` on a GPU node)
@@ -12,7 +12,8 @@ from __future__ import annotations
 
 import click
 
-from mfnormal.cli.cluster import quiet_logs, set_worker_variant
+from mfnormal.render.cluster import quiet_logs
+from mfnormal.render.tasks import set_worker_variant
 
 __all__ = ["dask_setup"]
 

@@ -1,7 +1,7 @@
 """Exit-direction histograms of the random-walk models next to the brute-force sawtooth tracer.
 
 Shared by ``tests/test_nonseparable_vs_sawtooth.py`` and by anything that wants to
-plot the comparison (``from reference import sawtooth_compare``, with ``tests/`` on the path).
+plot the comparison (``from validation.reference import sawtooth_compare``).
 Needs ``llvm_ad_rgb`` active and ``mfnormal.register()`` called for the model parts.
 
 Cases (docs/model.md §4, §7): white Lambertian p facets, a mirror or white Lambertian

@@ -6,13 +6,10 @@ of the queried texel. Prints each model's AD (forward mode) and, for steps 2e-3,
 1e-2, the one-sided FDs (up, down) and the central one, with standard errors: where up and
 down differ by many standard errors the model has no derivative there (docs/differentiable.md).
 
-    PYTHONPATH=src python scripts/flat_kink.py
+    python tests/flat_kink.py
+
+(run as a file: the tests' helpers beside it are on its path).
 """
-import sys
-from pathlib import Path
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
-
 import mfnormal  # noqa: E402  (first: selects a working libLLVM)
 import drjit as dr  # noqa: E402
 import mitsuba as mi  # noqa: E402

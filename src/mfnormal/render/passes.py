@@ -3,7 +3,7 @@
 A render of N samples per pixel is split into passes, each one ``mi.render`` call,
 whose images are averaged weighted by their sample counts (:func:`weighted_mean`, the
 one accumulator: :func:`average_passes` feeds it renders made here,
-:mod:`mfnormal.cli.cluster` the chunks its workers rendered, in schedule order).
+:mod:`mfnormal.render.cluster` the chunks its workers rendered, in schedule order).
 Two schedules use it:
 
 - :func:`render_scene`, the command line's (``mfnormal render``, the demo at large

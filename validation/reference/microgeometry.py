@@ -51,6 +51,7 @@ beyond the central region the rays start from.
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 
 import mfnormal  # noqa: F401  (first: selects a working libLLVM)
@@ -59,8 +60,11 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from helpers import floats, uints, vec3  # noqa: E402
-from variant import VARIANT  # noqa: E402  (MFNORMAL_VARIANT, tests/variant.py)
+from validation.reference.arrays import floats, uints, vec3
+
+#: The variant it renders in: the test suite's (``MFNORMAL_VARIANT``, tests/variant.py), by default
+#: ``llvm_ad_rgb``.
+VARIANT = os.environ.get("MFNORMAL_VARIANT", "").strip() or "llvm_ad_rgb"
 # Ray origins start this far above the crest (nothing lies above Z = 1).
 START_ABOVE = 1e-2
 # Distance by which a new ray starts off its facet (crest height 1; hit points are

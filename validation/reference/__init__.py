@@ -1,4 +1,4 @@
-"""Independent references for the tests and for ``validation/run.py``.
+"""Independent references for the tests and for ``python -m validation.run``.
 
 Each one is written from the geometry of the microsurface, not from the model
 code it checks (docs/model.md §7):
@@ -9,6 +9,6 @@ code it checks (docs/model.md §7):
 - ``naive_walk``: the non-separable evaluation with one sampled height and binary
   shadow tests, the estimator the supplemental's interval tracking improves on.
 
-The package imports nothing from the test modules, so ``validation/run.py`` can
-import it with only ``tests/`` on its path.
+It imports nothing from the tests (they import it, as ``validation.reference``); ``arrays`` holds
+the Dr.Jit inputs both build.
 """

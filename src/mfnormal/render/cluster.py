@@ -8,56 +8,45 @@ scheduler`` / ``dask worker``), by ``dask-jobqueue`` on SLURM/PBS/SGE or by
 
 What travels:
 
-- the scene (:func:`scene_spec`): an XML scene's text with every file it names
-  (``<include>``, ``filename`` and the plugin's ``normalmap`` and ``heightmap``, after ``$``
-  substitution)
-  read on the client and renamed after its content; a glTF file with the buffers and
-  images its JSON names. Nothing else is read. With ``shared=True`` the workers load the
-  scene from its path (a file system they share with the client) and nothing travels;
-- the chunks: a render's samples split as :func:`mfnormal.cli.rendering.schedule` splits a
+- the scene (:func:`mfnormal.render.bundle.scene_spec`): an XML scene's text with every file it
+  names, or a glTF file with the buffers and images its JSON names, read on the client; nothing
+  else (or, with ``shared=True``, nothing: the workers read the scene's path);
+- the chunks: a render's samples split as :func:`mfnormal.render.passes.schedule` splits a
   local render into passes (the same ``(spp, seed)`` for the same ``--seed`` and chunk
   count), each one task; their images come back and are merged in schedule order by
-  :func:`mfnormal.cli.rendering.weighted_mean`, the local render's accumulator, so a cluster
+  :func:`mfnormal.render.passes.weighted_mean`, the local render's accumulator, so a cluster
   render equals the local render of the same passes up to the order of the film's
   floating-point sums;
 - the versions: every worker must run the client's Mitsuba, Dr.Jit and mfnormal (its
   source, hashed), checked when connecting (:meth:`Cluster.check_workers`) and again by
-  every task.
+  every task (:mod:`mfnormal.render.tasks`, what the workers run).
 
 A worker renders in the client's ``--variant`` unless it was started with its own
-(``dask worker ADDRESS --preload mfnormal.cli.worker --variant cuda_ad_rgb``, see
-:mod:`mfnormal.cli.worker`). Tasks in one worker process run one at a time.
+(``dask worker ADDRESS --preload mfnormal.render.worker --variant cuda_ad_rgb``, see
+:mod:`mfnormal.render.worker`). Tasks in one worker process run one at a time.
 """
 
 from __future__ import annotations
 
 import asyncio
-import hashlib
-import importlib.metadata
-import json
 import logging
 import os
 import re
-import threading
 import time
-import urllib.parse
 import uuid
 import warnings
-import xml.etree.ElementTree as ET
-from collections import OrderedDict
 from dataclasses import dataclass
-from functools import lru_cache
-from pathlib import Path
 
 import numpy as np
 
-from mfnormal.cli.rendering import MIN_THREADS
+from mfnormal.io.inputs import CLIError, check_regular_file
 from mfnormal.io.messages import one_line
-from mfnormal.io.inputs import FILE_STRINGS, CLIError, check_regular_file
+from mfnormal.render.bundle import SceneSpec
+from mfnormal.render.passes import MIN_THREADS, weighted_mean
+from mfnormal.render.tasks import (Env, held_files, mismatch, render_chunk, render_rgb_job, variant_job,
+                                   versions, worker_info)
 
-__all__ = ["CLUSTER_HELP", "SCHEMES", "Target", "parse_cluster", "security", "quiet_logs", "Cluster",
-           "SceneSpec", "scene_spec", "xml_bundle", "files_digest", "versions", "render_chunk",
-           "render_rgb_job", "set_worker_variant"]
+__all__ = ["CLUSTER_HELP", "SCHEMES", "Target", "parse_cluster", "security", "quiet_logs", "Cluster"]
 
 CLUSTER_HELP = ("render on a Dask.distributed cluster: local:N (N worker processes on this "
                 "machine, listening on loopback only) or a scheduler's address (tcp://HOST:PORT, "
@@ -186,307 +175,6 @@ def quiet_logs() -> None:
 
 
 # ---------------------------------------------------------------------------
-# Versions
-# ---------------------------------------------------------------------------
-
-@lru_cache(maxsize=None)
-def _package_version() -> str:
-    """mfnormal's version and a hash of its source (a changed checkout is another version)."""
-    try:
-        version = importlib.metadata.version("mfnormal")
-    except importlib.metadata.PackageNotFoundError:
-        version = "unknown"
-    digest = hashlib.sha256()
-    package = Path(__file__).resolve().parents[1]
-    for path in sorted(package.rglob("*.py")):
-        digest.update(path.relative_to(package).as_posix().encode() + b"\0" + path.read_bytes())
-    return f"{version}+{digest.hexdigest()[:10]}"
-
-
-def versions() -> dict:
-    """The versions a worker must share with its client."""
-    import drjit as dr
-    import mitsuba as mi
-
-    return {"mitsuba": mi.__version__, "drjit": dr.__version__, "mfnormal": _package_version()}
-
-
-def _mismatch(theirs: dict, ours: dict, who: str) -> str | None:
-    """One line naming what differs between ``theirs`` and the client's ``ours``, or None."""
-    diff = [f"{k} {theirs.get(k)} (the client has {v})" for k, v in ours.items() if theirs.get(k) != v]
-    if not diff:
-        return None
-    return (f"{who} runs {', '.join(diff)}; every worker needs the client's Mitsuba, Dr.Jit and "
-            "mfnormal: refusing to mix them")
-
-
-# ---------------------------------------------------------------------------
-# The scene, as it travels
-# ---------------------------------------------------------------------------
-
-@dataclass(frozen=True)
-class SceneSpec:
-    """A scene as the workers load it: ``kind`` 'xml' or 'gltf'; ``source`` the XML text,
-    the bundle name of the glTF file, or (``shared``) the scene's path; ``params`` the
-    ``-D`` values (XML) or :func:`mfnormal.io.gltf.load_gltf` options (glTF); ``files`` the
-    digest of the files that travel with it."""
-    kind: str
-    source: str
-    params: tuple = ()
-    shared: bool = False
-    files: str = ""
-    limits: object = None
-
-
-def _bundle_name(data: bytes, name: str) -> str:
-    safe = re.sub(r"[^\w.-]", "_", Path(name).name)
-    return f"{hashlib.sha256(data).hexdigest()[:16]}_{safe}"
-
-
-def _add(files: dict, data: bytes, name: str) -> str:
-    key = _bundle_name(data, name)
-    files[key] = data
-    return key
-
-
-def _resolver(folder: Path):
-    """Mitsuba's file resolver with ``folder`` searched first (what ``load_file`` uses)."""
-    import mitsuba as mi
-
-    current = mi.file_resolver() if hasattr(mi, "file_resolver") else mi.Thread.thread().file_resolver()
-    resolver = mi.FileResolver(current)
-    resolver.prepend(str(folder))
-    return resolver
-
-
-def _named_file(value: str, resolver) -> Path | None:
-    path = Path(str(resolver.resolve(value)))
-    return path if path.is_file() else None
-
-
-def _bundle_tree(root: ET.Element, folder: Path, values: dict, files: dict, depth: int) -> None:
-    """Rename, in place, every file ``root`` names to its bundle name (added to ``files``);
-    ``<include>``\\ d files are bundled the same way, recursively."""
-    from mfnormal.io.scene_xml import defaults, substitute
-
-    resolver = _resolver(folder)
-    for el in root.iter():
-        attr = "filename" if "filename" in el.attrib else None
-        if attr is None and el.tag == "string" and el.get("name") in FILE_STRINGS:
-            attr = "value"
-        if attr is None:
-            continue
-        path = _named_file(substitute(el.get(attr), values), resolver)
-        if path is None:
-            continue                  # not a file: Mitsuba's own error (the client loaded it)
-        if el.tag == "include" and depth < 16:
-            sub = ET.fromstring(path.read_bytes())
-            _bundle_tree(sub, path.parent, {**defaults(sub), **values}, files, depth + 1)
-            data = ET.tostring(sub, encoding="utf-8")
-        else:
-            data = path.read_bytes()
-        el.set(attr, _add(files, data, path.name))
-
-
-def xml_bundle(text: str, folder, params: dict) -> tuple:
-    """(XML text, ``-D`` values, files) of the scene ``text`` whose relative file names
-    are relative to ``folder``: every file it names (and only those) read into ``files``
-    (bundle name → bytes), the text renamed to match; the ``-D`` values it no longer
-    uses (those that only named files) dropped."""
-    from mfnormal.io.scene_xml import defaults, references
-
-    root = ET.fromstring(text)
-    files: dict = {}
-    _bundle_tree(root, Path(folder).resolve(), {**defaults(root), **params}, files, 0)
-    text = ET.tostring(root, encoding="unicode")
-    texts = [text] + [d.decode("utf-8", "replace") for k, d in files.items() if k.endswith(".xml")]
-    used = {k: v for k, v in params.items() if any(references(t, k) for t in texts)}
-    return text, used, files
-
-
-def _gltf_bundle(path: Path) -> tuple:
-    """(bundle name of the glTF file, files): a ``.glb`` alone, or a ``.gltf`` with the
-    buffers and images its JSON names by relative URI (renamed to match)."""
-    files: dict = {}
-    data = path.read_bytes()
-    if path.suffix.lower() == ".gltf":
-        doc = json.loads(data)
-        for item in doc.get("buffers", []) + doc.get("images", []):
-            uri = item.get("uri")
-            if not uri or uri.startswith("data:"):
-                continue
-            named = path.parent / urllib.parse.unquote(uri)
-            if named.is_file():
-                item["uri"] = _add(files, named.read_bytes(), named.name)
-        data = json.dumps(doc).encode()
-    return _add(files, data, path.name), files
-
-
-def scene_spec(path, params: dict, gltf_options: dict | None = None, shared: bool = False,
-               limits=None) -> tuple:
-    """(:class:`SceneSpec`, files) of the scene file ``path`` with ``-D`` ``params`` (an XML
-    scene) or ``gltf_options`` (a glTF file)."""
-    path = Path(path).resolve()
-    kind = "xml" if gltf_options is None else "gltf"
-    values = params if gltf_options is None else gltf_options
-    if shared:
-        return SceneSpec(kind, str(path), tuple(sorted(values.items())), True, limits=limits), {}
-    if kind == "gltf":
-        source, files = _gltf_bundle(path)
-    else:
-        source, values, files = xml_bundle(path.read_text(encoding="utf-8"), path.parent, params)
-    return SceneSpec(kind, source, tuple(sorted(values.items())), False, files_digest(files), limits), files
-
-
-def files_digest(files: dict) -> str:
-    return hashlib.sha256("\0".join(sorted(files)).encode()).hexdigest()[:16]
-
-
-# ---------------------------------------------------------------------------
-# The workers' side
-# ---------------------------------------------------------------------------
-
-#: The variant this worker process was started with (:mod:`mfnormal.cli.worker`), if any, and
-#: why it cannot use it (then it refuses every task: Dask only logs a failed preload).
-WORKER_VARIANT: str | None = None
-WORKER_PROBLEM: str | None = None
-_LOCK = threading.Lock()
-_SCENES: OrderedDict = OrderedDict()
-
-
-@dataclass(frozen=True)
-class Env:
-    """What a task needs besides its scene: the client's variant, versions and, for
-    ``local:N``, the Dr.Jit threads of each worker (None: all of its machine's; never
-    under :data:`MIN_THREADS`)."""
-    variant: str
-    versions: dict
-    threads: int | None = None
-
-
-def set_worker_variant(variant: str | None) -> None:
-    """Make ``variant`` this worker process's variant (every task renders in it)."""
-    global WORKER_VARIANT, WORKER_PROBLEM
-    WORKER_VARIANT, WORKER_PROBLEM = variant or None, None
-    if variant:
-        try:
-            _use_variant(variant)
-        except RuntimeError as exc:
-            WORKER_PROBLEM = str(exc)
-            raise
-
-
-def _use_variant(variant: str):
-    from mfnormal.cli.rendering import use_variant
-
-    return use_variant(variant, RuntimeError, f"variant '{variant}' is not available in this worker's Mitsuba build",
-                       f"this worker cannot use variant '{variant}'")
-
-
-def _prepare(env: Env):
-    """Mitsuba in the worker's variant, after the version check; raises RuntimeError."""
-    import drjit as dr
-
-    problem = WORKER_PROBLEM or _mismatch(versions(), env.versions, f"worker (pid {os.getpid()})")
-    if problem:
-        raise RuntimeError(problem)
-    mi = _use_variant(WORKER_VARIANT or env.variant)
-    threads = max(MIN_THREADS, env.threads or dr.thread_count())
-    if dr.thread_count() != threads:
-        dr.set_thread_count(threads)
-    return mi
-
-
-def _materialise(files: dict, digest: str) -> Path:
-    """A folder of this worker holding ``files`` (each written once, atomically)."""
-    import tempfile
-
-    try:
-        from distributed import get_worker
-        base = Path(get_worker().local_directory)
-    except (ImportError, ValueError):
-        base = Path(tempfile.gettempdir())
-    folder = base / "mfnormal-scenes" / digest
-    folder.mkdir(parents=True, exist_ok=True)
-    for name, data in files.items():
-        target = folder / name
-        if not target.exists():
-            tmp = folder / f".{name}.{os.getpid()}.tmp"
-            tmp.write_bytes(data)
-            os.replace(tmp, target)
-    return folder
-
-
-def _scene(mi, spec: SceneSpec, files: dict | None):
-    """The loaded scene of ``spec`` (the last two are kept per process). Its warnings are
-    not repeated: the client loaded it first and showed them."""
-    key = (mi.variant(), spec)
-    if key in _SCENES:
-        _SCENES.move_to_end(key)
-        return _SCENES[key]
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        scene = _load(mi, spec, files)
-    _SCENES[key] = scene
-    while len(_SCENES) > 2:
-        _SCENES.popitem(last=False)
-    return scene
-
-
-def _load(mi, spec: SceneSpec, files: dict | None):
-    params = dict(spec.params)
-    folder = None if spec.shared else _materialise(files or {}, spec.files)
-    if spec.kind == "gltf":
-        from mfnormal.io.gltf import load_gltf
-        path = spec.source if spec.shared else folder / spec.source
-        scene = mi.load_dict(load_gltf(path, limits=spec.limits, **params))
-    elif spec.shared:
-        scene = mi.load_file(spec.source, **params)
-    else:
-        path = folder / _bundle_name(spec.source.encode(), "scene.xml")
-        if not path.exists():
-            path.write_text(spec.source, encoding="utf-8")
-        scene = mi.load_file(str(path), **params)
-    return scene
-
-
-def render_chunk(env: Env, spec: SceneSpec, files, spp: int, seed: int) -> tuple:
-    """One chunk, on a worker: (spp, the film's channels as float32 H × W × C, variant)."""
-    with _LOCK:
-        mi = _prepare(env)
-        scene = _scene(mi, spec, files)
-        return spp, np.array(mi.render(scene, spp=spp, seed=seed), dtype=np.float32), mi.variant()
-
-
-def render_rgb_job(env: Env, spec: SceneSpec, files, spp: int, seed: int, per_pass: int) -> tuple:
-    """:func:`mfnormal.cli.rendering.render_rgb` on a worker: (RGB, render seconds)."""
-    from mfnormal.cli.rendering import render_rgb
-
-    with _LOCK:
-        mi = _prepare(env)
-        scene = _scene(mi, spec, files)
-        t0 = time.perf_counter()
-        return render_rgb(scene, spp, seed, per_pass), time.perf_counter() - t0
-
-
-def bsdf_checks_job(env: Env, method, samples: int, repeats: int) -> dict:
-    """:func:`mfnormal.report.bsdf_checks.bsdf_checks` on a worker."""
-    from mfnormal.report.bsdf_checks import bsdf_checks
-
-    with _LOCK:
-        _prepare(env)
-        return bsdf_checks(method, samples, repeats=repeats)
-
-
-def _worker_info() -> dict:
-    return {"versions": versions(), "variant": WORKER_VARIANT, "problem": WORKER_PROBLEM}
-
-
-def _files(files: dict) -> dict:
-    return files
-
-
-# ---------------------------------------------------------------------------
 # The client's side
 # ---------------------------------------------------------------------------
 
@@ -494,7 +182,7 @@ def _local_cluster(target: Target):
     """The ``LocalCluster`` of ``local:N``: scheduler, nannies and workers on loopback only,
     no dashboard (the scheduler's health and metrics routes on a loopback port of its
     own; Dask's default binds the dashboard to every interface), the workers' logs as
-    quiet as the client's (:mod:`mfnormal.cli.worker`); over TLS with the
+    quiet as the client's (:mod:`mfnormal.render.worker`); over TLS with the
     ``--cluster-tls-*`` certificates when given."""
     from distributed import LocalCluster
 
@@ -503,7 +191,7 @@ def _local_cluster(target: Target):
                         host="127.0.0.1", protocol="tls://" if sec else "tcp://", security=sec,
                         dashboard_address=None, scheduler_kwargs={"dashboard_address": "127.0.0.1:0"},
                         silence_logs=logging.CRITICAL, memory_limit=0,
-                        preload=["mfnormal.cli.worker"], preload_argv=["--quiet"])
+                        preload=["mfnormal.render.worker"], preload_argv=["--quiet"])
 
 
 def _handshake(address: str, timeout: float, args: dict) -> None:
@@ -588,10 +276,10 @@ class Cluster:
 
     def check_workers(self) -> dict:
         """Every worker's {'versions', 'variant'}, after refusing any whose versions differ."""
-        info = self.client.run(_worker_info)
+        info = self.client.run(worker_info)
         for address, item in info.items():
             problem = item["problem"] and f"worker {address}: {item['problem']}"
-            problem = problem or _mismatch(item["versions"], self.env.versions, f"worker {address}")
+            problem = problem or mismatch(item["versions"], self.env.versions, f"worker {address}")
             if problem:
                 raise CLIError(problem)
         return info
@@ -609,7 +297,7 @@ class Cluster:
             return None
         with warnings.catch_warnings():     # "large object in the graph": these files, on purpose
             warnings.simplefilter("ignore", UserWarning)
-            return self.client.submit(_files, files, key=f"mfnormal-files-{digest}", pure=False)
+            return self.client.submit(held_files, files, key=f"mfnormal-files-{digest}", pure=False)
 
     def _submit(self, function, *args):
         self._submitted += 1
@@ -672,8 +360,6 @@ class Cluster:
     def render(self, spec: SceneSpec, files: dict, passes: list, progress=None) -> np.ndarray:
         """The mean of the chunks ``(spp, seed)`` of ``passes``, rendered on the workers and
         merged in order by the local render's accumulator (float64, H × W × C)."""
-        from mfnormal.cli.rendering import weighted_mean
-
         sent = self._send(files, spec.files)
         futures = [self._submit(render_chunk, spec, sent, spp, seed) for spp, seed in passes]
         chunks = ((spp, img) for spp, img, _ in self._in_order(futures, progress))
@@ -686,8 +372,9 @@ class Cluster:
         futures = [self._submit(render_rgb_job, spec, sent, *job) for spec, *job in jobs]
         return lambda: list(self._in_order(futures))
 
-    def bsdf_checks(self, methods, samples: int, repeats: int):
-        """Submit :func:`mfnormal.report.bsdf_checks.bsdf_checks` of each method; returns a
-        function that collects them in order."""
-        futures = [self._submit(bsdf_checks_job, m, samples, repeats) for m in methods]
+    def call_each(self, function, calls: list):
+        """Submit ``function(*args, **kwargs)`` for each ``(args, kwargs)`` of ``calls``, in the
+        client's variant on the workers (:func:`mfnormal.render.tasks.variant_job`); returns a
+        function that collects the results in order."""
+        futures = [self._submit(variant_job, function, args, kwargs) for args, kwargs in calls]
         return lambda: list(self._in_order(futures))
