@@ -19,7 +19,7 @@ import pytest
 from cli_checks import assert_error_line
 from helpers import uv_sphere
 from mfnormal.io import bake as B
-from mfnormal.io.gltf import mitsuba_mesh
+from mfnormal.io.meshes import mitsuba_mesh
 from mfnormal.surface.shading import from_tangent_frame
 
 SIZE = 128

@@ -31,7 +31,8 @@ from cli_checks import assert_error_line
 from fuzzing import Stats, fuzz_test, input_count, render_or_one_line_error
 from helpers import xml_scene
 from mfnormal.io import bake as B
-from mfnormal.io.gltf import mitsuba_mesh
+from mfnormal.io.bake_inputs import available_memory
+from mfnormal.io.meshes import mitsuba_mesh
 
 ROOT = Path(__file__).resolve().parents[1]
 SIZE = "32"
@@ -219,7 +220,7 @@ import json, sys
 import mfnormal, mitsuba as mi, numpy as np
 mi.set_variant('llvm_ad_rgb')
 from mfnormal.io import bake as B
-from mfnormal.io.gltf import mitsuba_mesh
+from mfnormal.io.meshes import mitsuba_mesh
 sys.path.insert(0, {tests!r})
 from bake_fuzzing import sphere
 P, N, UV, F = sphere()
@@ -288,7 +289,7 @@ def test_the_bakes_memory_is_bounded_per_texel():
 def test_a_bake_larger_than_the_memory_left_is_refused_before_it_allocates():
     """With 1 GiB to take (``memory_limit``; by default what the system has available, which
     this machine reports), an 8192² bake is refused before it allocates the map."""
-    assert B._available_memory() > 0
+    assert available_memory() > 0
     quad = mitsuba_mesh("quad", mi.load_dict({"type": "diffuse"}), *QUAD[:3], None, QUAD[3])
     tracemalloc.start()
     try:

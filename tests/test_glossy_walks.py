@@ -2,7 +2,7 @@
 
 With a same-material tangent facet and a GGX α = 0.05 conductor, the walks' two- and
 three-vertex paths chain narrow lobes. ``eval`` connects each vertex to the next facet
-with a sample from ω_o (``walk.connect``, MIS against the walk's own sample) and the MIS
+with a sample from ω_o (``walk_nee.connect``, MIS against the walk's own sample) and the MIS
 pdf carries the three-vertex lobes (``walk_pdf.third_vertex``) with the separable model's
 reach probabilities (``walk_pdf.glossy_wall_terms``). These tests check that eval keeps its
 mean and lowers its variance, and that the pdf is not far below the walk's exit

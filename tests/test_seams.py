@@ -28,7 +28,7 @@ import numpy as np
 import pytest
 
 from mfnormal.io import bake as B
-from mfnormal.io.gltf import mitsuba_mesh
+from mfnormal.io.meshes import mitsuba_mesh
 from helpers import uv_sphere
 
 RES, SPP = 96, 128

@@ -1020,7 +1020,7 @@ def test_mis_boost_lowers_variance_and_stays_unbiased(model, tangent_facet):
       which this bound catches.
     Measured ratios per case (printed with -s): sep/specular 8.6, 1.0, 7.7, 1.0;
     sep/same 4.0, 1.0, 3.1, 1.0; nonsep/specular 7.3, 1.0, 20.2, 1.0; nonsep/same
-    3.1, 1.8, 7.1, 1.0. Without eval's connection (walk.connect) the `same` rows are
+    3.1, 1.8, 7.1, 1.0. Without eval's connection (walk_nee.connect) the `same` rows are
     9.7, 2.7, 8.3, 1.0 and 10.6, 4.7, 19.2, 1.0 with about the same boosted variance in
     cases 1-3 (sep 9.43, 33.2, 20.9 without, 9.47, 32.9, 21.0 with; nonsep 2.14, 28.4, 15.4
     without, 2.14, 28.0, 16.1 with): the connection lowers the variance of the plain-MIS

@@ -179,7 +179,7 @@ def parse_args(argv=None):
 
 def _mesh(name, positions, faces, normals=None, uvs=None, tangents=None, bsdf=None):
     """A Mitsuba mesh; without ``normals`` Mitsuba's smooth vertex normals are computed."""
-    from mfnormal.io.gltf import mitsuba_mesh
+    from mfnormal.io.meshes import mitsuba_mesh
 
     bsdf = mi.load_dict(bsdf or {"type": "diffuse"})
     mesh = mitsuba_mesh(name, bsdf, positions, normals if normals is not None else positions, uvs,

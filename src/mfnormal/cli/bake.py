@@ -112,7 +112,7 @@ def _check_bake(args) -> Path:
 def _unwrapped(low_mesh, size: int, padding: int):
     """The low-poly with xatlas UVs."""
     import mitsuba as mi
-    from mfnormal.io.gltf import mitsuba_mesh
+    from mfnormal.io.meshes import mitsuba_mesh
 
     positions, normals, _, faces = mesh_arrays(low_mesh)
     if normals is None:

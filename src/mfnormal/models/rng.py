@@ -47,7 +47,7 @@ def slot_nested(depth, k):
 
 def slot_connect(depth, k):
     """Number k (0: sample1, 1, 2: sample2) of the eval walk's connection sample from ω_o
-    on the facet after the vertex at facet bounce ``depth`` (walk.connect)."""
+    on the facet after the vertex at facet bounce ``depth`` (walk_nee.connect)."""
     return SLOT_CONNECT + depth * 3 + k
 
 
