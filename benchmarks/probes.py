@@ -162,7 +162,7 @@ def shell_class(hidden: bool):
       neighbourhood) is there."""
     import drjit as dr
     import mitsuba as mi
-    from mfnormal.models.faithful import _select_frame, macro_frame
+    from mfnormal.models.faithful.nested import macro_frame, select_frame
     from mfnormal.models.rng import ONE_MINUS_EPS
     from mfnormal.plugins.normalmap_microfacet import bsdf_class
 
@@ -204,7 +204,7 @@ def shell_class(hidden: bool):
             on_texel = sample1 < vis
             s1 = dr.select(on_texel, sample1 / dr.maximum(vis, 1e-30),
                            (sample1 - vis) / dr.maximum(1.0 - vis, 1e-30))
-            frame = _select_frame(on_texel, sp.frame_p, macro_frame())
+            frame = select_frame(on_texel, sp.frame_p, macro_frame())
             bs, _ = sp.sample(frame, sp.wi, dr.clip(s1, 0.0, ONE_MINUS_EPS), sample2, active)
             ok = active & (bs.wo.z > 0)
             value, pdf = self._eval_pdf(sp, bs.wo, ok)

@@ -439,7 +439,7 @@ def test_packet_skipping_gives_the_same_values(nested):
 
 
 def test_queries_skip_terms_per_packet_unless_something_carries_derivatives():
-    """The plugin's eval, pdf, eval_pdf and sample gate their terms per SIMD packet (faithful._gated
+    """The plugin's eval, pdf, eval_pdf and sample gate their terms per SIMD packet (faithful.nested.gate
     with gated=True: the light sample's eval too, 4-5 % of the built-in's render time at 1280×720)
     where nothing carries derivatives, and run them straight where the map or a direction does (a
     symbolic branch there breaks Mitsuba's C++ path under AD: docs/faithful.md §5). Read from the

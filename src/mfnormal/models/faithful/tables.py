@@ -1,0 +1,129 @@
+"""What the default model knows of its map: the principal rms slopes σ1, σ2 and their axis φ_e,
+the blocked-light table B over them, and, with local statistics, the grids of each
+neighbourhood's scale k and mean slope (docs/faithful.md §1, §1.1).
+
+They enter the kernels as opaque values, so a new map compiles nothing new; where the map
+carries derivatives, they carry them into every query (docs/faithful.md §6). The table and the
+grids are computed by :mod:`mfnormal.models.neighbourhood`.
+"""
+
+from __future__ import annotations
+
+import math
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from mfnormal.surface.microsurface import replace_grad
+from mfnormal.models.neighbourhood import blocked_table, field_lookup, local_scales, lookup
+from mfnormal.surface.shading import from_tangent_rotation
+
+#: With local statistics, the neighbourhood's rms slope (k times the map's) from which its k is the
+#: window's alone; below it k moves toward the finer window's (neighbourhood.FINE_WINDOW), all of it
+#: for a flat neighbourhood (MapStatistics.local_stats; how it was set: docs/faithful.md §8).
+MILD_SLOPE = 1.0
+
+
+class MapStatistics:
+    """The map's slopes σ1, σ2, φ_e, the table B(σ1, σ2) and the local statistics' grids, for one
+    plugin instance (:meth:`set_slopes`), and what a texel reads of them."""
+
+    def rms_slope(self):
+        """The map's rms slope σ = ((σ1² + σ2²)/2)^½ (a neighbourhood's is k·σ), with σ1's and
+        σ2's derivatives."""
+        s1, s2 = self.sigma1, self.sigma2
+        return dr.sqrt(0.5 * dr.fma(s1, s1, s2 * s2))
+
+    def local_stats(self, sp):
+        """(k, ω_m) at the shading point with local statistics: the scale of its neighbourhood's
+        slopes and the neighbourhood's mean normal (the local macro surface, base frame); (None,
+        None) where the model uses the map's for every texel."""
+        if self.local is None:
+            return None, None
+        fields, res, uv_of = self.local
+        uv = uv_of(sp.si)
+        k, mx, my, *fine = field_lookup(fields, res, uv.x, uv.y)
+        # (The table's k ends at local_scales()[-1]: Λ must not see a rougher neighbourhood than B.)
+        k = dr.minimum(k, self.k_max)
+        if fine:
+            # A mild neighbourhood's slopes vary over the window mostly with the surface's shape
+            # (the low-poly against the high-poly), which masks nothing at the texel's scale: its k
+            # is read from the finer window (where that is lower: at a crease the finer window can
+            # see more), a steep one's (rms slope k·σ at least MILD_SLOPE) from the window, and one
+            # between from both, in proportion.
+            steep = dr.minimum(k * self.rms_slope() * (1.0 / MILD_SLOPE), 1.0)
+            k = dr.lerp(dr.minimum(fine[0], k), k, steep)
+        wm = dr.normalize(mi.Vector3f(-mx, -my, 1.0))
+        if sp.map_rotation is not None:
+            wm = from_tangent_rotation(wm, sp.map_rotation)
+        return k, wm
+
+    def set_slopes(self, slopes, attached=None, local=None):
+        """(Re)build what depends on the map's slopes ``(σ1, σ2, φ_e)`` (principal_slopes);
+        they enter the kernels as opaque values, so a new map compiles nothing new.
+
+        ``attached``: the same slopes as Dr.Jit values that carry derivatives (with respect to
+        the map and ``strength``: :func:`attached_slopes`), or None. σ and φ_e then carry those
+        derivatives into every query (a texel moves the map's rms slope by O(1/texels)), and the
+        table B(σ1, σ2) its own, from tables of ∂B/∂σ1 and ∂B/∂σ2 (docs/faithful.md §6). The
+        values are the numpy ones either way.
+
+        ``local``: ((k, m_x, m_y), the same as Dr.Jit values that carry derivatives or None, res,
+        uv_of): the neighbourhood's scale k and mean slope on a res × res grid of the map (numpy;
+        :func:`neighbourhood.local_field`), and the map's uv at a surface interaction; None: every
+        texel has the map's neighbourhood about ω_g. The table then has an axis in k."""
+        s1, s2, phi_e = (float(x) for x in slopes)
+        self.flat = s1 == 0.0 and s2 == 0.0         # every texel flat (or strength 0)
+        self.local, scales = None, None
+        if local is not None:
+            scales = local_scales()
+            self.k_max = scales[-1]
+            self.local = _local_grids(local)
+        self.slopes = (s1, s2, phi_e)
+        self.sigma1, self.sigma2 = mi.Float(s1), mi.Float(s2)
+        self.cos_e, self.sin_e = mi.Float(math.cos(phi_e)), mi.Float(math.sin(phi_e))
+        self.d_tables = None
+        if attached is not None and dr.is_jit_v(mi.Float):
+            a1, a2, phi = attached
+            phi = phi + (phi_e - dr.detach(phi))          # φ_e's value, the derivative of phi
+            self.sigma1, self.sigma2 = replace_grad(self.sigma1, a1), replace_grad(self.sigma2, a2)
+            self.cos_e, self.sin_e = replace_grad(self.cos_e, dr.cos(phi)), replace_grad(self.sin_e, dr.sin(phi))
+            table, t1, t2 = blocked_table(s1, s2, self.cos_min, derivatives=True, scales=scales)
+            self.d_tables = (mi.Float(t1.ravel()), mi.Float(t2.ravel()))
+            dr.make_opaque(*self.d_tables)
+        else:
+            table = blocked_table(s1, s2, self.cos_min, scales=scales)
+        table = table.ravel()
+        if dr.is_jit_v(mi.Float):
+            self.table = mi.Float(table)
+            dr.make_opaque(self.sigma1, self.sigma2, self.cos_e, self.sin_e, self.table)
+        else:
+            self.table = table
+
+    def blocked(self, cos_p, phi, g, k=None):
+        """B(cosθ_p, φ, G1(ω_i)) from the table (at the neighbourhood's scale ``k``, with local
+        statistics), with its derivative with respect to σ1, σ2 when they carry one."""
+        value = lookup(self.table, self.cos_min, cos_p, phi, g, k)
+        if self.d_tables is None:
+            return value
+        s1, s2 = dr.detach(self.sigma1), dr.detach(self.sigma2)
+        return replace_grad(value, value + lookup(self.d_tables[0], self.cos_min, cos_p, phi, g, k) * (self.sigma1 - s1)
+                            + lookup(self.d_tables[1], self.cos_min, cos_p, phi, g, k) * (self.sigma2 - s2))
+
+
+def _local_grids(local):
+    """(grids, res, uv_of) from :meth:`MapStatistics.set_slopes`'s ``local``: each grid as an opaque
+    Dr.Jit array, with the attached grid's derivatives where there is one."""
+    fields, fields_ad, res, uv_of = local
+    values = []
+    for n, field in enumerate(fields):
+        field = np.asarray(field, np.float32).ravel()
+        if dr.is_jit_v(mi.Float):
+            field = mi.Float(field)
+            if fields_ad is not None:
+                field = replace_grad(field, fields_ad[n])
+            else:
+                dr.make_opaque(field)
+        values.append(field)
+    return values, res, uv_of
