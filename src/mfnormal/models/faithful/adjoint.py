@@ -33,6 +33,9 @@ def eval_pdf(model, sp, tx_a, tx_b, active, texel_for, want_value=True, want_pdf
     else:
         active = active & (a.z > 0) & (b.z > 0)
     value, pdf = mi.Spectrum(0.0), mi.Float(0.0)
+    # With transmission the value is kept only where the sampler draws b (pdf* > 0): in float32 the
+    # far tails of a rough facet's lobes can leave eval(b, a) > 0 where no branch from a reaches b.
+    want_pdf = want_pdf or (want_value and trans)
     if want_value:
         value, _ = model.eval_pdf(sp, tx_b, a, active, want_pdf=False)
         value *= dr.abs(b.z) / dr.maximum(dr.abs(a.z), 1e-30) if trans else b.z / dr.maximum(a.z, 1e-30)
@@ -45,6 +48,8 @@ def eval_pdf(model, sp, tx_a, tx_b, active, texel_for, want_value=True, want_pdf
             pdf, share = pdf + br.p * p_k, share + br.p
         pdf = pdf + (1.0 - share) * p_rad
         pdf = dr.select(active & dr.isfinite(pdf), dr.maximum(pdf, 0.0), 0.0)
+        if want_value and trans:
+            value = dr.select(pdf > 0, value, 0.0)
     return value, pdf
 
 
