@@ -282,8 +282,8 @@ def _table_row(row, a_i, sigma1: float, sigma2: float, derivatives: bool):
             np.divide(a_i, np.square(den, out=den), out=seen)
             if up is not None:
                 seen[:, ~up[j]] = 0.0
-            out[1, j] = (seen * dl1[j][None, :]) @ weights
-            out[2, j] = (seen * dl2[j][None, :]) @ weights
+            out[1, j] = np.multiply(seen, dl1[j][None, :], out=den) @ weights
+            out[2, j] = np.multiply(seen, dl2[j][None, :], out=den) @ weights
     return out
 
 
