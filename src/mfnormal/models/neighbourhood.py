@@ -10,8 +10,10 @@ derivatives, again as Dr.Jit values (:func:`attached_slopes`). The table is comp
 
 from __future__ import annotations
 
+import concurrent.futures
 import functools
 import math
+import os
 
 import drjit as dr
 import mitsuba as mi
@@ -21,6 +23,25 @@ INV_PI = 1.0 / math.pi
 SQRT_PI = math.sqrt(math.pi)
 # Λ(a) < 1e-8 beyond this a = 1/(√2 σ tanθ): treat as unmasked.
 A_UNMASKED = 4.0
+
+
+#: The alignment, in bytes, of the arrays handed to kernels from numpy (:func:`kernel_array`): the
+#: widest vector load (AVX-512, 64 bytes).
+KERNEL_ALIGN = 64
+
+
+def kernel_array(cls, values: np.ndarray):
+    """``cls(values)`` (a Dr.Jit array type; ``values`` flattened, of cls's dtype) in memory aligned
+    to KERNEL_ALIGN bytes. Dr.Jit reads a numpy array's memory where it lies and compiles a kernel's
+    loads for the alignment it finds there (32 bytes or not): an array made anew per ``mi.traverse``
+    update from numpy lies where the allocator put it, so the same kernel would compile again,
+    once per combination of its inputs' alignments."""
+    values = np.ascontiguousarray(values).ravel()
+    buffer = np.empty(values.nbytes + KERNEL_ALIGN, np.uint8)
+    start = -buffer.ctypes.data % KERNEL_ALIGN
+    aligned = buffer[start:start + values.nbytes].view(values.dtype)
+    aligned[:] = values
+    return cls(aligned)
 
 
 # -- Smith masking by the neighbourhood -----------------------------------------------------------
@@ -109,10 +130,11 @@ def _cap_attached(sx, sy, s2_np, t2):
     that the fixed point's derivative is exact."""
     n, c2 = len(s2_np), WINSOR_C * WINSOR_C
     capped_np = s2_np > t2
-    capped = mi.Bool(capped_np)
+    capped = kernel_array(mi.Bool, capped_np)
     s2 = sx * sx + sy * sy
     if t2 > WINSOR_FLOOR * WINSOR_FLOOR:
-        t2 = c2 * dr.sum(dr.select(capped, 0.0, s2)) / (n - c2 * int(capped_np.sum()))
+        # (The capped count a kernel input: a literal would compile anew as it changes.)
+        t2 = c2 * dr.sum(dr.select(capped, 0.0, s2)) / dr.opaque(mi.Float, n - c2 * int(capped_np.sum()))
     scale = dr.select(capped, dr.sqrt(t2 / dr.select(capped, s2, 1.0)), 1.0)
     return sx * scale, sy * scale
 
@@ -217,6 +239,75 @@ def _facet_quadrature(c: float, s: float):
     return local, weights
 
 
+@functools.lru_cache(maxsize=4)
+def _table_directions(cos_min: float):
+    """What :func:`blocked_table` integrates over, which no slope changes: per θ_p row (TABLE_COS
+    steps from 0 to acos(``cos_min``)), the quadrature's directions for each azimuth φ_j
+    (TABLE_PHI, _QUAD², 3), its weights, and which directions lie above the macro plane (None
+    where all do). Built once (read-only); each table then only evaluates Λ and S on them."""
+    rows = []
+    for theta in np.linspace(0.0, math.acos(cos_min), TABLE_COS):
+        c, s = math.cos(theta), math.sin(theta)
+        local, weights = _facet_quadrature(c, s)
+        ds = []
+        for phi in np.linspace(0.0, 0.5 * math.pi, TABLE_PHI):
+            # The facet's frame: n = ω_p, t1 = the up-slope direction in its plane, t2 = n × t1.
+            wp = np.array([s * math.cos(phi), s * math.sin(phi), c])
+            t1 = np.array([-c * math.cos(phi), -c * math.sin(phi), s]) if s > 1e-9 else np.array([1.0, 0, 0])
+            t2 = np.cross(wp, t1)
+            ds.append(local[:, :1] * t1 + local[:, 1:2] * t2 + local[:, 2:3] * wp)
+        d = np.stack(ds)
+        up = d[..., 2] > 0
+        for a in (d, weights, up):
+            a.setflags(write=False)
+        rows.append((d, weights, None if up.all() else up))
+    return tuple(rows)
+
+
+def _table_row(row, a_i, sigma1: float, sigma2: float, derivatives: bool):
+    """One θ_p row of :func:`blocked_table`: (B, ∂B/∂σ1, ∂B/∂σ2) over (φ_j, G1), ``a_i`` = 1 + Λ_i
+    (TABLE_G × 1) of the G1 axis. S = a_i/(a_i + Λ(ω)) and −∂S/∂Λ = a_i/(a_i + Λ(ω))² on each
+    azimuth's directions (zero below the macro plane), summed with the quadrature's weights."""
+    d, weights, up = row
+    lam, dl1, dl2 = smith_lambda_np(d, sigma1, sigma2, derivatives=True)
+    out = np.zeros((3, TABLE_PHI, TABLE_G))
+    den, seen = np.empty((TABLE_G, d.shape[1])), np.empty((TABLE_G, d.shape[1]))
+    for j in range(TABLE_PHI):
+        np.add(a_i, lam[j][None, :], out=den)
+        np.divide(a_i, den, out=seen)
+        if up is not None:
+            seen[:, ~up[j]] = 0.0
+        out[0, j] = 1.0 - seen @ weights
+        if derivatives:
+            np.divide(a_i, np.square(den, out=den), out=seen)
+            if up is not None:
+                seen[:, ~up[j]] = 0.0
+            out[1, j] = np.multiply(seen, dl1[j][None, :], out=den) @ weights
+            out[2, j] = np.multiply(seen, dl2[j][None, :], out=den) @ weights
+    return out
+
+
+def _scaled_tables(sigma1: float, sigma2: float, cos_min: float, derivatives: bool, scales):
+    """:func:`blocked_table` for each neighbourhood scale k of ``scales``, stacked on axis 2 (the
+    derivatives with respect to the map's σ: k times the scaled neighbourhood's). The scales'
+    tables are independent numpy work that releases the GIL: one thread each, up to the cores."""
+    def one(k):
+        t = blocked_table(k * sigma1, k * sigma2, cos_min, derivatives)
+        return t if derivatives else (t,)
+    workers = min(len(scales), os.cpu_count() or 1)
+    if workers > 1:
+        with concurrent.futures.ThreadPoolExecutor(workers) as pool:
+            parts = list(pool.map(one, scales))
+    else:
+        parts = [one(k) for k in scales]
+    # ∂B/∂σ of the map = k·∂B/∂σ of the scaled neighbourhood.
+    out = tuple(np.ascontiguousarray(np.stack([p[n] * (k if n else 1.0) for p, k in zip(parts, scales)], 2))
+                for n in range(len(parts[0])))
+    for a in out:
+        a.setflags(write=False)
+    return out if derivatives else out[0]
+
+
 @functools.lru_cache(maxsize=32)
 def blocked_table(sigma1: float, sigma2: float, cos_min: float, derivatives: bool = False, scales=None):
     """B[i, j, k]: 1 − ∫ (1/π)⟨ω,ω_p⟩ S(ω|ω_i) dω for a white Lambertian facet at θ_p = θ_i
@@ -231,37 +322,11 @@ def blocked_table(sigma1: float, sigma2: float, cos_min: float, derivatives: boo
     map's times a scale k, shape (TABLE_COS, TABLE_PHI, len(scales), TABLE_G), read by :func:`lookup`
     with its ``k``; the derivatives are still with respect to the map's σ1, σ2."""
     if scales is not None:
-        parts = [blocked_table(k * sigma1, k * sigma2, cos_min, derivatives) for k in scales]
-        if not derivatives:
-            parts = [(t,) for t in parts]
-        # ∂B/∂σ of the map = k·∂B/∂σ of the scaled neighbourhood.
-        out = tuple(np.ascontiguousarray(np.stack([p[n] * (k if n else 1.0) for p, k in zip(parts, scales)], 2))
-                    for n in range(len(parts[0])))
-        for a in out:
-            a.setflags(write=False)
-        return out if derivatives else out[0]
+        return _scaled_tables(sigma1, sigma2, cos_min, derivatives, scales)
     g = np.linspace(0.0, 1.0, TABLE_G) ** 3
     lam_i = np.where(g > 0, 1.0 / np.maximum(g, 1e-30) - 1.0, 1e30)[:, None]
-    table = np.zeros((TABLE_COS, TABLE_PHI, TABLE_G))
-    d1, d2 = np.zeros_like(table), np.zeros_like(table)
-    for i, theta in enumerate(np.linspace(0.0, math.acos(cos_min), TABLE_COS)):
-        c, s = math.cos(theta), math.sin(theta)
-        local, weights = _facet_quadrature(c, s)
-        for j, phi in enumerate(np.linspace(0.0, 0.5 * math.pi, TABLE_PHI)):
-            # The facet's frame: n = ω_p, t1 = the up-slope direction in its plane, t2 = n × t1.
-            wp = np.array([s * math.cos(phi), s * math.sin(phi), c])
-            t1 = np.array([-c * math.cos(phi), -c * math.sin(phi), s]) if s > 1e-9 else np.array([1.0, 0, 0])
-            t2 = np.cross(wp, t1)
-            d = local[:, :1] * t1 + local[:, 1:2] * t2 + local[:, 2:3] * wp
-            lam_d, dl1, dl2 = smith_lambda_np(d, sigma1, sigma2, derivatives=True)
-            lam_d = lam_d[None, :]
-            up = d[None, :, 2] > 0
-            seen = np.where(up, (1.0 + lam_i) / (1.0 + lam_i + lam_d), 0.0)
-            table[i, j] = 1.0 - seen @ weights
-            if derivatives:
-                d_seen = np.where(up, (1.0 + lam_i) / (1.0 + lam_i + lam_d) ** 2, 0.0)   # −∂S/∂Λ
-                d1[i, j] = (d_seen * dl1[None, :]) @ weights
-                d2[i, j] = (d_seen * dl2[None, :]) @ weights
+    rows = [_table_row(row, 1.0 + lam_i, sigma1, sigma2, derivatives) for row in _table_directions(cos_min)]
+    table, d1, d2 = np.stack(rows, 1)
     out = (np.clip(table, 0.0, 1.0).astype(np.float32), d1.astype(np.float32), d2.astype(np.float32))
     for a in out:
         a.setflags(write=False)

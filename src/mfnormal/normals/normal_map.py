@@ -21,6 +21,7 @@ import mitsuba as mi
 import numpy as np
 
 from mfnormal.surface.microsurface import SIN_P_EPS, decode_normal
+from mfnormal.models.neighbourhood import kernel_array
 from mfnormal.surface.shading import from_tangent_frame, tangent_rotation
 from mfnormal.normals.strength import fail
 from mfnormal.normals.tangents import VertexTangents
@@ -195,7 +196,8 @@ class NormalMap:
         if not dr.is_jit_v(mi.Float):
             return res, None, np.array([self._scalar_normal(x, y) for x, y in zip(uu.ravel(), vv.ravel())])
         si = dr.zeros(mi.SurfaceInteraction3f, res * res)
-        si.uv = mi.Point2f(mi.Float(uu.ravel()), mi.Float(vv.ravel()))
+        # (Kernel inputs: aligned, so that the kernels that read them, AD's too, compile once.)
+        si.uv = mi.Point2f(*(kernel_array(mi.Float, x.astype(np.float32)) for x in (uu, vv)))
         rgb = self.texture.eval_3(si)
         return res, rgb, decode_normal(rgb, self.strength.value, self.directx)
 
@@ -250,7 +252,7 @@ class NormalMap:
             values = (k1[0],) + tuple(values[1:3]) + (k1[3],)
             if values_ad is not None:
                 # (k1 carries the texels' derivatives, if they have any; strength's is 0.)
-                k1_ad = [mi.Float(np.asarray(k1[i], np.float32)) if k1_ad is None else k1_ad[i] for i in (0, 3)]
+                k1_ad = [kernel_array(mi.Float, np.asarray(k1[i], np.float32)) if k1_ad is None else k1_ad[i] for i in (0, 3)]
                 values_ad = (k1_ad[0],) + tuple(values_ad[1:3]) + (k1_ad[1],)
         return values, values_ad, res, self.map_uv
 
