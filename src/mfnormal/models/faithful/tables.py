@@ -16,7 +16,7 @@ import mitsuba as mi
 import numpy as np
 
 from mfnormal.surface.microsurface import replace_grad
-from mfnormal.models.neighbourhood import blocked_table, field_lookup, local_scales, lookup
+from mfnormal.models.neighbourhood import blocked_table, field_lookup, kernel_array, local_scales, lookup
 from mfnormal.surface.shading import from_tangent_rotation
 
 #: With local statistics, the neighbourhood's rms slope (k times the map's) from which its k is the
@@ -86,17 +86,18 @@ class MapStatistics:
         self.d_tables = None
         if attached is not None and dr.is_jit_v(mi.Float):
             a1, a2, phi = attached
-            phi = phi + (phi_e - dr.detach(phi))          # φ_e's value, the derivative of phi
+            # φ_e's value, the derivative of phi; φ_e a kernel input (a literal would compile anew per map)
+            phi = phi + (dr.opaque(mi.Float, phi_e) - dr.detach(phi))
             self.sigma1, self.sigma2 = replace_grad(self.sigma1, a1), replace_grad(self.sigma2, a2)
             self.cos_e, self.sin_e = replace_grad(self.cos_e, dr.cos(phi)), replace_grad(self.sin_e, dr.sin(phi))
             table, t1, t2 = blocked_table(s1, s2, self.cos_min, derivatives=True, scales=scales)
-            self.d_tables = (mi.Float(t1.ravel()), mi.Float(t2.ravel()))
+            self.d_tables = (kernel_array(mi.Float, t1), kernel_array(mi.Float, t2))
             dr.make_opaque(*self.d_tables)
         else:
             table = blocked_table(s1, s2, self.cos_min, scales=scales)
         table = table.ravel()
         if dr.is_jit_v(mi.Float):
-            self.table = mi.Float(table)
+            self.table = kernel_array(mi.Float, table)
             dr.make_opaque(self.sigma1, self.sigma2, self.cos_e, self.sin_e, self.table)
         else:
             self.table = table
@@ -120,7 +121,7 @@ def _local_grids(local):
     for n, field in enumerate(fields):
         field = np.asarray(field, np.float32).ravel()
         if dr.is_jit_v(mi.Float):
-            field = mi.Float(field)
+            field = kernel_array(mi.Float, field)
             if fields_ad is not None:
                 field = replace_grad(field, fields_ad[n])
             else:
