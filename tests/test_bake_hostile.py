@@ -429,6 +429,19 @@ def test_writers_refuse_non_finite_values_and_write_nothing(tmp_path, bad):
     assert not list(tmp_path.iterdir())
 
 
+@pytest.mark.parametrize("normals, heights", [(np.zeros((8, 8)), np.zeros((8, 8, 2))),
+                                             (np.zeros((8, 8, 4)), np.zeros(8)),
+                                             (np.full((8, 8, 3), "a"), np.full((8, 8), "a"))])
+def test_writers_refuse_arrays_of_another_shape_and_write_nothing(tmp_path, normals, heights):
+    """A map of another shape was Mitsuba's "Bitmap::rebuild_struct(): channel count (1) does not
+    match pixel format (rgb)!"."""
+    with pytest.raises(B.BakeError, match=r"^normals of shape .*expected an \(H, W, 3\) array"):
+        B.write_map(tmp_path / "m.png", normals)
+    with pytest.raises(B.BakeError, match=r"^heights of shape .*expected an \(H, W\) array"):
+        B.write_heights(tmp_path / "h.exr", heights)
+    assert not list(tmp_path.iterdir())
+
+
 @pytest.mark.parametrize("bits", [7, 0, 32, True, "8"])
 def test_write_map_accepts_only_8_or_16_bits(tmp_path, bits):
     normals = np.zeros((8, 8, 3))
