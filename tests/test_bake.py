@@ -239,6 +239,7 @@ def meshes(tmp_path_factory):
     (["high.ply", "low.ply", "-o", "m.png", "--size", "100000"], ("--size 100000",)),
     (["high.ply", "low.ply", "-o", "m.png", "--cage", "-1"], ("--cage -1.0",)),
     (["high.ply", "low.ply", "-o", "m.png", "--cage", "nan"], ("--cage nan",)),
+    (["high.ply", "low.ply", "-o", "m.png", "--cage", "inf"], ("--cage inf", "finite distance")),
     (["high.ply", "low.ply", "-o", "m.png", "--padding", "-2"], ("--padding -2",)),
     (["high.ply", "low.ply", "-o", "m.exr"], ("ending in .png",)),
     (["high.ply", "low.ply", "-o", "file.txt/m.png"], ("is a file, not a folder",)),

@@ -213,6 +213,11 @@ API_CASES = {
     "high_analytic_tiny": ("B.bake(mi.load_dict({'type': 'sphere'}), mesh(P * 1e-9, N, UV, F), 32)",
                            ("high-poly as a mesh",)),
     "scalar_variant": ("mi.set_variant('scalar_rgb'); B.bake(HIGH, LOW, 32)", ("JIT variant", "scalar_rgb")),
+    "cage_infinite": ("B.bake(HIGH, LOW, 32, cage=float('inf'))", ("cage inf", "finite number")),
+    "progress_number": ("B.bake(HIGH, LOW, 32, progress=5)", ("progress 5", "function")),
+    "batches_number": ("B.bake(HIGH, LOW, 32, batches=5)", ("batches 5", "Batches")),
+    "batches_zero": ("B.bake(HIGH, LOW, 32, batches=B.Batches(trace=0))", ("batches.trace 0", "at least 1")),
+    "memory_limit_text": ("B.bake(HIGH, LOW, 32, memory_limit='abc')", ("memory_limit 'abc'", "integer")),
 }
 
 API_SCRIPT = """
@@ -302,6 +307,46 @@ def test_a_bake_larger_than_the_memory_left_is_refused_before_it_allocates():
     assert B.memory_needed(8192) < 8 << 30        # the documented maximum fits an 8 GiB machine
 
 
+def _kernel_files(root: Path, cgroup: str, files: dict) -> tuple:
+    """A /proc and a /sys/fs/cgroup under ``root``: MemAvailable 20 GiB, this process in
+    ``cgroup`` (the lines of /proc/self/cgroup), and ``files`` {path under the cgroup root: text}."""
+    proc, cgroups = root / "proc", root / "cgroup"
+    (proc / "self").mkdir(parents=True)
+    (proc / "meminfo").write_text(f"MemTotal: {32 << 20} kB\nMemAvailable: {20 << 20} kB\n")
+    (proc / "self" / "cgroup").write_text(cgroup)
+    for name, text in files.items():
+        (cgroups / name).parent.mkdir(parents=True, exist_ok=True)
+        (cgroups / name).write_text(text)
+    return proc, cgroups
+
+
+GIB = 1 << 30
+
+
+@pytest.mark.parametrize("cgroup, files, room", [
+    ("0::/\n", {}, 20 * GIB),                                         # no group: MemAvailable
+    ("0::/job/step\n", {"job/step/memory.max": "max\n", "job/step/memory.current": f"{GIB}\n",
+                         "job/memory.max": f"{3 * GIB}\n", "job/memory.current": f"{GIB}\n",
+                         "job/memory.stat": f"anon 1\ninactive_file {GIB // 2}\n"}, 2.5 * GIB),
+    ("4:memory:/docker/abc\n1:cpu:/\n", {"memory/docker/abc/memory.limit_in_bytes": f"{2 * GIB}\n",
+                                           "memory/docker/abc/memory.usage_in_bytes": f"{GIB}\n",
+                                           "memory/memory.limit_in_bytes": "9223372036854771712\n",
+                                           "memory/memory.usage_in_bytes": f"{5 * GIB}\n"}, 1 * GIB),
+], ids=["no_group", "v2_cap_above", "v1_container"])
+def test_the_memory_left_is_capped_by_the_control_group(tmp_path, cgroup, files, room):
+    """In a container or a batch job the kernel kills a process over its control group's cap
+    without a message (exit 137), so the room a bake may take is the least of MemAvailable and,
+    for the process's group and each above it, cap less usage (less its inactive file cache):
+    cgroup v2 (a cap on a parent, "max" on the group) and v1 (the root's 2^63 is no cap). A
+    8192² bake is refused before it allocates in a 3 GiB group."""
+    proc, cgroups = _kernel_files(tmp_path, cgroup, files)
+    assert available_memory(proc, cgroups) == room
+    quad = mitsuba_mesh("quad", mi.load_dict({"type": "diffuse"}), *QUAD[:3], None, QUAD[3])
+    if room < 4 * GIB:
+        with pytest.raises(B.BakeError, match=f"more than the {room / GIB:.1f} GiB available"):
+            B.bake(quad, quad, 8192, memory_limit=available_memory(proc, cgroups))
+
+
 # -- 9. Meshes at 1e-9 and 1e9 -----------------------------------------------------------------------
 
 @pytest.mark.parametrize("scale_name, factor", [("_tiny", 1e-9), ("_huge", 1e9)])
@@ -381,6 +426,19 @@ def test_writers_refuse_non_finite_values_and_write_nothing(tmp_path, bad):
         B.write_heights(tmp_path / "h.exr", heights)
     with pytest.raises(B.BakeError, match="heights"):
         B.write_heights(tmp_path / "h.exr", np.full((8, 8), 1e39))     # infinite in float32
+    assert not list(tmp_path.iterdir())
+
+
+@pytest.mark.parametrize("normals, heights", [(np.zeros((8, 8)), np.zeros((8, 8, 2))),
+                                             (np.zeros((8, 8, 4)), np.zeros(8)),
+                                             (np.full((8, 8, 3), "a"), np.full((8, 8), "a"))])
+def test_writers_refuse_arrays_of_another_shape_and_write_nothing(tmp_path, normals, heights):
+    """A map of another shape was Mitsuba's "Bitmap::rebuild_struct(): channel count (1) does not
+    match pixel format (rgb)!"."""
+    with pytest.raises(B.BakeError, match=r"^normals of shape .*expected an \(H, W, 3\) array"):
+        B.write_map(tmp_path / "m.png", normals)
+    with pytest.raises(B.BakeError, match=r"^heights of shape .*expected an \(H, W\) array"):
+        B.write_heights(tmp_path / "h.exr", heights)
     assert not list(tmp_path.iterdir())
 
 

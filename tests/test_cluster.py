@@ -216,15 +216,12 @@ def test_tls_options_are_checked_before_any_work(tmp_path, capsys, args, needle)
 def test_a_tls_certificate_without_its_key_is_one_line_naming_the_option_and_the_fix(tmp_path, capsys):
     """``--cluster-tls-cert`` without ``--cluster-tls-key`` must hold the key too: a certificate
     alone (OpenSSL said "[SSL] PEM lib") or a key alone is refused before any work, naming the
-    option, the file and the fix; a PEM with both is taken. A key that does not match its
-    certificate keeps OpenSSL's own words."""
+    option, the file and the fix; a PEM with both is taken."""
     from mfnormal.render.cluster import parse_cluster
 
     cert, key = _certificate(tmp_path)
     both = tmp_path / "both.pem"
     both.write_bytes(cert.read_bytes() + key.read_bytes())
-    (tmp_path / "other").mkdir()
-    _, other = _certificate(tmp_path / "other")
     scene = _scene(tmp_path)
     for alone in (cert, key):
         rc, _, err = _cli(["render", str(scene), "-o", str(tmp_path / "out"), "--cluster", "tls://127.0.0.1:1",
@@ -233,10 +230,38 @@ def test_a_tls_certificate_without_its_key_is_one_line_naming_the_option_and_the
         assert f"--cluster-tls-cert {alone}: no certificate with its private key" in err, err
         assert "--cluster-tls-key FILE, or a PEM file that holds both" in err and "PEM lib" not in err, err
     assert parse_cluster("tls://127.0.0.1:1", (cert, both, None)).tls == (str(cert), str(both), None)
-    rc, _, err = _cli(["render", str(scene), "-o", str(tmp_path / "out"), "--cluster", "tls://127.0.0.1:1",
-                       "--cluster-tls-ca", str(cert), "--cluster-tls-cert", str(cert),
-                       "--cluster-tls-key", str(other)], capsys)
-    assert rc == 2 and "cannot reach the scheduler" in err and "key values mismatch" in err, err
+    assert _outputs(tmp_path) == []
+
+
+def test_tls_files_that_openssl_refuses_are_one_line_naming_the_option(tmp_path, capsys):
+    """The CA, certificate and key files as OpenSSL reads them, before any work: a CA file with a
+    key and no certificate, a key file with a certificate and no key, a certificate file with a
+    key and no certificate, an encrypted key and another certificate's key were each "cannot
+    reach the scheduler" with OpenSSL's words ("[SSL] PEM lib", "[X509:
+    NO_CERTIFICATE_OR_CRL_FOUND]", "key values mismatch"); each is one line naming the option
+    and the fix, and nothing is tried on the network."""
+    import shutil
+
+    cert, key = _certificate(tmp_path)
+    (tmp_path / "other").mkdir()
+    _, other = _certificate(tmp_path / "other")
+    encrypted = tmp_path / "encrypted.pem"
+    if shutil.which("openssl") is None:
+        pytest.skip("no openssl command to encrypt a test key")
+    subprocess.run(["openssl", "rsa", "-in", str(key), "-aes256", "-passout", "pass:secret", "-out",
+                    str(encrypted)], check=True, capture_output=True, timeout=60)
+    scene = _scene(tmp_path)
+    cases = [((key, cert, key), f"--cluster-tls-ca {key}: no CA certificate in this file"),
+             ((cert, cert, cert), f"--cluster-tls-key {cert}: no private key in this file"),
+             ((cert, key, key), f"--cluster-tls-cert {key}: no certificate in this file"),
+             ((cert, cert, encrypted), f"--cluster-tls-key {encrypted}: the key is encrypted"),
+             ((cert, cert, other), f"--cluster-tls-key {other} is not the key of --cluster-tls-cert {cert}")]
+    for (ca, crt, k), needle in cases:
+        rc, _, err = _cli(["render", str(scene), "-o", str(tmp_path / "out"), "--cluster", "tls://127.0.0.1:1",
+                           "--cluster-tls-ca", str(ca), "--cluster-tls-cert", str(crt), "--cluster-tls-key", str(k)],
+                          capsys)
+        assert rc == 2 and len(err.strip().splitlines()) == 1, err
+        assert needle in err and "cannot reach" not in err and "PEM lib" not in err, err
     assert _outputs(tmp_path) == []
 
 

@@ -86,7 +86,7 @@ def _check_bake(args) -> Path:
         raise CLIError(f"--size {args.size}: expected a map size from {SIZE_RANGE[0]} to "
                        f"{SIZE_RANGE[1]} texels")
     if args.cage is not None and not (0 < args.cage < math.inf):
-        raise CLIError(f"--cage {args.cage}: expected a distance above 0")
+        raise CLIError(f"--cage {args.cage}: expected a finite distance above 0")
     if not 0 <= args.padding <= PADDING_MAX:
         raise CLIError(f"--padding {args.padding}: expected 0 to {PADDING_MAX} texels")
     _check_output_file(args.output, "-o", ".png")

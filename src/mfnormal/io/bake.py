@@ -60,8 +60,8 @@ import numpy as np
 # The steps' public names are this module's too (``from mfnormal.io import bake``: ``bake.rasterise``).
 from mfnormal.io.bake_inputs import (BAKE_OVERHEAD_BYTES, BATCHES, BYTES_PER_TEXEL, HIGH_NORMALS,  # noqa: F401
                                      MESH_SUFFIXES, SIZE_RANGE, TANGENT_FRAMES, TEXELS_PER_PASS, BakeError, Batches,
-                                     PathLike, check_high_poly, check_low_poly, checked_inputs, load_mesh,
-                                     memory_needed)
+                                     PathLike, check_high_poly, check_low_poly, check_options, checked_inputs,
+                                     load_mesh, memory_needed)
 from mfnormal.io.bake_texels import outside_map, rasterise, texel_frames, texel_owners, uv_problem  # noqa: F401
 from mfnormal.io.bake_trace import (CAGE_FRACTION, RAY_START, WORKING_SIZE, default_cage, diagonal,  # noqa: F401
                                     high_surface_at, scaled_arrays, scaled_mesh, trace_passes, working_scale)
@@ -148,12 +148,14 @@ def bake(high: mi.Shape | PathLike, low: mi.Mesh | PathLike, size: int = 1024, c
     ``high_normals``: the high-poly's ``shading`` (interpolated) or ``geometric`` normal;
     ``progress(done, total)``: called after each pass of ``batches.trace`` texels traced;
     ``batches``: how many texels each step handles (:class:`Batches`); ``memory_limit``: the
-    bytes the bake may take (default: what the system has available), checked before it starts.
+    bytes the bake may take (default: what the system, or the process's control group, has
+    available), checked before it starts.
     A JIT variant (``llvm_*``, ``cuda_*``) must be set. Every input is checked first
     (:class:`BakeError`, one line); a warning says when most texels' normals face away from
     the low-poly's (one of the meshes' normals is flipped)."""
     import mitsuba as mi
 
+    check_options(progress, batches)
     high_mesh, (positions, normals, uvs, faces) = checked_inputs(high, low, size, cage, frame, padding,
                                                                   high_normals, memory_limit)
     # Trace at a working scale (a power of two: exact); the heights are scaled back.

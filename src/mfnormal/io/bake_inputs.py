@@ -5,8 +5,8 @@ checked before Mitsuba reads them (:mod:`mfnormal.io.mesh_files`: face indices, 
 then the meshes (triangles, indices, finite positions, normals and UVs, a low-poly with UVs,
 vertex normals and area), the map size, padding and cage, the variant (a JIT one: the baker
 traces rays in bulk) and the memory a bake of that size takes (BYTES_PER_TEXEL per texel and
-BAKE_OVERHEAD_BYTES) against what the system has available. :class:`Batches` says how many
-texels a bake handles at once.
+BAKE_OVERHEAD_BYTES) against what the system, or the process's control group, has available.
+:class:`Batches` says how many texels a bake handles at once.
 """
 
 from __future__ import annotations
@@ -97,6 +97,8 @@ def checked_inputs(high, low, size, cage, frame, padding, high_normals, memory_l
         _check_number(cage, "cage", integer=False)
         if not cage > 0:
             raise BakeError(f"cage {cage}: expected a distance above 0")
+    if memory_limit is not None:
+        _check_number(memory_limit, "memory_limit", integer=True)
     _check_variant()
     high_mesh = _as_mesh(high, "high-poly mesh", "high", mi.Shape)
     low_mesh = _as_mesh(low, "low-poly mesh", "low", mi.Mesh)
@@ -104,6 +106,17 @@ def checked_inputs(high, low, size, cage, frame, padding, high_normals, memory_l
     arrays = check_low_poly(low_mesh)
     _check_memory(size, memory_limit)
     return high_mesh, arrays
+
+
+def check_options(progress, batches) -> None:
+    """:func:`bake`'s ``progress`` (a function or None) and ``batches`` (a :class:`Batches` of
+    positive integers); :class:`BakeError` naming the argument."""
+    if progress is not None and not callable(progress):
+        raise BakeError(f"progress {progress!r}: expected a function progress(done, total), or None")
+    if not isinstance(batches, Batches):
+        raise BakeError(f"batches {batches!r}: expected a bake.Batches(trace=..., band=..., chunk=...)")
+    for name in ("trace", "band", "chunk"):
+        _check_number(getattr(batches, name), f"batches.{name}", integer=True, low=1)
 
 
 def _as_mesh(mesh, what: str, argument: str, kind):
@@ -174,7 +187,7 @@ def _check_number(value, name: str, integer: bool, low: float = 0) -> None:
     if isinstance(value, bool) or not isinstance(value, kinds):
         raise BakeError(f"{name} {value!r}: expected {'an integer' if integer else 'a number'}")
     if not low <= value < math.inf:
-        raise BakeError(f"{name} {value}: expected {'an integer' if integer else 'a number'} "
+        raise BakeError(f"{name} {value}: expected {'an integer' if integer else 'a finite number'} "
                         f"of at least {low}")
 
 
@@ -184,17 +197,76 @@ def memory_needed(size: int) -> int:
     return BYTES_PER_TEXEL * size * size + BAKE_OVERHEAD_BYTES
 
 
-def available_memory() -> int | None:
-    """The memory this process may still take: the system's available memory (Linux), None
-    where unknown."""
+def available_memory(proc: PathLike = "/proc", cgroups: PathLike = "/sys/fs/cgroup") -> int | None:
+    """The memory this process may still take (Linux): the system's available memory, or less
+    where its control group (v1 or v2, here or in a group above it) caps it, as in a container
+    or a batch job (over the cap the kernel kills the process, with no message); None where
+    unknown. ``proc``, ``cgroups``: where the kernel's files are."""
+    rooms = [_meminfo_available(Path(proc) / "meminfo"), *_cgroup_rooms(Path(proc), Path(cgroups))]
+    known = [room for room in rooms if room is not None]
+    return min(known) if known else None
+
+
+def _read_number(path: Path) -> int | None:
+    """The integer in the file ``path``; None if it is absent, unreadable or not one ("max")."""
     try:
-        with open("/proc/meminfo") as f:
-            for line in f:
-                if line.startswith("MemAvailable:"):
-                    return int(line.split()[1]) * 1024
+        return int(path.read_text().split()[0])
+    except (OSError, ValueError, IndexError):
+        return None
+
+
+def _meminfo_available(meminfo: Path) -> int | None:
+    try:
+        for line in meminfo.read_text().splitlines():
+            if line.startswith("MemAvailable:"):
+                return int(line.split()[1]) * 1024
     except (OSError, ValueError, IndexError):
         pass
     return None
+
+
+#: A cgroup v1 memory limit at or above this is no limit (the kernel writes 2^63 rounded to pages).
+UNLIMITED = 1 << 62
+
+
+def _cgroup_rooms(proc: Path, cgroups: Path) -> list:
+    """Limit minus usage of this process's memory control group and each group above it
+    (``proc``/self/cgroup: ``0::PATH`` on v2, ``N:memory:PATH`` on v1)."""
+    try:
+        lines = (proc / "self" / "cgroup").read_text().splitlines()
+    except OSError:
+        return []
+    rooms = []
+    for line in lines:
+        _, controllers, path = (line.split(":", 2) + ["", ""])[:3]
+        v1 = "memory" in controllers.split(",")
+        if not (v1 or controllers == ""):
+            continue
+        root = cgroups / "memory" if v1 else cgroups
+        folder = root / path.strip("/")
+        for group in [folder, *folder.parents]:
+            cap = _read_number(group / ("memory.limit_in_bytes" if v1 else "memory.max"))
+            used = _cgroup_used(group, v1)
+            if cap is not None and used is not None and cap < UNLIMITED:
+                rooms.append(max(cap - used, 0))
+            if group == root:
+                break
+    return rooms
+
+
+def _cgroup_used(group: Path, v1: bool) -> int | None:
+    """The memory a control group holds that the kernel cannot drop: its usage less its inactive
+    file cache (``memory.stat``), as ``docker stats`` counts it."""
+    used = _read_number(group / ("memory.usage_in_bytes" if v1 else "memory.current"))
+    if used is None:
+        return None
+    key = "total_inactive_file" if v1 else "inactive_file"
+    try:
+        stat = dict(line.split()[:2] for line in (group / "memory.stat").read_text().splitlines()
+                    if len(line.split()) >= 2)
+        return max(used - int(stat.get(key, 0)), 0)
+    except (OSError, ValueError):
+        return used
 
 
 def _check_memory(size: int, limit: int | None = None) -> None:

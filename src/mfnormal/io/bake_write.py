@@ -87,6 +87,9 @@ def encode_map(normals: np.ndarray, bits: int = 8) -> np.ndarray:
     :class:`BakeError` for other ``bits`` or normals that are not finite."""
     top = (1 << _check_bits(bits)) - 1
     normals = np.asarray(normals)
+    if normals.ndim != 3 or normals.shape[-1] != 3 or not np.issubdtype(normals.dtype, np.number):
+        raise BakeError(f"normals of shape {normals.shape} ({normals.dtype}): expected an (H, W, 3) "
+                        "array of numbers, one unit normal per texel")
     _check_finite(normals, "normals")
     rgb = np.empty(normals.shape, np.uint8 if bits == 8 else np.uint16)
     bands = _bands(*normals.shape[:2]) if normals.ndim == 3 else [(0, len(normals))]
@@ -107,6 +110,12 @@ def _heights_bytes(heights) -> bytes:
     import mitsuba as mi
     from mfnormal.io.images import encode
 
+    heights = np.asarray(heights)
+    if heights.ndim == 3 and heights.shape[-1] == 1:          # as Mitsuba's Bitmap reads the EXR
+        heights = heights[..., 0]
+    if heights.ndim != 2 or not np.issubdtype(heights.dtype, np.number):
+        raise BakeError(f"heights of shape {heights.shape}: expected an (H, W) array of numbers, one "
+                        "height per texel")
     with np.errstate(over="ignore"):
         heights = np.ascontiguousarray(heights, np.float32)
     _check_finite(heights, "heights (in single precision)")

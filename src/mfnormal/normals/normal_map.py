@@ -58,17 +58,46 @@ def channels_message(texture, what: str = "") -> str | None:
 LINEAR_FORMATS = (".exr", ".hdr", ".rgbe", ".pfm")
 
 
+#: Mitsuba's luminance weights: a 3-channel bitmap texture's ``mean`` is that of its lookups' luminance.
+LUMINANCE = (0.212671, 0.715160, 0.072169)
+
+
 def srgb_message(texture) -> str | None:
     """Why a bitmap ``texture`` read as sRGB colour (``raw`` false, a file Mitsuba decodes from
     sRGB: PNG, JPEG, ...) cannot be a normal map, or None. The sRGB curve bends the stored vectors:
-    a flat texel (0.5, 0.5, 1) decodes to (0.21, 0.21, 1), 39° tilted."""
+    a flat texel (0.5, 0.5, 1) decodes to (0.21, 0.21, 1), 39° tilted. A bitmap given in Python
+    (no file name) is decoded only where it is marked sRGB (8-bit ones from numpy are; float ones
+    are linear): seen as lookups whose mean differs from the stored texels'."""
     text = str(texture)
     name = re.search(r'name = "([^"]*)"', text)
-    if "raw = 0" not in text or name is None or name.group(1).lower().endswith(LINEAR_FORMATS):
+    if "raw = 0" not in text or name is None:
         return None
-    return (f"normal map '{name.group(1)}' is read as sRGB colour (raw is false), which bends its "
+    if name.group(1):
+        if name.group(1).lower().endswith(LINEAR_FORMATS):
+            return None
+        what = f"'{name.group(1)}'"
+    elif _lookups_decode_srgb(texture, text):
+        what = "(a Bitmap marked sRGB)"
+    else:
+        return None
+    return (f"normal map {what} is read as sRGB colour (raw is false), which bends its "
             "vectors (a flat texel decodes 39° tilted): load it with raw=True "
             '(XML: <boolean name="raw" value="true"/>)')
+
+
+def _lookups_decode_srgb(texture, text: str) -> bool:
+    """Whether the lookups of a 3-channel bitmap ``texture`` (``text``: its description) are not
+    its stored texels: Mitsuba's mean of the lookups' luminance against the texels' own."""
+    mean = re.search(r"mean = \[?([^,\]\s]+)", text)
+    params = mi.traverse(texture)
+    if mean is None or "data" not in params.keys():
+        return False
+    texels = np.asarray(params["data"])
+    if texels.ndim != 3 or texels.shape[-1] != 3:
+        return False
+    scale = np.iinfo(texels.dtype).max if np.issubdtype(texels.dtype, np.integer) else 1.0
+    stored = float(np.mean(texels.reshape(-1, 3) @ np.array(LUMINANCE))) / scale
+    return abs(float(mean.group(1)) - stored) > 1e-4 * max(1.0, abs(stored))
 
 
 def channel_count_message(what: str, channels: int) -> str:

@@ -36,6 +36,7 @@ import time
 import uuid
 import warnings
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -122,25 +123,48 @@ def _check_tls(target: Target, tls: tuple) -> tuple:
     for flag, path in (("--cluster-tls-ca", ca), ("--cluster-tls-cert", cert), ("--cluster-tls-key", key)):
         if path is not None:
             check_regular_file(path, f"{flag} {path}", f"{flag} {path}: no such file")
-    if key is None:
-        _check_holds_key(cert)
+    _check_tls_files(ca, cert, key)
     return (str(ca), str(cert), None if key is None else str(key))
 
 
-def _check_holds_key(cert) -> None:
-    """A ``--cluster-tls-cert`` given without ``--cluster-tls-key`` holds its key too (OpenSSL
-    says only "PEM lib"); an encrypted key is refused, not asked for on the terminal."""
+def _check_tls_files(ca, cert, key) -> None:
+    """The ``--cluster-tls-*`` files as OpenSSL reads them, before any work (OpenSSL's own words
+    came as "cannot reach the scheduler ([SSL] PEM lib)"): the CA file holds a certificate, the
+    certificate file a certificate and, without ``--cluster-tls-key``, its key; the key file a key
+    that is the certificate's. An encrypted key is refused, not asked for on the terminal."""
     import ssl
 
     def no_passphrase():
         raise ValueError("encrypted")
 
     try:
-        ssl.SSLContext(ssl.PROTOCOL_TLS_CLIENT).load_cert_chain(str(cert), password=no_passphrase)
-    except (ssl.SSLError, ValueError):
-        raise CLIError(f"--cluster-tls-cert {cert}: no certificate with its private key in this file; "
-                       "give the key with --cluster-tls-key FILE, or a PEM file that holds both "
-                       "(the key unencrypted)") from None
+        ssl.create_default_context(cafile=str(ca))
+    except ssl.SSLError as exc:
+        raise CLIError(f"--cluster-tls-ca {ca}: no CA certificate in this file ({exc.reason}); give "
+                       "the PEM certificate of the authority that signed the scheduler's") from None
+    try:
+        ssl.SSLContext(ssl.PROTOCOL_TLS_CLIENT).load_cert_chain(
+            str(cert), None if key is None else str(key), password=no_passphrase)
+    except (ssl.SSLError, ValueError) as exc:
+        raise CLIError(_key_message(cert, key, getattr(exc, "reason", None))) from None
+
+
+def _key_message(cert, key, reason) -> str:
+    """The one line for a certificate and key (``key`` None: in the certificate's file) that
+    OpenSSL refused with ``reason``."""
+    if key is None:
+        return (f"--cluster-tls-cert {cert}: no certificate with its private key in this file; give "
+                "the key with --cluster-tls-key FILE, or a PEM file that holds both (the key unencrypted)")
+    if reason == "KEY_VALUES_MISMATCH":
+        return (f"--cluster-tls-key {key} is not the key of --cluster-tls-cert {cert} (key values "
+                "mismatch); give the certificate's own key")
+    if b"CERTIFICATE-----" not in Path(cert).read_bytes():
+        return f"--cluster-tls-cert {cert}: no certificate in this file; give the client's PEM certificate"
+    if b"PRIVATE KEY-----" not in Path(key).read_bytes():
+        return f"--cluster-tls-key {key}: no private key in this file; give the certificate's PEM key"
+    why = f": {reason}" if reason else ""
+    return (f"--cluster-tls-key {key}: the key is encrypted (or OpenSSL cannot read it{why}); give the "
+            "certificate's PEM key without a passphrase")
 
 
 def _dask_tls_configured() -> bool:
