@@ -24,8 +24,8 @@ The rules, each a function below:
 - a delta transmission: ``beta/η + (1 - 1/η)·Δ`` (refraction at normal incidence);
 - a null interaction (a pass-through): unchanged;
 - a non-delta sample (glossy, diffuse): the cone whose solid angle is 1/pdf of the sampled
-  direction, the share of directions the sample stands for (a Lambertian bounce at normal
-  incidence: 120°; a narrow glossy lobe: a narrow cone), or the reflected cone if wider;
+  direction, the share of directions the sample stands for (a Lambertian sample leaving along
+  the normal: 120°; a narrow glossy lobe: a narrow cone), or the reflected cone if wider;
 - ``|beta|`` ≤ π (a hemisphere): a cone never spreads wider.
 
 The footprint is detached: it says where the BSDF is looked at, not what is differentiated.

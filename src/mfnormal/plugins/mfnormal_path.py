@@ -58,7 +58,7 @@ triangle: the origin would move across it or below its plane) and other shapes a
 ``path``'s. The offset is not reciprocal: Mitsuba's light tracer (``ptracer``) still sees the
 triangles' terminator, so the two agree only away from it.
 
-**The pixel's footprint** (``footprint``, :mod:`mfnormal.plugins.cone`). A ray cone
+**The pixel's footprint** (``footprint``, ``src/mfnormal/plugins/cone.py``). A ray cone
 (Akenine-Möller et al., "Improved shader and texture level of detail using ray cones", JCGT
 2021) leaves the camera with the spread and width of the sensor's ray differentials (as
 ``path`` receives them: scaled by 1/√spp, the share of the pixel one sample covers, so that a
