@@ -22,6 +22,12 @@ Path tracer calling each BSDF's eval_pdf_sample (:monosp:`mfnormal_path`)
      low-poly meshes; false: from the triangle, as ``path``. Default: true. A triangle with odd
      vertex normals (one more than 60° off its face normal, or normals on both sides of its
      plane) keeps the flat triangle.
+ * - footprint
+   - |bool|
+   - Carry the pixel's footprint along each path as a ray cone and give it to the BSDF at every
+     surface hit, in uv (``si.duv_dx``, ``si.duv_dy``); false: those stay 0 ("no footprint"),
+     as with ``path``. Default: true. No BSDF of this package reads it yet, so images are the
+     same either way, bit for bit.
 
 Each parameter takes only its type (``<integer>``, ``<boolean>``; in Python an int, a bool) in
 its range: anything else, e.g. ``<string name="terminator_offset" value="false"/>`` or a
@@ -52,6 +58,22 @@ triangle: the origin would move across it or below its plane) and other shapes a
 ``path``'s. The offset is not reciprocal: Mitsuba's light tracer (``ptracer``) still sees the
 triangles' terminator, so the two agree only away from it.
 
+**The pixel's footprint** (``footprint``, ``src/mfnormal/plugins/cone.py``). A ray cone
+(Akenine-Möller et al., "Improved shader and texture level of detail using ray cones", JCGT
+2021) leaves the camera with the spread and width of the sensor's ray differentials (as
+``path`` receives them: scaled by 1/√spp, the share of the pixel one sample covers, so that a
+filter by the footprint vanishes as the sample count grows); its width grows by its spread
+along each segment. At each hit the BSDF receives the two axes of the cone's cross-section on
+the tangent plane, mapped to uv (``si.duv_dx``: across the plane of incidence, of the cone's
+width; ``si.duv_dy``: along it, stretched by 1/cos θ; each the uv step across the whole
+footprint, as a ray differential's across a pixel; 0 where the surface has no regular uv
+parametrisation, e.g. a sphere's pole). After the bounce its spread changes: a mirror
+reflection adds twice the angle by which the surface's normal turns across the footprint
+(``si.dn_du``, ``si.dn_dv``: a convex mirror widens the cone, a concave one focuses it, a flat
+one keeps it); a delta refraction scales it by 1/η (plus (1 − 1/η) times that turn); a glossy
+or diffuse sample sets it to the cone whose solid angle is 1/pdf of the sampled direction (at
+least the mirror's); a null interaction keeps it. The footprint is detached.
+
 Primal rendering only: it does not re-evaluate the BSDF for derivatives as ``path`` does;
 under AD (a ray that carries derivatives) it raises, use ``prb`` there (``mfnormal_prb`` for
 the random walks). Unpolarised variants only.
@@ -62,13 +84,15 @@ the random walks). Unpolarised variants only.
         <integrator type="mfnormal_path">
             <integer name="max_depth" value="8"/>
             <boolean name="terminator_offset" value="true"/>
+            <boolean name="footprint" value="true"/>
         </integrator>
 
     .. code-tab:: python
 
         'type': 'mfnormal_path',
         'max_depth': 8,
-        'terminator_offset': True
+        'terminator_offset': True,
+        'footprint': True
 """
 
 from __future__ import annotations
@@ -77,7 +101,7 @@ import drjit as dr
 import mitsuba as mi
 
 from mfnormal.models.properties import INT32_MAX, Boolean, Integer
-from mfnormal.plugins import terminator
+from mfnormal.plugins import cone, terminator
 from mfnormal.plugins.variant_class import variant_subclass
 
 RR_PROB_MAX = 0.95      # path's cap of the Russian roulette survival probability
@@ -85,11 +109,11 @@ RR_PROB_MAX = 0.95      # path's cap of the Russian roulette survival probabilit
 
 def integrator_params(plugin: str, max_depth: int) -> tuple:
     """The parameters of the integrator ``plugin`` (``max_depth``: its default), typed and in
-    ``path``'s ranges: (max_depth, rr_depth, hide_emitters, terminator_offset)."""
+    ``path``'s ranges: (max_depth, rr_depth, hide_emitters, terminator_offset, footprint)."""
     return (Integer(plugin, "max_depth", max_depth, -1,
                     expects=f"-1 (unbounded) or an integer between 0 and {INT32_MAX}"),
             Integer(plugin, "rr_depth", 5, 1), Boolean(plugin, "hide_emitters", False),
-            Boolean(plugin, "terminator_offset", True))
+            Boolean(plugin, "terminator_offset", True), Boolean(plugin, "footprint", True))
 
 
 PARAMS = integrator_params("mfnormal_path", -1)
@@ -114,7 +138,7 @@ class MfnormalPath:
     def __init__(self, props: mi.Properties):
         values = tuple(p.read(props) for p in PARAMS)
         type(self).__mro__[1].__init__(self, props)   # the variant's mi.SamplingIntegrator
-        max_depth, self.rr_depth, self.hide_emitters, self.terminator_offset = values
+        max_depth, self.rr_depth, self.hide_emitters, self.terminator_offset, self.footprint = values
         self.max_depth = 0xFFFFFFFF if max_depth == -1 else max_depth    # path's uint32 cast of -1
         if mi.is_polarized:
             raise ValueError("mfnormal_path: polarised variants are not supported (use 'path')")
@@ -122,6 +146,7 @@ class MfnormalPath:
     def sample(self, scene, sampler, ray, medium=None, active=True):
         if self.max_depth == 0:
             return mi.Spectrum(0.0), mi.Bool(False), []
+        footprint = cone.camera_cone(ray) if self.footprint else ()   # path's rays: scaled by 1/√spp
         ray = mi.Ray3f(ray)
         active = mi.Bool(active)
         valid_ray = mi.Bool((not self.hide_emitters) and scene.environment() is not None)
@@ -131,7 +156,7 @@ class MfnormalPath:
             si = pi.compute_surface_interaction(ray, mi.RayFlags.Minimal, skip)
             pi[skip] = self.skip_area_emitters(scene, si.spawn_ray(ray.d), True, skip)
         state = (ray, pi, mi.Spectrum(1.0), mi.Spectrum(0.0), mi.Float(1.0), mi.UInt32(0), valid_ray,
-                 dr.zeros(mi.Interaction3f), mi.Float(1.0), mi.Bool(True), active, sampler)
+                 dr.zeros(mi.Interaction3f), mi.Float(1.0), mi.Bool(True), active, sampler) + footprint
         offset = self.terminator_offset and terminator.applies(scene)
         out = dr.while_loop(state, lambda *s: s[10], lambda *s: self._vertex(scene, offset, *s),
                             label="mfnormal_path")
@@ -139,10 +164,13 @@ class MfnormalPath:
         return dr.select(valid_ray, result, 0.0), valid_ray, []
 
     def _vertex(self, scene, offset, ray, pi, throughput, result, eta, depth, valid_ray, prev_si, prev_pdf,
-                prev_delta, active, sampler):
+                prev_delta, active, sampler, *footprint):
         """One iteration of the path loop: emission hit, NEE, BSDF sample, Russian roulette
-        (``offset``: rays start on the smooth surface, :mod:`mfnormal.plugins.terminator`)."""
-        si = pi.compute_surface_interaction(ray, mi.RayFlags.All)
+        (``offset``: rays start on the smooth surface, :mod:`mfnormal.plugins.terminator`;
+        ``footprint``: the ray cone (w, beta), :mod:`mfnormal.plugins.cone`)."""
+        si = pi.compute_surface_interaction(ray, cone.RAY_FLAGS if footprint else mi.RayFlags.All)
+        if footprint:
+            si, w = cone.at_hit(si, ray, *footprint)
         result = self._emission(scene, si, prev_si, prev_pdf, prev_delta, throughput, result)
         active_next = (depth + 1 < self.max_depth) & si.is_valid()
         bsdf = si.bsdf(mi.RayDifferential3f(ray))
@@ -166,6 +194,8 @@ class MfnormalPath:
         if dr.grad_enabled(ray):
             raise NotImplementedError("mfnormal_path renders primal images only: use 'prb' for "
                                       "derivatives ('mfnormal_prb' for the random-walk models)")
+        if footprint:
+            footprint = (w, cone.bounce(footprint[1], si, bs))
         throughput = throughput * weight
         eta = eta * bs.eta
         valid_ray |= active & si.is_valid() & ~mi.has_flag(bs.sampled_type, mi.BSDFFlags.Null)
@@ -181,7 +211,7 @@ class MfnormalPath:
         active = active_next & (~rr_active | rr_continue) & (throughput_max != 0.0)
         pi = scene.ray_intersect_preliminary(ray, False, dr.flag(dr.JitFlag.SymbolicLoops), 0, 0, active)
         return (ray, pi, throughput, result, eta, depth, valid_ray, prev_si, prev_pdf, prev_delta, active,
-                sampler)
+                sampler, *footprint)
 
     def _emission(self, scene, si, prev_si, prev_pdf, prev_delta, throughput, result):
         """``result`` plus the emission of the surface or environment the ray hit, MIS-weighted
@@ -196,7 +226,7 @@ class MfnormalPath:
 
     def to_string(self):
         return (f"MfnormalPath[max_depth={self.max_depth}, rr_depth={self.rr_depth}, "
-                f"terminator_offset={self.terminator_offset}]")
+                f"terminator_offset={self.terminator_offset}, footprint={self.footprint}]")
 
 
 def integrator_class() -> type:

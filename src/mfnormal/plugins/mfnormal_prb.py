@@ -9,13 +9,14 @@ Path replay backpropagation for stochastic BSDFs (:monosp:`mfnormal_prb`)
  * - max_depth
    - |int|
    - Longest path depth (-1: unbounded; 2: direct light only). Default: 6, as ``prb``.
- * - rr_depth, hide_emitters, terminator_offset
-   - |int|, |bool|, |bool|
-   - As for :ref:`mfnormal_path <integrator-mfnormal_path>` (defaults 5, false, true): Russian
-     roulette from ``rr_depth`` on, as ``prb``; with ``terminator_offset`` false, shadow rays and
-     outgoing rays start from the triangle, as ``prb``. Typed as there: a value of another type
-     or out of range is refused at load, naming the parameter (``prb`` takes a ``max_depth`` of
-     1.5 or 2^40 and fails later).
+ * - rr_depth, hide_emitters, terminator_offset, footprint
+   - |int|, |bool|, |bool|, |bool|
+   - As for :ref:`mfnormal_path <integrator-mfnormal_path>` (defaults 5, false, true, true):
+     Russian roulette from ``rr_depth`` on, as ``prb``; with ``terminator_offset`` false, shadow
+     rays and outgoing rays start from the triangle, as ``prb``; ``footprint``: the pixel's
+     footprint in uv at every hit (``si.duv_dx``, ``si.duv_dy``). Typed as there: a value of
+     another type or out of range is refused at load, naming the parameter (``prb`` takes a
+     ``max_depth`` of 1.5 or 2^40 and fails later).
 
 Mitsuba's ``prb`` (detached path replay: NEE with MIS, emitter hits, Russian roulette, the
 area Jacobian of moving geometry) with one change, for BSDFs whose ``eval`` is a Monte Carlo
@@ -39,6 +40,12 @@ from the smooth surface point, whose displacement from the hit point is detached
 with the triangle; its own dependence on moving vertices and normals is not differentiated).
 With ``terminator_offset`` false the integrator is ``prb`` with the change above.
 
+The pixel's footprint (``footprint``) is ``mfnormal_path``'s ray cone, with the same rules and
+the same camera cone (``prb`` draws its camera rays with one pixel's differentials; they are
+scaled here by 1/√spp, as ``path`` scales them). It is detached and computed from the same
+detached rays and samples in the primal and the differential phase, so the BSDF sees the same
+footprint in both.
+
 Limitations: a walk nested inside another BSDF (``twosided``, ``blendbsdf``) is seen as that
 BSDF, i.e. differentiated as ``prb`` does (biased); for the walks the cosine's and the BSDF's
 dependence on moving geometry is not differentiated (the Jacobian J is still applied): use
@@ -52,7 +59,8 @@ in docs/model.md §9; zero under a constant environment).
     .. code-tab:: python
 
         'type': 'mfnormal_prb',
-        'max_depth': 6
+        'max_depth': 6,
+        'footprint': True
 """
 
 from __future__ import annotations
@@ -60,7 +68,7 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from mfnormal.plugins import terminator
+from mfnormal.plugins import cone, terminator
 from mfnormal.plugins.mfnormal_path import integrator_params
 from mfnormal.plugins.variant_class import variant_subclass
 
@@ -82,18 +90,23 @@ def _indirect_factor(ctx, si, bsdf, wo, sample1, sample2, active):
     return dr.select(stochastic, weight, value)
 
 
-def _surface(pi, ray, pi_prev, ray_prev, depth, primal, shift_prev=None):
+def _surface(pi, ray, pi_prev, ray_prev, depth, primal, shift_prev=None, footprint=None):
     """The interaction, attached to moving geometry (``prb``): si, with si.wi following the
-    motion of the previous vertex (the ray's origin: ``shift_prev`` off it, if given)."""
+    motion of the previous vertex (the ray's origin: ``shift_prev`` off it, if given), and the
+    ray cone ``footprint`` (w, beta) grown to it, si carrying its footprint (None: none)."""
+    flags = mi.RayFlags.All if footprint is None else cone.RAY_FLAGS
     with dr.resume_grad(when=not primal):
-        si = pi.compute_surface_interaction(ray, ray_flags=mi.RayFlags.All)
+        si = pi.compute_surface_interaction(ray, ray_flags=flags)
         if not primal:
             prev = pi_prev.compute_surface_interaction(ray_prev, ray_flags=mi.RayFlags.Minimal)
             origin = prev.p if shift_prev is None else prev.p + shift_prev
             here = dr.detach(si)
             wi = here.to_local(dr.normalize(origin - here.p))
             si.wi = dr.select(depth >= 1, dr.replace_grad(si.wi, wi), si.wi)
-    return si
+    if footprint is None:
+        return si, None
+    si, w = cone.at_hit(si, ray, *footprint)
+    return si, (w, footprint[1])
 
 
 def _next_event(scene, sampler, ctx, si, bsdf, beta, active_em, primal, shift=None):
@@ -154,15 +167,18 @@ def _replay(mode, ctx, si, bsdf, ray_next, pi_next, sample1, sample2, L, Le, Lr_
         return dL + dr.forward_to(Lo)
 
 
-def _leave(si, bs, shift):
-    """The BSDF-sampled ray, its origin's shift off ``si.p`` (None without the offset) and the
-    detached origin, the reference of the next vertex's MIS."""
+def _leave(si, bs, shift, footprint):
+    """The BSDF-sampled ray, its origin's shift off ``si.p`` (None without the offset), the
+    detached origin, the reference of the next vertex's MIS, and the ray cone after the bounce
+    (None without one)."""
     d = si.to_world(bs.wo)
+    if footprint is not None:
+        footprint = (footprint[0], cone.bounce(footprint[1], si, bs))
     if shift is None:
-        return si.spawn_ray(d), None, dr.detach(si, True)
+        return si.spawn_ray(d), None, dr.detach(si, True), footprint
     shift = terminator.outward(si, shift, d)
     origin = terminator.moved(si, shift)
-    return origin.spawn_ray(d), shift, dr.detach(origin, True)
+    return origin.spawn_ray(d), shift, dr.detach(origin, True), footprint
 
 
 class MfnormalPRB:
@@ -172,7 +188,7 @@ class MfnormalPRB:
     def __init__(self, props: mi.Properties):
         values = {p.name: p.read(props) for p in PARAMS}   # typed, before the base reads them untyped
         type(self).__mro__[1].__init__(self, props)   # the variant's RBIntegrator
-        self.terminator_offset = values["terminator_offset"]
+        self.terminator_offset, self.footprint = values["terminator_offset"], values["footprint"]
 
     def _skip_emitters(self, scene, ray, pi, active):
         """``hide_emitters``: the first hit behind directly visible area emitters."""
@@ -181,11 +197,17 @@ class MfnormalPRB:
         pi[skip] = self.skip_area_emitters(scene, ray_skip, True, skip)
         return pi
 
+    def _camera_cone(self, ray, sampler):
+        """The camera ray's cone (w, beta) (None without ``footprint``): as ``path``'s, whose
+        rays' differentials are scaled by 1/√spp (``prb`` draws one pixel's). Detached, from the
+        same rays in the primal and the differential phase."""
+        return cone.camera_cone(ray, sampler.sample_count() ** -0.5) if self.footprint else None
+
     @dr.syntax
     def sample(self, mode, scene, sampler, ray, δL, state_in, active, **kwargs):
         """``ADIntegrator.sample``: (radiance or its derivative, valid, [], radiance state)."""
         primal = mode == dr.ADMode.Primal
-        ctx = mi.BSDFContext()
+        ctx, footprint = mi.BSDFContext(), self._camera_cone(ray, sampler)
         ray = mi.Ray3f(dr.detach(ray))
         depth, L = mi.UInt32(0), mi.Spectrum(0 if primal else state_in)
         δL = mi.Spectrum(δL if δL is not None else 0)
@@ -197,11 +219,11 @@ class MfnormalPRB:
         if dr.hint(self.hide_emitters, mode="scalar"):
             pi = self._skip_emitters(scene, ray, pi, active)
         offset = self.terminator_offset and terminator.applies(scene)
-        shift_prev = mi.Vector3f(0.0)   # the ray's origin off its vertex
+        shift_prev = mi.Vector3f(0.0) if offset else None   # the ray's origin off its vertex
 
         while dr.hint(active, max_iterations=self.max_depth, label=f"mfnormal_prb ({mode.name})"):
             active_next = mi.Bool(active)
-            si = _surface(pi, ray, pi_prev, ray_prev, depth, primal, shift_prev if offset else None)
+            si, footprint = _surface(pi, ray, pi_prev, ray_prev, depth, primal, shift_prev, footprint)
             bsdf = si.bsdf(ray)
             # Emitter hit, MIS-weighted against the previous vertex's light sample
             if dr.hint(self.hide_emitters, mode="scalar"):
@@ -219,7 +241,7 @@ class MfnormalPRB:
             sample1, sample2 = sampler.next_1d(), sampler.next_2d()
             bs, weight = bsdf.sample(ctx, si, sample1, sample2, active_next)
             L = (L + Le + Lr_dir) if primal else (L - Le - Lr_dir)
-            ray_next, shift_next, si_prev = _leave(si, bs, shift)
+            ray_next, shift_next, si_prev, footprint = _leave(si, bs, shift, footprint)
             η *= bs.eta
             β *= weight
             pdf_prev, delta_prev = bs.pdf, mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
@@ -238,7 +260,7 @@ class MfnormalPRB:
             depth[si.is_valid()] += 1
             active = active_next
             pi_prev, pi, ray_prev, ray = pi, pi_next, ray, ray_next
-            shift_prev = shift_next if offset else shift_prev
+            shift_prev = shift_next
 
         return (L if primal else δL, depth != 0, [], L)
 
