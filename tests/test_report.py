@@ -324,7 +324,8 @@ def run_compare(*args):
                           capture_output=True, text=True, timeout=600)
 
 
-@pytest.mark.parametrize("scene", ["water", pytest.param("glass", marks=pytest.mark.slow)])
+@pytest.mark.parametrize("scene", ["water", pytest.param("glass", marks=pytest.mark.slow),
+                                   pytest.param("underwater", marks=pytest.mark.slow)])
 def test_compare_renders_the_dielectric_scenes_with_every_method(tmp_path, scene):
     """``mfnormal compare water --quick`` (and ``glass``): exit 0 and the report; a finite,
     non-negative render per method, except the paper's models, which refuse the transmitting
@@ -357,6 +358,41 @@ def test_compare_renders_the_dielectric_scenes_with_every_method(tmp_path, scene
     assert all("refuses this scene" in row and " s</td>" not in row for row in refused_rows)
     flat = np.array(mi.Bitmap(str(tmp_path / scene / "flat_ref.exr")))
     assert flat.mean() > 0.05
+
+
+def test_the_underwater_scene_looks_up_through_snells_window_and_beyond_it(tmp_path):
+    """Scene (f) is what it says: every camera ray that meets the water meets it from below (the
+    camera is in the water), the frame's top row looks up within Snell's window (48.8° from the
+    vertical at ior 1.33) and its bottom row beyond it; rendered with the map flat (strength 0),
+    the top shows the sky (bright, no checkerboard) and the bottom the floor reflected totally
+    (the checkerboard's dark and light tiles, nothing of the sky); with the map, no pixel is NaN
+    or black. 48 × 32 px at 16 spp: the flat surface is smooth, so rows differ by the scene, not
+    by noise (the floor's tiles are 0.1 and 0.7 of the sky's light)."""
+    b = assets.BUNDLED["underwater"]
+    params = {k.lstrip("$"): str(v) for k, v in b.parameters(b.generate(tmp_path)).items()}
+
+    def load(strength):
+        return mi.load_file(str(b.xml), spp="16", width="48", height="32", strength=str(strength), **params)
+    scene = load(0.0)
+    sensor = scene.sensors()[0]
+    rows = {}
+    for name, y in (("top", 0.5), ("bottom", 31.5)):
+        x = np.linspace(0.5, 47.5, 48)
+        pos = mi.Point2f(x / 48.0, np.full(48, y / 32.0))
+        ray, _ = sensor.sample_ray(0.0, 0.5, pos, mi.Point2f(0.5))
+        si = scene.ray_intersect(ray)
+        assert dr.all(si.is_valid()), name
+        up = np.array(ray.d.y)
+        assert (np.array(si.n.y) > 0.99).all() and (up > 0).all(), f"{name}: the rays meet the water from below"
+        rows[name] = np.degrees(np.arccos(up))
+    critical = np.degrees(np.arcsin(1.0 / 1.33))
+    assert rows["top"].max() < critical - 5 and rows["bottom"].min() > critical + 5, rows
+    flat = np.array(mi.render(scene)).mean(-1)
+    top, bottom = flat[:3], flat[-8:]
+    assert top.min() > 0.5 and top.std() < 0.1 * top.mean(), "the window shows the sky"
+    assert np.percentile(bottom, 10) < 0.35 * np.percentile(bottom, 90), "the floor reflected beyond the window"
+    mapped = np.array(mi.render(load(1.0)))
+    assert np.isfinite(mapped).all() and (mapped.mean(-1) > 1e-3).all()
 
 
 def test_compare_finds_refusals_from_the_scene_wherever_the_plugin_sits():

@@ -17,8 +17,9 @@ transmitting nested BSDF, read from the scene loaded with the default model) is 
 the report shows its reason in place of its render and measurements. The results feed
 :func:`mfnormal.report.html.write_report`, which only writes the HTML.
 
-Bundled scenes (:data:`mfnormal.scenes.assets.BUNDLED`): ``demo`` (a), ``model`` (b) and
-``eggcrate`` (c), with their assets generated on the fly.
+Bundled scenes (:data:`mfnormal.scenes.assets.BUNDLED`): ``demo`` (a), ``model`` (b),
+``eggcrate`` (c), ``water`` (d), ``glass`` (e) and ``underwater`` (f), with their assets
+generated on the fly.
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """The bundled scenes and their procedural assets (nothing is downloaded).
 
-:data:`BUNDLED` names the five scenes ``mfnormal compare`` knows: each is an XML
+:data:`BUNDLED` names the six scenes ``mfnormal compare`` knows: each is an XML
 file in ``scenes/``, a function that writes its assets into a folder and one that
 turns their paths into the scene's ``$`` parameters.
 
@@ -19,7 +19,10 @@ turns their paths into the scene's ``$`` parameters.
 - (d) ``water`` (:data:`WATER_XML`): a rippled water surface (``dielectric``, ior 1.33) over
   a checkerboard floor: :func:`make_ripples_normalmap`, a periodic sum of waves;
 - (e) ``glass`` (:data:`GLASS_XML`): a sphere of hammered glass (``dielectric``, ior 1.5, the
-  dome map of scene (b) with rims at 35°) on the same floor.
+  dome map of scene (b) with rims at 35°) on the same floor;
+- (f) ``underwater`` (:data:`UNDERWATER_XML`): the water of scene (d) seen from below, looking
+  up 40° from the vertical through Snell's window and beyond it, where the surface reflects the
+  floor totally.
 
 Every scene is lit by the sky of :mod:`mfnormal.scenes.sky` (:data:`mfnormal.scenes.sky.DEMO` with
 a sun). Normal maps are written as 8-bit PNGs (:func:`encode_normalmap`), OpenGL
@@ -42,7 +45,7 @@ __all__ = ["BUNDLED", "Bundled", "DEMO_XML", "MODEL_XML", "EGGCRATE_XML", "encod
            "make_domes_normalmap", "make_roughness_map", "generate_model_assets",
            "model_parameters", "make_eggcrate_normalmap", "generate_eggcrate_assets",
            "file_parameters", "map_and_sky_parameters", "WATER_XML", "make_ripples_normalmap",
-           "generate_water_assets", "GLASS_XML", "generate_glass_assets"]
+           "generate_water_assets", "GLASS_XML", "generate_glass_assets", "UNDERWATER_XML"]
 
 SCENES = Path(__file__).resolve().parent
 #: Scene (a): the demo (single source of truth).
@@ -55,6 +58,8 @@ EGGCRATE_XML = SCENES / "eggcrate.xml"
 WATER_XML = SCENES / "water.xml"
 #: Scene (e): a hammered glass sphere.
 GLASS_XML = SCENES / "glass.xml"
+#: Scene (f): the water of scene (d) seen from below.
+UNDERWATER_XML = SCENES / "underwater.xml"
 
 TILES_NAME = "normalmap.png"
 MESH_NAME = "knot.ply"
@@ -442,7 +447,7 @@ class Bundled:
 
 
 def map_and_sky_parameters(assets: dict) -> dict:
-    """The ``$normalmap`` and ``$envmap`` of scenes (a), (c), (d) and (e) for generated ``assets``."""
+    """The ``$normalmap`` and ``$envmap`` of scenes (a), (c), (d), (e) and (f) for generated ``assets``."""
     return file_parameters(assets, ("normalmap", "envmap"))
 
 
@@ -457,4 +462,6 @@ BUNDLED = {b.name: b for b in (
             map_and_sky_parameters),
     Bundled("glass", GLASS_XML, "(e) glass: a hammered glass sphere on a tiled floor", generate_glass_assets,
             map_and_sky_parameters),
+    Bundled("underwater", UNDERWATER_XML, "(f) underwater: the rippled water seen from below",
+            generate_water_assets, map_and_sky_parameters),
 )}
