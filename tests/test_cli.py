@@ -29,6 +29,7 @@ from pathlib import Path
 
 import mfnormal  # noqa: F401  (first: selects a working libLLVM)
 
+import drjit as dr
 import mitsuba as mi
 import numpy as np
 import pytest
@@ -129,6 +130,16 @@ CASES = [
 ]
 # compare sets the model itself, so a scene's $model is a parameter it leaves unused.
 COMPARE_NEEDLES = {"unknown_model": ["unused", "model=fancy"]}
+
+
+@pytest.mark.skipif(bool(dr.has_backend(dr.JitBackend.CUDA)), reason="this machine has a CUDA GPU")
+def test_a_cuda_variant_without_a_gpu_is_one_line_naming_the_llvm_variant(worker, scenes, tmp_path):
+    """``--variant cuda_ad_rgb`` on a machine without a GPU: one line that says there is none and
+    names the variant to use (it was Dr.Jit's 'jit_init_thread_state(): the CUDA backend hasn't been
+    initialized ...'), nothing written."""
+    proc = worker.completed(["render", "good.xml", "--variant", "cuda_ad_rgb", "-o", tmp_path / "out"], cwd=scenes)
+    assert_one_line_error(proc, "cuda_ad_rgb", "no CUDA GPU", "llvm_ad_rgb")
+    assert not (tmp_path / "out.exr").exists()
 
 
 @pytest.mark.parametrize("case,args,scene,needles", CASES, ids=[c[0] for c in CASES])

@@ -50,6 +50,9 @@ def use_variant(variant: str, error, unavailable: str, cannot: str):
 
     if variant not in mi.variants():
         raise error(unavailable)
+    if variant.startswith("cuda_") and not dr.has_backend(dr.JitBackend.CUDA):
+        raise error(f"{cannot}: Dr.Jit finds no CUDA GPU on this machine; use an llvm_* variant "
+                    "(e.g. llvm_ad_rgb) here")
     if mi.variant() != variant:
         try:
             mi.set_variant(variant)
