@@ -274,7 +274,8 @@ def _table_row(row, a_i, sigma1: float, sigma2: float, derivatives: bool):
     float64 integrands), so the float32 tables differ from float64 integrands' by one ulp (6e-8) at
     most, in about one entry in eight."""
     d, weights, up = row
-    lam, dl1, dl2 = (x.astype(np.float32) for x in smith_lambda_np(d, sigma1, sigma2, derivatives=True))
+    parts = smith_lambda_np(d, sigma1, sigma2, derivatives=derivatives)
+    lam, *dls = (x.astype(np.float32) for x in (parts if derivatives else (parts,)))
     a_i = a_i.astype(np.float32)
     out = np.zeros((3, TABLE_PHI, TABLE_G))
     den, seen = (np.empty((TABLE_G, d.shape[1]), np.float32) for _ in range(2))
@@ -286,8 +287,8 @@ def _table_row(row, a_i, sigma1: float, sigma2: float, derivatives: bool):
         out[0, j] = 1.0 - seen.astype(np.float64) @ weights
         if derivatives:
             np.divide(seen, den, out=seen)          # a_i/(a_i + Λ)², zero where S is
-            out[1, j] = np.multiply(seen, dl1[j][None, :], out=den).astype(np.float64) @ weights
-            out[2, j] = np.multiply(seen, dl2[j][None, :], out=den).astype(np.float64) @ weights
+            for n, dl in enumerate(dls, 1):
+                out[n, j] = np.multiply(seen, dl[j][None, :], out=den).astype(np.float64) @ weights
     return out
 
 
