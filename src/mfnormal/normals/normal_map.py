@@ -258,11 +258,12 @@ class NormalMap:
             return values, None
         if max(self.strength.ok) > 0:
             return values, nb.attached_walls(*nb.attached_winsorised(wp))
-        # (At strength 0 the slopes are strength × those at strength 1, none capped: ψ_w is the
-        # one at strength 1, and w strength × the one at strength 1, with its derivative there.)
+        # (At strength 0 the slopes are strength × those at strength 1, none capped: w is strength ×
+        # the walls' slope at strength 1, with its derivative there. A map without slopes has no
+        # walls whatever its texels: ψ_w is 0 there, with no derivative.)
         unit = decode_normal(rgb, 1.0, self.directx)
-        share, w1x, w1y = nb.attached_walls(*nb.attached_winsorised(unit, capped=False))
-        return values, (share, w1x * self.strength.value, w1y * self.strength.value)
+        _, w1x, w1y = nb.attached_walls(*nb.attached_winsorised(unit, capped=False))
+        return values, (mi.Float(0.0), w1x * self.strength.value, w1y * self.strength.value)
 
     def local(self, width: float, attached=False):
         """Local statistics (docs/faithful.md §5): ((k, m_x, m_y, k_fine), the same as Dr.Jit values
