@@ -33,10 +33,15 @@ def bsdf_on(rgb, nested, **params):
     return mi.load_dict({"type": "normalmap_microfacet", "normalmap": texture(rgb), "bsdf": nested, **params})
 
 
-def half_smooth_map(size=64, tilt=25.0):
-    """Left half (u < ½): one constant tilt; right half: steep bumps. RGB in [0, 1], H×W×3."""
+def half_smooth_map(size=64, tilt=25.0, balanced=False):
+    """Left half (u < ½): one constant tilt; right half: steep bumps. RGB in [0, 1], H×W×3.
+    ``balanced``: the left half's lower rows tilt the other way, so that the map's slopes average to
+    zero (as a real map's smooth regions, the low-poly's shape differences, do over the map); else
+    the map's mean slope is half the tilt's, and part of its relief is walls (docs/faithful.md §7)."""
     rgb = bumps_normalmap(size, 8, 0.45)
     rgb[:, : size // 2] = encode(sph(tilt, 0.5)[None])[0]
+    if balanced:
+        rgb[size // 2:, : size // 2] = encode(sph(tilt, 0.5 + math.pi)[None])[0]
     return rgb
 
 
@@ -64,12 +69,13 @@ def test_local_field_is_the_windowed_variance_and_mean():
 
 
 def test_a_smooth_region_has_no_neighbourhood_and_its_own_macro_surface():
-    """On the constant-tilt half, k = 0 and the mean normal is the tilt itself; on the bumpy half
+    """On a constant-tilt region of a map whose slopes average to zero, k = 0 and the mean normal is
+    the tilt itself; on the bumpy half
     k is of the order of the map's (the map-wide σ is about the bumps: k > 1)."""
-    b = bsdf_on(half_smooth_map(), GLOSSY, neighbourhood=4.0)
+    b = bsdf_on(half_smooth_map(balanced=True), GLOSSY, neighbourhood=4.0)
     n = 6
     si = make_si(np.tile(sph(0.0), (2 * n, 1)), 1)
-    v = np.linspace(0.1, 0.9, n)
+    v = np.linspace(0.15, 0.35, n)
     si.uv = mi.Point2f(np.r_[np.full(n, 0.25), np.full(n, 0.75)], np.r_[v, v])
     core = b.model.core
     k, wm = core.local_stats(b.shading_point(mi.BSDFContext(), si))
@@ -80,6 +86,36 @@ def test_a_smooth_region_has_no_neighbourhood_and_its_own_macro_surface():
     np.testing.assert_allclose(wm[:n], np.tile(want, (n, 1)), atol=2e-3)
 
 
+def test_a_map_tilted_the_same_way_everywhere_is_all_walls():
+    """A constant map's slopes average to its tilt: it is a sawtooth's facets, without the walls
+    between them (docs/faithful.md §7). Its walls' mean slope is the tilt's (ψ = 1); its
+    neighbourhoods are as rough as the map's about ω_g (k = 1, ω_m = ω_g), not a tilted plane; all
+    of their relief, and of the neighbours that hide a texel, is walls, whose plane is upright
+    across the tilt. A map whose slopes average to zero (the balanced half-smooth map) has none:
+    its tilted region is the plane it was (the tests above)."""
+    tilt, phi = 30.0, 0.5
+    b = bsdf_on(np.tile(encode(sph(tilt, phi)), (8, 8, 1)), GLOSSY)
+    core = b.model.core
+    mu = -math.tan(math.radians(tilt)) * np.array([math.cos(phi), math.sin(phi)])
+    assert core.wall[0] == 1.0
+    np.testing.assert_allclose(core.wall[1:], mu, rtol=1e-5)
+    rng = np.random.default_rng(4)
+    n = 256
+    si = make_si(random_hemisphere(rng, n, 0.05), 1)
+    si.uv = mi.Point2f(rng.random(n).astype(np.float32), rng.random(n).astype(np.float32))
+    sp = b.shading_point(mi.BSDFContext(), si)
+    k, wm = core.local_stats(sp)
+    np.testing.assert_allclose(np1(k), 1.0, rtol=1e-4)
+    np.testing.assert_allclose(np3(wm), np.tile([0.0, 0.0, 1.0], (n, 1)), atol=1e-5)
+    tx = core.texel(sp, sp.wi)
+    np.testing.assert_allclose(np1(tx.wall_share), 1.0, rtol=1e-5)
+    np.testing.assert_allclose(np1(tx.local_walls), 1.0, rtol=1e-4)
+    np.testing.assert_allclose(np.abs(np3(tx.wall_n) @ [math.cos(phi), math.sin(phi), 0.0]), 1.0, rtol=1e-5)
+    balanced = bsdf_on(half_smooth_map(balanced=True), GLOSSY)
+    zero, sp = balanced.model.core, balanced.shading_point(mi.BSDFContext(), si)
+    assert zero.wall == (0.0, 0.0, 0.0) and np.all(np1(zero.texel(sp, sp.wi).wall_share) == 0.0)
+
+
 def test_a_smooth_tilted_region_shades_as_classic_normal_mapping():
     """Where the map is a constant tilt (a smooth region of a real map: the low-poly's shape
     difference), the texel is a plane, not a facet among neighbours: with local statistics the
@@ -87,7 +123,7 @@ def test_a_smooth_tilted_region_shades_as_classic_normal_mapping():
     directions see the facet and whose mirror images (the bounce's preimages) leave it. With the
     map-wide statistics of the bumps next to it, the same queries differ (masking, the hidden
     texel): by more than 5 % on a tenth of them."""
-    rgb = half_smooth_map()
+    rgb = half_smooth_map(balanced=True)
     classic = mi.load_dict({"type": "normalmap", "normalmap": texture(rgb), "bsdf": GLOSSY,
                             "flip_invalid_normals": False, "use_shadowing_function": False})
     rng = np.random.default_rng(5)
@@ -98,7 +134,7 @@ def test_a_smooth_tilted_region_shades_as_classic_normal_mapping():
     keep = (wi @ wp > 0.05) & (wo @ wp > 0.05) & (mirror[:, 2] > 0.05) & ((wo * [1, 1, -1]) @ wp < 0)
     wi, wo = wi[keep], wo[keep]
     si = make_si(wi, 1)
-    si.uv = mi.Point2f(rng.uniform(0.16, 0.34, len(wi)), rng.uniform(0.0, 1.0, len(wi)))
+    si.uv = mi.Point2f(rng.uniform(0.16, 0.34, len(wi)), rng.uniform(0.16, 0.34, len(wi)))
     ctx = mi.BSDFContext()
     ref = np3(classic.eval(ctx, si, vec3(wo)))
     local = np3(bsdf_on(rgb, GLOSSY, neighbourhood=4.0).eval(ctx, si, vec3(wo)))

@@ -18,8 +18,14 @@ scattering), and more where its surface is bumpy: its reference is the true geom
 (rendered at 4× spp), and each method is measured against it: the ratio of the means, and the
 share of pixels off by more than 5 % and 10 % of the reference's pixel.
 
+``--map constant``: every texel tilted by the tilt toward dp/du instead (a 4 × 4 map,
+:func:`constant_map`). That is the normal field of no surface on a closed body (its slopes
+average to the tilt, so it has walls somewhere); smooth glass only, against the exact 1 (no true
+geometry to render: the reference column is the exact 1).
+
 Writes ``furnace_glass.md``, ``.json`` and ``.png`` (one row per material and tilt) to
-``--out``; ``--quick`` writes ``furnace_glass_quick.*`` (32² px, 64 spp, a few seconds).
+``--out``; ``--quick`` writes ``furnace_glass_quick.*`` (32² px, 64 spp, a few seconds);
+``--map constant`` writes ``furnace_glass_constant[_quick].*``.
 """
 
 from __future__ import annotations
@@ -64,10 +70,20 @@ def parse_args(argv=None):
     p = harness_parser("validation.furnace_glass", __doc__, "32² px, 64 spp (a few seconds)")
     p.add_argument("--tilts", type=lambda s: [float(t) for t in s.split(",")], default=[20.0, 50.0],
                    help="max tilts of the egg-crate map, degrees")
-    p.add_argument("--materials", type=lambda s: s.split(","), default=list(GLASS))
+    p.add_argument("--materials", type=lambda s: s.split(","), default=None,
+                   help=f"comma-separated subset (default: {','.join(GLASS)}; with --map constant: smooth_glass)")
     p.add_argument("--res", type=int, default=None, help="default 64 (quick: 32)")
     p.add_argument("--spp", type=int, default=None, help="per method render, default 1024 (quick: 64)")
-    return p.parse_args(argv)
+    p.add_argument("--map", choices=("bumps", "constant"), default="bumps",
+                   help="bumps: the map baked from the bumpy sphere (default); constant: every texel tilted "
+                        "by the tilt toward dp/du (smooth glass only)")
+    args = p.parse_args(argv)
+    if args.materials is None:
+        args.materials = ["smooth_glass"] if args.map == "constant" else list(GLASS)
+    if args.map == "constant" and args.materials != ["smooth_glass"]:
+        p.error("--map constant takes --materials smooth_glass only: rough glass has no reference without "
+                "a true surface")
+    return args
 
 
 # -- The bumpy sphere: its surface, the map baked from it, its mesh -----------------------------
@@ -121,6 +137,13 @@ def sphere_map(max_tilt: float) -> dict:
     u, v = (np.arange(w) + 0.5) / w, (np.arange(h) + 0.5) / h
     phi, theta = np.meshgrid(2 * math.pi * u, math.pi * v, indexing="xy")
     return H.bitmap_texture(H.encode_normals(bump_normal_local(theta, phi, amp)))
+
+
+def constant_map(tilt: float) -> dict:
+    """A 4 × 4 map whose every texel is tilted by ``tilt`` degrees toward dp/du (+x of the sphere's
+    tangent frame): the same tilt everywhere, a sawtooth's facets without its walls."""
+    n = np.array([math.sin(math.radians(tilt)), 0.0, math.cos(math.radians(tilt))])
+    return H.bitmap_texture(H.encode_normals(np.tile(n, (4, 4, 1))))
 
 
 def truth_mesh(max_tilt: float, bsdf, around: int = TRUTH_AROUND, name: str = "true_sphere") -> "mi.Mesh":
@@ -196,22 +219,27 @@ def render_sphere(bsdf: dict, res: int, spp: int, seed: int, shape=None) -> tupl
     return H.render_counted(scene, spp, seed)
 
 
-def measure(material: str, max_tilt: float, methods, res: int, spp: int, seed: int) -> dict:
+def measure(material: str, max_tilt: float, methods, res: int, spp: int, seed: int, kind: str = "bumps") -> dict:
     """Every method on the ``material`` sphere with the ``max_tilt`` map, and the true geometry
     (:func:`truth_mesh`, another seed). The reference: 1 for smooth glass (the true geometry's
-    render is scored against it too); for rough glass, the true geometry at 4× spp. Returns a
-    row: ``cell``, ``truth`` (the true geometry's image), ``truth_metrics``, ``images``,
-    ``metrics`` ({key: :func:`furnace_metrics`}), ``errors`` (methods that refused), ``invalid``,
-    ``times``."""
-    nested, tex, mask = GLASS[material], sphere_map(max_tilt), sphere_mask(res)
+    render is scored against it too); for rough glass, the true geometry at 4× spp. ``kind``
+    ``constant``: the :func:`constant_map` of that tilt, smooth glass, no true geometry (its image is
+    the exact 1). Returns a row: ``cell``, ``truth`` (the true geometry's image), ``truth_metrics``,
+    ``images``, ``metrics`` ({key: :func:`furnace_metrics`}), ``errors`` (methods that refused),
+    ``invalid``, ``times``."""
+    constant = kind == "constant"
+    nested, mask = GLASS[material], sphere_mask(res)
+    tex = constant_map(max_tilt) if constant else sphere_map(max_tilt)
     exact = material == "smooth_glass"
     truth_spp = spp if exact else 4 * spp
-    truth = render_sphere(nested, res, truth_spp, seed + 100, shape=truth_mesh(max_tilt, nested))[0]
+    truth = np.ones((res, res, 3)) if constant else \
+        render_sphere(nested, res, truth_spp, seed + 100, shape=truth_mesh(max_tilt, nested))[0]
     ref = np.ones((res, res, 3)) if exact else truth
-    row = {"cell": f"{material}/{max_tilt:g}deg", "material": material, "tilt": max_tilt, "spp": spp,
+    row = {"cell": f"{material}/{'constant ' if constant else ''}{max_tilt:g}deg", "material": material,
+           "tilt": max_tilt, "spp": spp, "map": kind,
            "truth": truth, "reference": "exact (1)" if exact else f"true geometry, {truth_spp} spp",
            "reference_mean": float(H.luminance(ref)[mask].mean()), "truth_spp": truth_spp,
-           "truth_metrics": furnace_metrics(truth, 1.0, mask) if exact else None,
+           "truth_metrics": furnace_metrics(truth, 1.0, mask) if exact and not constant else None,
            "images": {}, "metrics": {}, "errors": {}, "invalid": {}, "times": {}}
     for m in methods:
         t0 = time.time()
@@ -250,6 +278,11 @@ def markdown(report: dict, labels: dict, quick: bool = False) -> str:
          "pixels off the reference's by more than 5 % and 10 % (Monte Carlo noise included: at this spp "
          "the un-mapped rough sphere's own render is off its own 4× spp render in about 0.5 % of its pixels).",
          ""]
+    if s.get("map") == "constant":
+        L += ["This run's map is not the bumps' but a constant one (`--map constant`): every texel tilted by the "
+              "row's tilt toward dp/du (4 × 4 texels). That is the normal field of no surface on a closed body "
+              "(its slopes average to the tilt: it has walls somewhere), so there is no true geometry to render; "
+              "smooth glass is still invisible in the furnace, the exact answer 1.", ""]
     for row in report["rows"]:
         L += [f"## {row['cell']} (reference: {row['reference']}, mean {TG.fmt(row['reference_mean'], 4)})", ""]
 
@@ -260,7 +293,9 @@ def markdown(report: dict, labels: dict, quick: bool = False) -> str:
                     f"{_pct(m['off_5'])} | {_pct(m['off_10'])} |{flag}")
         errors = {k: f"| {labels.get(k, k)} | refused: {e} | | | |" for k, e in row["errors"].items()}
         if row["material"] == "smooth_glass":
-            head = "| *exact* | 1 | 1 | 0 % | 0 % |\n" + line("*true geometry*", row["truth_metrics"])
+            head = "| *exact* | 1 | 1 | 0 % | 0 % |"
+            if row["truth_metrics"] is not None:
+                head += "\n" + line("*true geometry*", row["truth_metrics"])
         else:
             head = f"| *true geometry, {row['truth_spp']} spp* | {TG.fmt(row['reference_mean'], 4)} | 1 | | |"
         TG.method_table(L, "| method | mean | mean / reference | off > 5 % | off > 10 % |", head,
@@ -275,18 +310,18 @@ def run(args) -> dict:
     methods = [method(s) for s in args.methods]
     keys = [m.key for m in methods]
     labels = {"truth": "reference", **{m.key: m.label for m in methods}}
-    stem = "furnace_glass_quick" if args.quick else "furnace_glass"
+    stem = "furnace_glass" + ("_constant" if args.map == "constant" else "") + ("_quick" if args.quick else "")
     t_start = time.time()
     rows = []
     for material in args.materials:
         for tilt in args.tilts:
-            rows.append(measure(material, tilt, methods, res, spp, 1000 * args.seed + round(tilt)))
+            rows.append(measure(material, tilt, methods, res, spp, 1000 * args.seed + round(tilt), args.map))
             print(f"{rows[-1]['cell']}: " + ", ".join(f"{k} {m['mean']:.3f}" for k, m in rows[-1]["metrics"].items()),
                   flush=True)
     cmd = command("validation.furnace_glass", args.argv)
     report = {"rows": [{k: v for k, v in r.items() if k not in ("truth", "images", "index")} for r in rows],
               "settings": {"command": cmd, "elapsed_s": time.time() - t_start, "res": res, "spp": spp,
-                           "seed": args.seed, "methods": keys, "stem": stem}}
+                           "seed": args.seed, "methods": keys, "stem": stem, "map": args.map}}
     write_text_files(args.out, stem, markdown(report, labels, args.quick), report)
     for r in rows:
         r["index"] = r["cell"]

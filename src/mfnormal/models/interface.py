@@ -147,7 +147,8 @@ class Faithful(_Deterministic):
     def __init__(self, tangent_facet, nested, source, walk_values, neighbourhood=0.0):
         super().__init__(tangent_facet, nested, source, walk_values)
         self.neighbourhood = neighbourhood
-        self.core = faithful.Model(nested, source.slopes()[0], COS_P_MIN, local=self._local(source))
+        self.core = faithful.Model(nested, source.slopes()[0], COS_P_MIN, local=self._local(source),
+                                   wall=source.walls())
 
     def _local(self, source, attached=False):
         """The local statistics' field (faithful.Model.set_slopes), or None: the map's slopes for
@@ -157,7 +158,8 @@ class Faithful(_Deterministic):
         return source.local(self.neighbourhood, attached)
 
     def map_changed(self, source):
-        self.core.set_slopes(*source.slopes(attached=True), local=self._local(source, attached=True))
+        self.core.set_slopes(*source.slopes(attached=True), local=self._local(source, attached=True),
+                             wall=source.walls(attached=True))
 
     def _texel(self, sp, wi=None):
         return self.core.texel(sp, sp.wi if wi is None else wi)

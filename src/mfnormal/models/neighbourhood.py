@@ -431,15 +431,48 @@ def _blur_np(f, taps):
     return f
 
 
-def local_field(sx, sy, res: int, taps, total):
+#: The share ψ = |μ|²/E[|s|²] of a map's second moment that its mean slope μ must hold for the map to
+#: have walls (:func:`walls`): below it the mean is the seams' and tangent frames' of a real asset's
+#: map (0.015-0.018 on the bunny's), which has no walls; above it the walls' share rises to 1 for a
+#: constant map (how it was set: docs/faithful.md §8).
+WALL_SHARE_MIN = 0.1
+
+
+def walls(sx, sy):
+    """(ψ_w, w_x, w_y): the share of the relief of a map with the winsorised slopes ``sx``, ``sy``
+    (numpy, flat) that is walls, and their mean slope w = ψ_w·μ. A heightfield over a flat macro
+    surface has slopes that average to zero; a map whose slopes average to μ ≠ 0 over the whole map
+    has walls somewhere (a map tilted the same way everywhere is a sawtooth: tilted facets and
+    upright walls). ψ_w rises from 0, where μ holds WALL_SHARE_MIN of the slopes' second moment,
+    to 1 for a constant map (docs/faithful.md §7). Zero for a map without slopes."""
+    sx, sy = np.asarray(sx, np.float64), np.asarray(sy, np.float64)
+    total = float(np.mean(sx * sx + sy * sy)) if sx.size else 0.0
+    if not total > 0:
+        return 0.0, 0.0, 0.0
+    mx, my = float(np.mean(sx)), float(np.mean(sy))
+    share = min(max(((mx * mx + my * my) / total - WALL_SHARE_MIN) / (1.0 - WALL_SHARE_MIN), 0.0), 1.0)
+    return share, share * mx, share * my
+
+
+def attached_walls(sx, sy):
+    """:func:`walls` as Dr.Jit values that carry the derivatives of the slopes ``sx``, ``sy``."""
+    mx, my, total = dr.mean(sx), dr.mean(sy), dr.mean(sx * sx + sy * sy)
+    psi = dr.select(total > 0, (mx * mx + my * my) / dr.maximum(total, 1e-30), 0.0)
+    share = dr.clip((psi - WALL_SHARE_MIN) * (1.0 / (1.0 - WALL_SHARE_MIN)), 0.0, 1.0)
+    return share, share * mx, share * my
+
+
+def local_field(sx, sy, res: int, taps, total, wall=(0.0, 0.0)):
     """(k, m_x, m_y) on the res × res grid (numpy, float64, flat) from the winsorised slopes ``sx``,
-    ``sy`` (flat, the grid's order) and ``total`` = σ1² + σ2² of the map: the neighbourhood's scale
-    and its mean slope (the local macro surface)."""
+    ``sy`` (flat, the grid's order), ``total`` = σ1² + σ2² of the map and its walls' mean slope
+    ``wall`` (:func:`walls`' w): the neighbourhood's scale and its mean slope (the local macro
+    surface). The walls are part of every neighbourhood: its mean plane is the window's mean slope
+    less the walls', and its second moment about that plane the window's variance plus |w|²."""
     fx, fy = sx.reshape(res, res), sy.reshape(res, res)
     m2, mx, my = (_blur_np(f, taps) for f in (fx * fx + fy * fy, fx, fy))
-    var = np.maximum(m2 - mx * mx - my * my, 0.0)
+    var = np.maximum(m2 - mx * mx - my * my, 0.0) + (wall[0] * wall[0] + wall[1] * wall[1])
     k = np.sqrt(var / total) if total > 0 else np.zeros_like(var)
-    return k.ravel(), mx.ravel(), my.ravel()
+    return k.ravel(), (mx - wall[0]).ravel(), (my - wall[1]).ravel()
 
 
 def _blur_dr(f, res: int, taps):
@@ -458,15 +491,17 @@ def _blur_dr(f, res: int, taps):
     return f
 
 
-def attached_field(sx, sy, res: int, taps, s1, s2):
+def attached_field(sx, sy, res: int, taps, s1, s2, wall=(0.0, 0.0)):
     """:func:`local_field` as Dr.Jit values that carry the derivatives of the slopes ``sx``, ``sy``
-    (Dr.Jit, winsorised as :func:`attached_slopes`) and of the map's σ1, σ2."""
+    (Dr.Jit, winsorised as :func:`attached_slopes`), of the map's σ1, σ2 and of ``wall``
+    (:func:`attached_walls`' w)."""
     m2, mx, my = (_blur_dr(f, res, taps) for f in (sx * sx + sy * sy, sx, sy))
-    var = dr.maximum(m2 - mx * mx - my * my, 0.0)
+    wx, wy = wall
+    var = dr.maximum(m2 - mx * mx - my * my, 0.0) + (wx * wx + wy * wy)
     total = s1 * s1 + s2 * s2
     ratio = dr.select(total > 0, var / dr.maximum(total, 1e-30), 0.0)
     ok = ratio > 1e-12
-    return dr.select(ok, dr.sqrt(dr.select(ok, ratio, 1.0)), 0.0), mx, my
+    return dr.select(ok, dr.sqrt(dr.select(ok, ratio, 1.0)), 0.0), mx - wx, my - wy
 
 
 def field_lookup(fields, res: int, u, v):

@@ -28,6 +28,7 @@ SALT_FAITHFUL_SAMPLE = 0x6d666e34   # the faithful sampler (past the neighbours,
 SLOT_ANALYTIC_SHADOW = 0            # analytic sampler: leave after p, or go on to the mirror t
 SLOT_FAITHFUL_BLOCKED = 0           # faithful sampler: the sample leaves, or the neighbours block it
 SLOT_FAITHFUL_RETRO = 1             # faithful sampler: a blocked sample skims on, or comes back
+SLOT_FAITHFUL_WALL = 2              # faithful sampler: the hidden texel's neighbours are a wall, or not
 SLOT_START_FACET = 0xFFFFFFFF       # eval walk: the first facet (sample(): its own sample1)
 SLOT_START_HEIGHT = 0xFFFFFFFE      # naive estimator (validation): the first height
 SLOT_ROULETTE = 0x7F000000          # + depth: Russian roulette after the bounce at ``depth``

@@ -13,7 +13,8 @@ each in the base shading frame ``si.sh_frame`` or in the mesh's vertex tangent f
 them into the models' base frame: the shading normal (default) or the true triangle.
 Every source (built from the plugin's parameters by
 :func:`mfnormal.normals.source.from_properties`) offers :class:`mfnormal.normals.source.NormalSource`:
-``facet_normal(si, active, nudge)``, ``slopes(attached)`` and ``local(width, attached)`` (the map's
-principal rms slopes and local statistics, for the faithful model), ``flat_texels()``,
+``facet_normal(si, active, nudge)``, ``slopes(attached)``, ``walls(attached)`` and
+``local(width, attached)`` (the map's principal rms slopes, its walls and local
+statistics, for the faithful model), ``flat_texels()``,
 ``parameters_changed(keys)`` and ``describe()``; none of them knows the plugin that owns it.
 """

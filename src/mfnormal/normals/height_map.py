@@ -145,6 +145,10 @@ class HeightMap:
         scale = self.height_scale * self.strength.first()
         return principal_slopes(height_map_normals(self.texture, scale, res)), None
 
+    def walls(self, attached=False):
+        """((0, 0, 0), None): a height map is the surface itself, whose walls are its own slopes."""
+        return (0.0, 0.0, 0.0), None
+
     def local(self, width: float, attached=False):
         """None: the faithful model reads a height map's slopes for every texel."""
         return None

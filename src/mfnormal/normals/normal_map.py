@@ -246,6 +246,25 @@ class NormalMap:
             return slopes, attached_slopes(wp)
         return slopes, attached_slopes(decode_normal(rgb, 1.0, self.directx), self.strength.value)
 
+    def walls(self, attached=False):
+        """((ψ_w, w_x, w_y), the same as Dr.Jit values that carry the map's and ``strength``'s
+        derivatives or None): the share of the map's relief that is walls and their mean slope in
+        its tangent frame (neighbourhood.walls), from its decoded texels as :meth:`slopes` reads them."""
+        from mfnormal.models import neighbourhood as nb
+        _, rgb, wp = self._sampled()
+        normals = wp if rgb is None else np.stack([np.array(wp.x), np.array(wp.y), np.array(wp.z)], -1)
+        values = nb.walls(*nb.winsorised_slopes(normals))
+        if rgb is None or not (attached and dr.grad_enabled(wp)):
+            return values, None
+        if max(self.strength.ok) > 0:
+            return values, nb.attached_walls(*nb.attached_winsorised(wp))
+        # (At strength 0 the slopes are strength × those at strength 1, none capped: w is strength ×
+        # the walls' slope at strength 1, with its derivative there. A map without slopes has no
+        # walls whatever its texels: ψ_w is 0 there, with no derivative.)
+        unit = decode_normal(rgb, 1.0, self.directx)
+        _, w1x, w1y = nb.attached_walls(*nb.attached_winsorised(unit, capped=False))
+        return values, (mi.Float(0.0), w1x * self.strength.value, w1y * self.strength.value)
+
     def local(self, width: float, attached=False):
         """Local statistics (docs/faithful.md §5): ((k, m_x, m_y, k_fine), the same as Dr.Jit values
         that carry the map's and ``strength``'s derivatives or None, res, uv_of) for a Gaussian
@@ -266,13 +285,15 @@ class NormalMap:
             normals = wp if rgb is None else np.stack([np.array(wp.x), np.array(wp.y), np.array(wp.z)], -1)
             s1, s2, _ = nb.principal_slopes(normals)
             sx, sy = nb.winsorised_slopes(normals)
-            total = s1 * s1 + s2 * s2
-            out = nb.local_field(sx, sy, res, taps, total) + nb.local_field(sx, sy, res, fine, total)[:1]
+            total, wall = s1 * s1 + s2 * s2, nb.walls(sx, sy)[1:]
+            out = nb.local_field(sx, sy, res, taps, total, wall) + nb.local_field(sx, sy, res, fine, total, wall)[:1]
             if not (attached and rgb is not None and dr.grad_enabled(wp)):
                 return out, None
             a1, a2, _ = nb.attached_slopes(wp)
             ax, ay = nb.attached_winsorised(wp)
-            return out, nb.attached_field(ax, ay, res, taps, a1, a2) + nb.attached_field(ax, ay, res, fine, a1, a2)[:1]
+            aw = nb.attached_walls(ax, ay)[1:]
+            return out, (nb.attached_field(ax, ay, res, taps, a1, a2, aw) +
+                         nb.attached_field(ax, ay, res, fine, a1, a2, aw)[:1])
         values, values_ad = field(wp, attached)
         if rgb is not None and max(self.strength.ok) == 0:
             # k is the ratio of two variances that both scale with strength²: at strength 0 (no

@@ -48,6 +48,11 @@ class NormalSource(Protocol):
         """((σ1, σ2, φ_e), the same as Dr.Jit values that carry derivatives or None): the map's
         principal rms slopes, for the faithful model."""
 
+    def walls(self, attached=False) -> tuple:
+        """((ψ_w, w_x, w_y), the same as Dr.Jit values that carry derivatives or None): the share of
+        the map's relief that is walls and their mean slope in its tangent frame (neighbourhood.walls),
+        for the faithful model."""
+
     def local(self, width: float, attached=False) -> tuple | None:
         """The faithful model's local statistics of a window ``width`` texels wide, or None: the
         map's slopes hold for every texel (docs/faithful.md §5)."""
@@ -72,6 +77,9 @@ class Flat:
         return False
 
     def slopes(self, attached=False):
+        return (0.0, 0.0, 0.0), None
+
+    def walls(self, attached=False):
         return (0.0, 0.0, 0.0), None
 
     def local(self, width: float, attached=False):

@@ -23,7 +23,8 @@ import drjit as dr
 import mitsuba as mi
 
 from mfnormal.models.faithful.nested import RADIANCE, Side, gate, macro_frame, select_sample, sided
-from mfnormal.surface.microsurface import negate
+from mfnormal.surface.microsurface import negate, score
+from mfnormal.models.rng import SALT_FAITHFUL_SAMPLE, SLOT_FAITHFUL_WALL, hash_floats, uniform
 from mfnormal.models.neighbourhood import INV_PI
 
 # ⟨ω_h, ω_p⟩ of the near-horizon direction at which the diffuse fill reads the facet's lobe.
@@ -327,16 +328,31 @@ class Fill(Lobe):
 
 class Hidden(Lobe):
     """(1 − V(ω_i))·f_g(ω_i, ω_o): the neighbours, where the texel is hidden (the nested BSDF on the
-    macro surface, reflection and transmission)."""
+    macro surface, reflection and transmission). On a map whose slopes do not average to zero, the
+    share ψ_w of them that are its walls (``tx.wall_share``) turns the light around: an upright wall
+    mirrors it across its plane (M_wall, ``tx.wall_mirror``) before or after the macro surface's lobe,
+    so ω_o gets (1 − ψ_w)·f_g(ω_i, ω_o) + ψ_w·f_g(ω_i, M_wall(ω_o)). M_wall keeps z: energy exact, and it
+    commutes with f_g's reflection and refraction, so the radiance sampler's flipped samples are the
+    adjoint's too (docs/faithful.md §7)."""
 
     flat = True
 
     def eval_pdf(self, q, active):
-        """(f_g, its pdf), skipped by packets in which no lane sees past the texel (``q.gated``)."""
-        tx, full = q.tx, mi.BSDFContext(RADIANCE)
-        return gate(active & (tx.vis < 1.0), lambda: sided(
-            q.sp, tx, full, macro_frame(), q.wi, q.wo, active & (tx.vis < 1.0), q.want_value, q.want_pdf,
-            side=Side.EITHER), (mi.Spectrum(0.0), mi.Float(0.0)), q.gated)
+        """(f_g, its pdf), the walls' share mirrored; each part skipped by packets in which no lane
+        sees past the texel or needs it (``q.gated``: the walls' by every packet of a map without)."""
+        return self.mixture(q.sp, q.tx, q.wi, q.wo, active & (q.tx.vis < 1.0), q.want_value, q.want_pdf, q.gated)
+
+    def mixture(self, sp, tx, inc, out, on, want_value, want_pdf, gated):
+        """(1 − ψ_w)·f_g(inc, out) + ψ_w·f_g(inc, M_wall(out)) and its pdf, where ``on`` (base frame)."""
+        full, share = mi.BSDFContext(RADIANCE), tx.wall_share
+        zero = (mi.Spectrum(0.0), mi.Float(0.0))
+        acc = []
+        parts = ((out, on & (share < 1.0), 1.0 - share), (tx.wall_mirror(out), on & (share > 0.0), share))
+        for d, on_d, weight in parts:
+            f, p = gate(on_d, lambda d=d, on_d=on_d: sided(sp, tx, full, macro_frame(), inc, d, on_d, want_value,
+                                                          want_pdf, side=Side.EITHER), zero, gated)
+            acc.append((f * weight, p * weight))
+        return acc[0][0] + acc[1][0], acc[0][1] + acc[1][1]
 
     def branches(self, tx_a, texel_for):
         """b sampled on ω_g from a, in proportion to the hidden share at the flat lobe's centre."""
@@ -348,8 +364,23 @@ class Hidden(Lobe):
         return [Branch(p, self, macro_frame(), a_real)]
 
     def density(self, sp, tx_a, br, b, active):
-        return sided(sp, tx_a, mi.BSDFContext(RADIANCE), br.frame, br.inc, b, active, False, True,
-                     side=Side.EITHER)[1]
+        return self.mixture(sp, tx_a, br.inc, b, active, False, True, False)[1]
+
+    def draw(self, sp, tx_a, br, on_k, s1, sample2, active, state):
+        """:meth:`Lobe.draw`, its sample mirrored by the walls with probability ψ_w (:func:`wall_turn`)."""
+        bs, w, delta, ok = super().draw(sp, tx_a, br, on_k, s1, sample2, active, state)
+        bs.wo, w = wall_turn(tx_a, bs.wo, w, hash_floats(SALT_FAITHFUL_SAMPLE, s1, sample2.x, sample2.y), on_k)
+        return bs, w, delta, ok
 
     def valid_sides(self, ok, bs, side, a):
         return ok & (bs.wo.z != 0)
+
+
+def wall_turn(tx, wo, w, seed, on):
+    """(ω_o, weight) of a sample on the hidden texel's neighbours, where ``on``: mirrored by the walls
+    (M_wall) with probability ψ_w (``tx.wall_share``; decided with detached ψ_w, the weight times its
+    score, so that its derivative accounts for ψ_w's)."""
+    share = tx.wall_share
+    walled = on & (uniform(seed, SLOT_FAITHFUL_WALL) < dr.detach(share))
+    w_on = w * score(dr.select(walled, share, 1.0 - share))
+    return dr.select(walled, tx.wall_mirror(wo), wo), dr.select(on, w_on, w)

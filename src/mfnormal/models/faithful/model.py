@@ -8,7 +8,8 @@ import mitsuba as mi
 
 from mfnormal.models.faithful.adjoint import eval_pdf as adjoint_eval_pdf
 from mfnormal.models.faithful.adjoint import sample as adjoint_sample
-from mfnormal.models.faithful.lobes import FILL_SHARE_MAX, FILL_SHARE_MIN, Direct, Fill, Hidden, Query, Retro, Skim
+from mfnormal.models.faithful.lobes import (FILL_SHARE_MAX, FILL_SHARE_MIN, Direct, Fill, Hidden, Query, Retro, Skim,
+                                            wall_turn)
 from mfnormal.models.faithful.nested import Components, crossing_eta, finish, gate, macro_frame, select_frame
 from mfnormal.models.faithful.tables import MapStatistics
 from mfnormal.models.faithful.texel import Texel
@@ -22,7 +23,8 @@ from mfnormal.models.rng import (ONE_MINUS_EPS, SALT_FAITHFUL_SAMPLE, SLOT_FAITH
 class Model(MapStatistics):
     """The faithful model for one plugin instance: its lobes, the map's σ and the Lambertian table."""
 
-    def __init__(self, nested, slopes, cos_min: float, fill_share=(FILL_SHARE_MIN, FILL_SHARE_MAX), local=None):
+    def __init__(self, nested, slopes, cos_min: float, fill_share=(FILL_SHARE_MIN, FILL_SHARE_MAX), local=None,
+                 wall=None):
         self.components = parts = Components(nested)
         self.direct, self.skim, self.retro, self.fill = Direct(parts), Skim(parts), Retro(parts), Fill(parts)
         self.hidden, self.fold, self.sink = Hidden(parts), Fold(parts), Sink(parts)
@@ -34,7 +36,7 @@ class Model(MapStatistics):
         self.adjoint_lobes = (self.fill, self.skim, self.retro, self.hidden, self.fold, self.sink)
         self.fill_share = fill_share
         self.cos_min = cos_min
-        self.set_slopes(slopes, local=local)
+        self.set_slopes(slopes, local=local, wall=wall)
 
     def texel(self, sp, wi):
         """The texel at ``sp`` seen from ``wi`` (base frame)."""
@@ -132,6 +134,8 @@ class Model(MapStatistics):
             # (Blocked reflected light seen from above sinks below the neighbours the same way: transmission.Sink.)
             sunk = bounced & tx.sinks
             wo = dr.select(through | sunk, mi.Vector3f(d.x, d.y, -dr.abs(d.z)), wo)
+        # Hidden branch: the share of the neighbours that are walls turns the sample around (Hidden).
+        wo, w = wall_turn(tx, wo, w, seed, on_hid)
         # Diffuse fill: a cosine lobe about ω_g.
         wo = dr.select(on_fill, mi.warp.square_to_cosine_hemisphere(sample2), wo)
         # A nested sample counts only if it is one: positive weight, on the upper side of its frame

@@ -1,6 +1,6 @@
 """What the default model knows of its map: the principal rms slopes σ1, σ2 and their axis φ_e,
-the blocked-light table B over them, and, with local statistics, the grids of each
-neighbourhood's scale k and mean slope (docs/faithful.md §1, §1.1).
+the blocked-light table B over them, the mean slope of its walls, and, with local statistics, the
+grids of each neighbourhood's scale k and mean slope (docs/faithful.md §1, §1.1, §7).
 
 They enter the kernels as opaque values, so a new map compiles nothing new; where the map
 carries derivatives, they carry them into every query (docs/faithful.md §6). The table and the
@@ -28,6 +28,8 @@ MILD_SLOPE = 1.0
 class MapStatistics:
     """The map's slopes σ1, σ2, φ_e, the table B(σ1, σ2) and the local statistics' grids, for one
     plugin instance (:meth:`set_slopes`), and what a texel reads of them."""
+
+    wall = (0.0, 0.0, 0.0)      # the share of the map's relief that is walls and their mean slope (set_slopes)
 
     def rms_slope(self):
         """The map's rms slope σ = ((σ1² + σ2²)/2)^½ (a neighbourhood's is k·σ), with σ1's and
@@ -59,7 +61,29 @@ class MapStatistics:
             wm = from_tangent_rotation(wm, sp.map_rotation)
         return k, wm
 
-    def set_slopes(self, slopes, attached=None, local=None):
+    def walls(self, sp):
+        """(ψ_w, n_w): the share of the map's relief that is walls (neighbourhood.walls: 1 for a map
+        tilted the same way everywhere, 0 for one whose slopes average to zero), and the walls'
+        normal (base frame, in the macro plane, along their mean slope w; any unit vector of the
+        plane where there are none)."""
+        wx, wy = self.wall_x, self.wall_y
+        w2 = dr.fma(wx, wx, wy * wy)
+        some = w2 > 0
+        n = mi.Vector3f(dr.select(some, wx, 1.0), dr.select(some, wy, 0.0), 0.0) * dr.rsqrt(dr.select(some, w2, 1.0))
+        if sp.map_rotation is not None:
+            n = from_tangent_rotation(n, sp.map_rotation)
+        return self.wall_share, n
+
+    def neighbourhood_walls(self, k):
+        """With local statistics: the share |w|²/(k²(σ1² + σ2²)) of the neighbourhood's second moment
+        about its mean plane (scale ``k``) that the map's walls hold (neighbourhood.local_field): 1 for a
+        map tilted the same way everywhere, 0 for one whose slopes average to zero."""
+        walls = dr.fma(self.wall_x, self.wall_x, self.wall_y * self.wall_y)
+        spread = k * k * dr.fma(self.sigma1, self.sigma1, self.sigma2 * self.sigma2)
+        some = spread > 0
+        return dr.select(some, dr.minimum(walls / dr.select(some, spread, 1.0), 1.0), 0.0)
+
+    def set_slopes(self, slopes, attached=None, local=None, wall=None):
         """(Re)build what depends on the map's slopes ``(σ1, σ2, φ_e)`` (principal_slopes);
         they enter the kernels as opaque values, so a new map compiles nothing new.
 
@@ -72,7 +96,12 @@ class MapStatistics:
         ``local``: ((k, m_x, m_y), the same as Dr.Jit values that carry derivatives or None, res,
         uv_of): the neighbourhood's scale k and mean slope on a res × res grid of the map (numpy;
         :func:`neighbourhood.local_field`), and the map's uv at a surface interaction; None: every
-        texel has the map's neighbourhood about ω_g. The table then has an axis in k."""
+        texel has the map's neighbourhood about ω_g. The table then has an axis in k.
+
+        ``wall``: ((ψ_w, w_x, w_y), the same as Dr.Jit values that carry derivatives or None): the
+        share of the map's relief that is walls and their mean slope (neighbourhood.walls); None:
+        the walls as they were (no derivatives), none at first."""
+        self._set_wall(wall)
         s1, s2, phi_e = (float(x) for x in slopes)
         self.flat = s1 == 0.0 and s2 == 0.0         # every texel flat (or strength 0)
         self.local, scales = None, None
@@ -101,6 +130,20 @@ class MapStatistics:
             dr.make_opaque(self.sigma1, self.sigma2, self.cos_e, self.sin_e, self.table)
         else:
             self.table = table
+
+    def _set_wall(self, wall):
+        """The walls' share ψ_w and mean slope (w_x, w_y) as opaque kernel inputs, with their
+        derivatives where ``wall`` carries them (:meth:`set_slopes`)."""
+        if wall is None:
+            wall = (self.wall, None)
+        values, attached = wall
+        self.wall = tuple(float(x) for x in values)
+        own = [mi.Float(x) for x in self.wall]
+        if dr.is_jit_v(mi.Float):
+            if attached is not None:
+                own = [replace_grad(x, a) for x, a in zip(own, attached)]
+            dr.make_opaque(*own)
+        self.wall_share, self.wall_x, self.wall_y = own
 
     def blocked(self, cos_p, phi, g, k=None):
         """B(cosθ_p, φ, G1(ω_i)) from the table (at the neighbourhood's scale ``k``, with local

@@ -56,18 +56,26 @@ class Texel:
             wp = self._camera_side(wp)
         self.wi, self.wp = wi, wp
         self.fill_rho = None          # lobes.Fill.rho's, once computed
+        # The share of the neighbours hiding the texel that are the map's walls, and their normal
+        # (MapStatistics.walls; lobes.Hidden).
+        self.wall_share, self.wall_n = model.walls(sp)
         # With local statistics: the neighbourhood's slopes are the map's times k, and its mean
         # normal ω_m is the macro surface the texel's projected area is measured on (None: the
         # map's slopes, about ω_g).
         self.k, wm = model.local_stats(sp)
+        # The share of the neighbourhood's relief that is the map's walls (None without local
+        # statistics: MapStatistics.neighbourhood_walls).
+        self.local_walls = None if self.k is None else model.neighbourhood_walls(self.k)
         self.lam_i = self.smith_lambda(wi)
         g1_i = dr.rcp(1.0 + self.lam_i)
         if wm is None:
             proj = dr.maximum(dr.dot(wi, wp), 0.0) / (wp.z * dr.maximum(wi.z, 1e-30))
             self.vis = dr.minimum(1.0, proj * g1_i)
         else:
-            # (R on a plane between the texel's own and its neighbourhood's mean plane: OWN_PLANE_K.)
-            t = dr.minimum(self.k * (1.0 / OWN_PLANE_K), 1.0)
+            # (R on a plane between the texel's own and its neighbourhood's mean plane: OWN_PLANE_K;
+            # on the mean plane where the neighbourhood's relief is walls: upright, they take no
+            # footprint from ω_g, so there a texel among them is a facet on their mean plane.)
+            t = dr.lerp(dr.minimum(self.k * (1.0 / OWN_PLANE_K), 1.0), 1.0, self.local_walls)
             if model.flat:
                 # (A flat map, e.g. at strength 0: ω_t = ω_p = ω_m = ω_g for every t, so nothing
                 # flows through t; k still carries the texels' derivatives there, and its path
@@ -94,6 +102,12 @@ class Texel:
         if self.flip is None:
             return w
         return mi.Vector3f(w.x, w.y, dr.select(self.flip, -w.z, w.z))
+
+    def wall_mirror(self, w):
+        """M_wall(w): ``w`` (either frame) mirrored in the plane of the map's walls, which stand
+        upright on the macro surface: z is kept, so M_wall commutes with :meth:`to_camera` and with the
+        macro surface's own reflection and refraction."""
+        return w - 2.0 * dr.dot(w, self.wall_n) * self.wall_n
 
     def principal(self, w):
         """``w`` (base frame) in the principal frame of the map's slopes."""
@@ -133,8 +147,11 @@ class Texel:
         # And a cavity sends light back only if its walls are steep: the share also fades with the
         # neighbourhood's rms slope k·σ below RETRO_SLOPE (a mild neighbourhood's blocked light, e.g.
         # a facet's mirror direction under the macro plane at an object's limb, skims on).
+        # Walls are steep whatever the facets' slope: the share of the relief that is walls sends
+        # its blocked light back at any k.
         rms = self.k * self.model.rms_slope()
-        return blocked * dr.minimum(self.k * (1.0 / RETRO_K), 1.0) * dr.minimum(rms * (1.0 / RETRO_SLOPE), 1.0)
+        fade = dr.minimum(self.k * (1.0 / RETRO_K), 1.0) * dr.minimum(rms * (1.0 / RETRO_SLOPE), 1.0)
+        return blocked * dr.lerp(fade, 1.0, self.local_walls)
 
     def bounce(self, d, retro):
         """M(d): where blocked light travelling along d leaves: back the way the facet's mirror
