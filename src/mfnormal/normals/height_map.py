@@ -24,7 +24,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from mfnormal.surface.microsurface import upper_unit
+from mfnormal.surface.microsurface import spread, upper_unit
 from mfnormal.surface.shading import from_tangent_frame, tangent_rotation
 from mfnormal.normals.strength import fail
 from mfnormal.normals.tangents import VertexTangents
@@ -119,7 +119,8 @@ class HeightMap:
     def facet_normal(self, si, active, nudge=None):
         """(ω_p in si.sh_frame, the map frame's tangent_rotation or None, False: a height map's
         derivatives are its normal's own, no nudges)."""
-        grad = mi.Vector2f(self.texture.eval_1_grad(finite_uv(si), active)) * (self.height_scale * self.strength.value)
+        grad = mi.Vector2f(self.texture.eval_1_grad(finite_uv(si), active))
+        grad = grad * (self.height_scale * spread(self.strength.value, dr.width(grad)))
         wp = height_normal(grad, si.sh_frame, si.dp_du, si.dp_dv)
         rotation = None
         if self.tangents is not None:

@@ -20,7 +20,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from mfnormal.surface.microsurface import SIN_P_EPS, decode_normal
+from mfnormal.surface.microsurface import SIN_P_EPS, decode_normal, spread
 from mfnormal.models.neighbourhood import kernel_array
 from mfnormal.surface.shading import from_tangent_frame, tangent_rotation
 from mfnormal.normals.strength import fail
@@ -126,7 +126,7 @@ class NormalMap:
         strength + STRENGTH_NUDGE (+ twice it), the texel detached; ``(axis, sign)``: ω_p tilted
         by FLAT_NUDGE along ±x or ±y of the map's frame, the other axis detached."""
         rgb = self.map_rgb(si, active)
-        strength = self.strength.value
+        strength = spread(self.strength.value, dr.width(rgb))
         if isinstance(nudge, str):          # "strength", "strength2": at STRENGTH_NUDGE, twice it
             rgb, strength = dr.detach(rgb), strength + STRENGTH_NUDGE * (2.0 if nudge == "strength2" else 1.0)
         wp = decode_normal(rgb, strength, self.directx)

@@ -80,6 +80,17 @@ def replace_grad(a, b):
     return dr.replace_grad(a, b) if dr.is_diff_v(a) and dr.is_diff_v(b) else a
 
 
+def spread(value, width: int):
+    """``value`` (one Dr.Jit value shared by every lane, e.g. a map-wide statistic or ``strength``)
+    gathered onto ``width`` lanes where it carries derivatives: the same value, bit for bit, whose
+    adjoint reverse mode sums over the lanes once, by one scatter into it inside the kernel. A size-1
+    value used directly in wider operations gets its adjoint summed at every such use instead, each
+    sum a reduction that ends a kernel. Without derivatives (or one lane): ``value`` itself."""
+    if width <= 1 or not dr.is_jit_v(value) or not dr.grad_enabled(value) or dr.width(value) != 1:
+        return value
+    return dr.gather(type(value), value, dr.zeros(mi.UInt32, width))
+
+
 def score(p):
     """p/detach(p): value 1, derivative dp/p. An estimator that takes a branch of probability p
     with detached random numbers multiplies by it, so that its derivative accounts for p's

@@ -9,13 +9,14 @@ grids are computed by :mod:`mfnormal.models.neighbourhood`.
 
 from __future__ import annotations
 
+import copy
 import math
 
 import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from mfnormal.surface.microsurface import replace_grad
+from mfnormal.surface.microsurface import replace_grad, spread
 from mfnormal.models.neighbourhood import blocked_table, field_lookup, kernel_array, local_scales, lookup
 from mfnormal.surface.shading import from_tangent_rotation
 
@@ -30,6 +31,22 @@ class MapStatistics:
     plugin instance (:meth:`set_slopes`), and what a texel reads of them."""
 
     wall = (0.0, 0.0, 0.0)      # the share of the map's relief that is walls and their mean slope (set_slopes)
+    #: The map-wide values a texel reads, one each (set_slopes): where they carry derivatives,
+    #: :meth:`at_width` spreads them over a query's lanes.
+    MAP_WIDE = ("sigma1", "sigma2", "cos_e", "sin_e", "wall_share", "wall_x", "wall_y")
+
+    def at_width(self, width: int):
+        """These statistics for a query of ``width`` lanes: where the map-wide values carry
+        derivatives, each spread onto the lanes once (microsurface.spread: the same values, and one
+        reduction of each one's adjoint per backward pass instead of one at each use, about 200 per
+        query); without derivatives, these statistics themselves."""
+        values = [getattr(self, name) for name in self.MAP_WIDE]
+        if width <= 1 or not dr.is_jit_v(mi.Float) or not dr.grad_enabled(*values):
+            return self
+        view = copy.copy(self)
+        for name, value in zip(self.MAP_WIDE, values):
+            setattr(view, name, spread(value, width))
+        return view
 
     def rms_slope(self):
         """The map's rms slope σ = ((σ1² + σ2²)/2)^½ (a neighbourhood's is k·σ), with σ1's and

@@ -47,6 +47,8 @@ class Texel:
     between the two (F is its own inverse); the nested BSDF is always called in the base frame."""
 
     def __init__(self, sp, model, wi):
+        # (The map's statistics spread over the query's lanes where they carry derivatives.)
+        model = model.at_width(dr.width(wi))
         self.sp, self.model, self.wi_real = sp, model, wi
         self.flip = None              # where the camera is below the macro surface (None: never)
         wp = sp.wp
