@@ -307,3 +307,28 @@ def test_walk_derivatives_at_a_flat_and_a_tilted_map(model, facet):
     for (what, h), c in tilted.items():
         assert c.agrees(), f"tilted map, {what}, FD step {h:g}: {c}"
     assert abs(tilted["eval", 0.02].fd) > 4 * tilted["eval", 0.02].se, tilted["eval", 0.02]
+
+
+@pytest.mark.parametrize("key", ["strength", ("texel", 1, 1)], ids=["strength", "texel"])
+def test_reverse_mode_sums_each_map_wide_adjoint_once(key):
+    """The default model's backward pass runs in a few kernels of the queries' width. The values
+    every lane shares (the map's slopes σ1, σ2, φ_e and walls, ``strength``) carry the map's
+    derivatives into every query; used directly in the queries' arithmetic, Dr.Jit sums such a
+    value's adjoint over the lanes at each use, a reduction that ends a kernel: measured 146
+    kernels of the queries' width per backward pass (and 202 reductions) against 2 with each value
+    spread onto the lanes once (microsurface.spread). The bound, 8, leaves room for a few more
+    legitimate splits and catches any return of the per-use reductions."""
+    n = 1 << 12
+    b = make_bsdf(DIFFUSE, TILTED, model="faithful")
+    si, wo, u = G.queries(n, 4)
+    G.reverse(b, key, si, wo, u)           # compiles (the count is the same either way)
+    dr.kernel_history_clear()
+    dr.set_flag(dr.JitFlag.KernelHistory, True)
+    try:
+        g = G.reverse(b, key, si, wo, u)
+    finally:
+        history = dr.kernel_history()
+        dr.set_flag(dr.JitFlag.KernelHistory, False)
+    wide = [k for k in history if k.get("type") == dr.KernelType.JIT and k.get("size") == n]
+    assert g != 0.0 and np.isfinite(g), g
+    assert 1 <= len(wide) <= 8, f"{len(wide)} kernels of the queries' width in one backward pass"
