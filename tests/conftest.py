@@ -29,13 +29,18 @@ def pytest_report_header(config):
 
 # -- Slow tests ------------------------------------------------------------------------------------
 # ``@pytest.mark.slow``: scale tests, and the cases of a check beyond those the default run keeps
-# (every model and contract has at least one case in the default run). They run with
-# MFNORMAL_SLOW=1.
+# (every model and contract has at least one case in the default run), marked in their modules
+# or listed with what covers them in tests/tiers.py. They run with MFNORMAL_SLOW=1.
 
 SLOW = os.environ.get("MFNORMAL_SLOW", "") not in ("", "0")
 
 
 def pytest_collection_modifyitems(config, items):
+    from tiers import slow_reason
+
+    for item in items:
+        if slow_reason(item.nodeid) is not None:
+            item.add_marker(pytest.mark.slow)
     if SLOW:
         return
     skip = pytest.mark.skip(reason="slow: MFNORMAL_SLOW=1 runs it")

@@ -1,8 +1,9 @@
 """What the two fuzzers (``test_cli_fuzz.py``, ``test_gltf_fuzz.py``) share.
 
-- :func:`input_count` and :func:`fuzz_test`: ``CI`` inputs derandomised (the
-  same every run) unless ``MFNORMAL_FUZZ_LONG=1`` (``LONG`` random inputs, the
-  Hypothesis seed of a failure printed); ``MFNORMAL_FUZZ_INPUTS=N`` sets the count;
+- :func:`input_count` and :func:`fuzz_test`: ``QUICK`` inputs in the default run and
+  ``CI`` with ``MFNORMAL_SLOW=1``, derandomised (the same every run), unless
+  ``MFNORMAL_FUZZ_LONG=1`` (``LONG`` random inputs, the Hypothesis seed of a failure
+  printed); ``MFNORMAL_FUZZ_INPUTS=N`` sets the count;
 - :class:`Stats`: the inputs run, their outcomes and time, printed at the end
   (``pytest -s``), and ``MFNORMAL_FUZZ_LOG=FILE``, each input's exit code and last
   stderr line appended to FILE;
@@ -26,11 +27,15 @@ from hypothesis import HealthCheck, Phase, given, settings
 from hypothesis import strategies as st
 
 LONG = os.environ.get("MFNORMAL_FUZZ_LONG", "") not in ("", "0")
+SLOW = os.environ.get("MFNORMAL_SLOW", "") not in ("", "0")
 LOG = os.environ.get("MFNORMAL_FUZZ_LOG")
 
 
-def input_count(ci: int, long: int) -> int:
-    return int(os.environ.get("MFNORMAL_FUZZ_INPUTS", long if LONG else ci))
+def input_count(ci: int, long: int, quick: int | None = None) -> int:
+    """How many inputs a fuzz test runs: ``quick`` (where given) in the default run, ``ci`` with
+    ``MFNORMAL_SLOW=1``, ``long`` with ``MFNORMAL_FUZZ_LONG=1``, or ``MFNORMAL_FUZZ_INPUTS``."""
+    default = long if LONG else (ci if SLOW or quick is None else quick)
+    return int(os.environ.get("MFNORMAL_FUZZ_INPUTS", default))
 
 
 def fuzz_test(inputs: int):

@@ -21,8 +21,9 @@ a signal, a timeout or the memory cap.
 
 The fuzzer does not ask for long renders: sample counts above 16 are drawn
 only where they are invalid (≥ 2^31), and ``--limit render_pixels=4096`` is
-always passed last (a larger film is a one-line error). ``CI_INPUTS`` inputs
-derandomised; ``MFNORMAL_FUZZ_LONG=1`` runs ``LONG_INPUTS`` random ones
+always passed last (a larger film is a one-line error). ``QUICK_INPUTS`` inputs in
+the default run, ``CI_INPUTS`` with ``MFNORMAL_SLOW=1``, derandomised;
+``MFNORMAL_FUZZ_LONG=1`` runs ``LONG_INPUTS`` random ones
 (``MFNORMAL_FUZZ_INPUTS=N`` sets the count); ``pytest -s`` prints the
 throughput; ``MFNORMAL_FUZZ_LOG=FILE`` appends each input's exit code, last
 stderr line and arguments to FILE.
@@ -40,8 +41,8 @@ from fuzzing import Stats, fuzz_test, input_count, render_or_one_line_error
 from gltf_models import base_document, glb_bytes, write_gltf
 from helpers import write_maps, xml_plugin, xml_scene
 
-CI_INPUTS, LONG_INPUTS = 400, 10_000
-INPUTS = input_count(CI_INPUTS, LONG_INPUTS)
+QUICK_INPUTS, CI_INPUTS, LONG_INPUTS = 100, 400, 10_000
+INPUTS = input_count(CI_INPUTS, LONG_INPUTS, QUICK_INPUTS)
 TIMEOUT = 120.0
 FORCED = ["--limit", "render_pixels=4096"]
 

@@ -29,7 +29,7 @@ cap, or a file opened outside the model's folder (the worker records every
 open; a ``secret.png`` sits next to the folder, and links to it and to
 ``/dev/zero`` inside it).
 
-CI (and every run without ``MFNORMAL_FUZZ_LONG``) runs ``CI_INPUTS`` inputs,
+The default run takes ``QUICK_INPUTS`` inputs, ``MFNORMAL_SLOW=1`` ``CI_INPUTS``, both
 derandomised (the same inputs every run). ``MFNORMAL_FUZZ_LONG=1`` runs
 ``LONG_INPUTS`` random inputs (``MFNORMAL_FUZZ_INPUTS=N`` sets the count), and
 prints the Hypothesis seed of a failure. The test prints the throughput
@@ -56,8 +56,8 @@ from fuzzing import Stats, fuzz_test, input_count, render_or_one_line_error
 from gltf_models import base_document, glb_bytes
 from mfnormal.io.images import png_bytes
 
-CI_INPUTS, LONG_INPUTS = 800, 10_000
-INPUTS = input_count(CI_INPUTS, LONG_INPUTS)
+QUICK_INPUTS, CI_INPUTS, LONG_INPUTS = 200, 800, 10_000
+INPUTS = input_count(CI_INPUTS, LONG_INPUTS, QUICK_INPUTS)
 TIMEOUT = 60.0
 # Small caps: a mutation that asks for more is refused quickly (and the caps are exercised).
 LIMITS = ["--limit", "render_pixels=20000", "--limit", "image_pixels=1048576", "--limit", "texture_pixels=4194304",
