@@ -77,7 +77,7 @@ SLOW = {
     "tests/test_fuzz.py::test_fuzzed_queries_are_finite_valid_and_bounded[faithful-specular-roughconductor]":
         "faithful-specular-roughplastic (a glossy lobe), nonseparable-same-roughconductor",
     "tests/test_hostile.py::test_hostile_scene_renders_finite_or_fails_in_one_line[normalmap_8192x8192-analytic]":
-        "the 8192² map's faithful case (a scale test)",
+        "a scale case: the other hostile scenes (the 1×1 map among them) in the default run; an 8192² map at 1080p: test_two_million_triangles_and_8k_normal_map_at_1080p",
     "tests/test_hostile.py::test_render_does_not_depend_on_thread_count[nonseparable]": "its analytic case",
     # -- Renders ------------------------------------------------------------------------------------
     "tests/test_fused.py::test_walks_match_path_in_expectation[separable-specular]": "its nonseparable-same case",
