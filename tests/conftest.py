@@ -14,6 +14,7 @@ import shutil
 import pytest
 
 import mfnormal  # noqa: F401
+from tiers import FULL, slow_reason
 from variant import VARIANT, check
 
 
@@ -32,16 +33,11 @@ def pytest_report_header(config):
 # (every model and contract has at least one case in the default run), marked in their modules
 # or listed with what covers them in tests/tiers.py. They run with MFNORMAL_SLOW=1.
 
-SLOW = os.environ.get("MFNORMAL_SLOW", "") not in ("", "0")
-
-
 def pytest_collection_modifyitems(config, items):
-    from tiers import slow_reason
-
     for item in items:
         if slow_reason(item.nodeid) is not None:
             item.add_marker(pytest.mark.slow)
-    if SLOW:
+    if FULL:
         return
     skip = pytest.mark.skip(reason="slow: MFNORMAL_SLOW=1 runs it")
     for item in items:

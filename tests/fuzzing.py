@@ -26,15 +26,16 @@ import pytest
 from hypothesis import HealthCheck, Phase, given, settings
 from hypothesis import strategies as st
 
+from tiers import FULL
+
 LONG = os.environ.get("MFNORMAL_FUZZ_LONG", "") not in ("", "0")
-SLOW = os.environ.get("MFNORMAL_SLOW", "") not in ("", "0")
 LOG = os.environ.get("MFNORMAL_FUZZ_LOG")
 
 
 def input_count(ci: int, long: int, quick: int | None = None) -> int:
     """How many inputs a fuzz test runs: ``quick`` (where given) in the default run, ``ci`` with
     ``MFNORMAL_SLOW=1``, ``long`` with ``MFNORMAL_FUZZ_LONG=1``, or ``MFNORMAL_FUZZ_INPUTS``."""
-    default = long if LONG else (ci if SLOW or quick is None else quick)
+    default = long if LONG else (ci if FULL or quick is None else quick)
     return int(os.environ.get("MFNORMAL_FUZZ_INPUTS", default))
 
 

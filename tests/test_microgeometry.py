@@ -21,7 +21,6 @@ of an 8×8 histogram is ≈ 0.011 (measured: 0.007–0.015 for the non-separable
 """
 
 import functools
-import os
 
 import numpy as np
 import pytest
@@ -29,6 +28,7 @@ from scipy import stats
 
 from validation.reference import microgeometry as mg  # noqa: E402  (imports mfnormal first: libLLVM)
 import mitsuba as mi
+from tiers import FULL
 
 N = 500_000          # rays traced and plugin samples per case
 ALPHA = 1e-3         # family-wise false-alarm rate per case
@@ -50,8 +50,7 @@ ALL_CASES = LAMBERT_CASES + OBLIQUE_CASES + GLOSSY_CASES
 # (θ_p, θ_i, side, tangent facet) tests/test_nonseparable_vs_sawtooth.py also compares, against
 # the sawtooth tracer, in the default run.
 SLOW_CASES = [c for c in LAMBERT_CASES if c[2] == 30]
-SLOW = os.environ.get("MFNORMAL_SLOW", "") not in ("", "0")
-RUN_CASES = ALL_CASES if SLOW else [c for c in ALL_CASES if c not in SLOW_CASES]
+RUN_CASES = ALL_CASES if FULL else [c for c in ALL_CASES if c not in SLOW_CASES]
 
 
 def case_params(cases):

@@ -13,6 +13,11 @@ Keys are pytest node ids: a key that ends with ``[`` covers the parametrised cas
 and a case id is listed whole.
 """
 
+import os
+
+#: Whether this run is the full suite (``MFNORMAL_SLOW=1``).
+FULL = os.environ.get("MFNORMAL_SLOW", "") not in ("", "0")
+
 #: node id (or a prefix ending in "[") -> what holds the contract in the default run
 SLOW = {
     # -- Derivatives -----------------------------------------------------------------------------

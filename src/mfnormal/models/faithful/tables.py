@@ -41,11 +41,12 @@ class MapStatistics:
         reduction of each one's adjoint per backward pass instead of one at each use, about 200 per
         query); without derivatives, these statistics themselves."""
         values = [getattr(self, name) for name in self.MAP_WIDE]
-        if width <= 1 or not dr.is_jit_v(mi.Float) or not dr.grad_enabled(*values):
+        spread_values = [spread(value, width) for value in values]
+        if all(s is v for s, v in zip(spread_values, values)):
             return self
         view = copy.copy(self)
-        for name, value in zip(self.MAP_WIDE, values):
-            setattr(view, name, spread(value, width))
+        for name, value in zip(self.MAP_WIDE, spread_values):
+            setattr(view, name, value)
         return view
 
     def rms_slope(self):
