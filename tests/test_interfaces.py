@@ -61,8 +61,14 @@ def test_every_normal_source_offers_the_interface():
 
 def test_a_shading_point_declares_its_fields_and_its_macro_frame():
     si = make_si(np.array([[0.0, 0.6, 0.8]]), 2)
-    for macro_normal, frame in (("shading", SHADING_FRAME), ("geometric", None)):
-        sp = make_bsdf(DIFFUSE, TILTED, macro_normal=macro_normal).shading_point(mi.BSDFContext(), si)
+    radiance, importance = mi.BSDFContext(), mi.BSDFContext(mi.TransportMode.Importance)
+    # (the default sees a coarse mesh's rim on the triangle in radiance mode: a Macro, the identity
+    # elsewhere; normals/macro.py turned_normal)
+    for macro_normal, model, ctx, frame in (("shading", "analytic", radiance, SHADING_FRAME),
+                                            ("shading", "faithful", importance, SHADING_FRAME),
+                                            ("shading", "faithful", radiance, None),
+                                            ("geometric", "faithful", radiance, None)):
+        sp = make_bsdf(DIFFUSE, TILTED, model=model, macro_normal=macro_normal).shading_point(ctx, si)
         assert isinstance(sp.macro, MacroFrame)
         assert sp.macro is frame if frame is not None else isinstance(sp.macro, Macro)
         with pytest.raises(AttributeError):

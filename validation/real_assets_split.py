@@ -23,6 +23,15 @@ Per pixel and channel, with w = 1/(T² + 10⁻²) after the metered exposure of
 - bias² = relMSE − noise − the truth's own noise (mean w·(T₁ − T₂)²/4): the distance to the truth
   a converged render would keep.
 
+The **relief contrast** of an image is how much of the truth's relief it draws: the standard
+deviation of its luminance's detail over the object (the image less its Gaussian blur of
+:data:`RELIEF_BLUR` of the frame's width, taken over the object alone, and counted away from the
+silhouette by twice that), over the truth's. The object's own shading, which changes over its whole
+size, is not relief; nor is noise: the detail's variance is the covariance of the two halves'
+details, whose noise is independent, so the contrast is that of a converged render at any spp. A
+method keeps the relief of a cell where its contrast is within :data:`RELIEF_TOLERANCE` of 1; the
+truth rendered again at the methods' spp shows what the instrument resolves.
+
 The **noise floor** of a cell is what the instrument can resolve in a bias²: the truth rendered
 again at the methods' spp has bias² 0, and its estimate's magnitude plus two standard errors (over
 the object's pixels) is the floor. A cell is **resolved** when its floor is at most 1/10 of the
@@ -51,6 +60,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from scipy import ndimage
 
 from validation import real_assets as RA
 
@@ -78,6 +88,11 @@ FAR = 2.0
 EPS = 1e-2
 #: A cell is resolved where its floor is at most this share of the better classic's relMSE.
 RESOLVED = 0.1
+#: The relief contrast's blur, as a share of the frame's width: the Gaussian's standard deviation
+#: (3 px at 96²) that parts the relief a map draws from the object's own shading (relief_part).
+RELIEF_BLUR = 1.0 / 32.0
+#: A method keeps the truth's relief in a cell where its relief contrast is within this of 1.
+RELIEF_TOLERANCE = 0.1
 #: Seeds of the second halves: this far from the first halves' (render passes take seed, seed + 1, ...).
 HALF_SEED = 500_000
 
@@ -97,9 +112,33 @@ def render_halves(scene, spp: int, seed: int):
     return H.render(scene, n, seed), H.render(scene, n, seed + HALF_SEED)
 
 
+def relief_part(lum, mask, sigma_px: float):
+    """The relief in a luminance image ``lum``: its pixels in ``mask`` minus a Gaussian blur of
+    standard deviation ``sigma_px`` pixels over the mask alone (normalised convolution, so that the
+    background and the silhouette add nothing): the detail a normal map draws, without the
+    object's own shading, which falls off over its whole size."""
+    m = mask.astype(np.float64)
+    smooth = ndimage.gaussian_filter(lum * m, sigma_px, mode="constant")
+    weight = ndimage.gaussian_filter(m, sigma_px, mode="constant")
+    return (lum - smooth / np.maximum(weight, 1e-12))[mask]
+
+
+def relief_variance(lum_halves, mask, sigma_px: float) -> float:
+    """The variance of the relief (:func:`relief_part`) over the mask less a rim of 2·``sigma_px``
+    (where the blur of a shading that changes across the silhouette would leave some of it), without
+    the noise: the covariance of the two halves' reliefs, whose noise is independent (a converged
+    render's variance, whatever the spp)."""
+    inner = ndimage.binary_erosion(mask, iterations=max(1, math.ceil(2.0 * sigma_px)))
+    inner = inner if inner.any() else mask
+    h1, h2 = (relief_part(lum, mask, sigma_px)[inner[mask]] for lum in lum_halves)
+    return float(np.mean(h1 * h2) - np.mean(h1) * np.mean(h2))
+
+
 def split_metrics(halves, truth_halves, mask) -> dict:
     """relMSE, noise, bias² and bias²'s standard error (over the pixels of ``mask``) of the image
-    whose two halves are ``halves`` against the truth's (module docstring), and its energy."""
+    whose two halves are ``halves`` against the truth's (module docstring), its energy and its
+    relief contrast (the relief's standard deviation over the truth's, both without noise:
+    :func:`relief_variance`; NaN where the truth shows none)."""
     t1, t2 = truth_halves
     t = 0.5 * (t1 + t2)
     k = H.EXPOSURE_MEAN / max(float(luminance(t)[mask].mean()), 1e-12)
@@ -111,7 +150,12 @@ def split_metrics(halves, truth_halves, mask) -> dict:
     noise = (w * 0.25 * (x1 - x2) ** 2)[mask].mean(axis=-1)
     truth_noise = (w * 0.25 * (t1 - t2) ** 2)[mask].mean(axis=-1)
     bias = err - noise - truth_noise
-    return {"rel_mse": float(err.mean()), "noise": float(noise.mean()), "bias2": float(bias.mean()),
+    sigma_px = RELIEF_BLUR * mask.shape[1]
+    var_x = relief_variance((luminance(x1), luminance(x2)), mask, sigma_px)
+    var_t = relief_variance((luminance(t1), luminance(t2)), mask, sigma_px)
+    relief = math.sqrt(max(var_x, 0.0) / var_t) if var_t > 0 else math.nan
+    return {"relief": relief, "relief_var": var_x, "truth_relief_var": var_t,
+            "rel_mse": float(err.mean()), "noise": float(noise.mean()), "bias2": float(bias.mean()),
             "bias2_se": float(bias.std(ddof=1) / math.sqrt(max(bias.size, 2))),
             "truth_noise": float(truth_noise.mean()),
             "energy": float(luminance(x)[mask].mean() / max(float(luminance(t)[mask].mean()), 1e-12))}
@@ -200,9 +244,23 @@ def summarise(cells: list, keys: list) -> dict:
                 "noise": TG.geomean([m["noise"] for m in ms]), "le_classic": sum(m["le_classic"] for m in ms),
                 "equal_time_rel_mse": TG.geomean([m.get("equal_time_rel_mse") for m in ms]),
                 "time_ratio": float(np.median([m["time_ratio"] for m in ms])) if ms and "time_ratio" in ms[0] else None,
-                "equal_time_le_classic": sum(m.get("equal_time_le_classic", False) for m in ms)}
+                "equal_time_le_classic": sum(m.get("equal_time_le_classic", False) for m in ms),
+                **relief_summary([m.get("relief", math.nan) for m in ms])}
+        row["again"] = relief_summary([c["again"].get("relief", math.nan) for c in rs])
         out[name] = row
     return out
+
+
+def relief_summary(contrasts) -> dict:
+    """The geometric mean of relief contrasts (NaN ones left out: a truth without relief) and how
+    many are within RELIEF_TOLERANCE of 1, of how many."""
+    ok = [c for c in contrasts if math.isfinite(c) and c > 0]
+    return {"relief": TG.geomean(ok) if ok else math.nan,
+            "relief_kept": sum(abs(c - 1.0) <= RELIEF_TOLERANCE for c in ok), "relief_cells": len(ok)}
+
+
+def _relief(value) -> str:
+    return "–" if value is None or not math.isfinite(value) else f"{value:.2f}"
 
 
 def markdown(report: dict, keys: list) -> str:
@@ -217,17 +275,25 @@ def markdown(report: dict, keys: list) -> str:
          "|bias²| + 2 standard errors); resolved: floor ≤ 1/10 of the better classic's relMSE; ≤classic: "
          "relMSE ≤ the better classic's + 2 floors. Equal time: relMSE at the spp each method gets in the "
          "faster classic setting's time (bias² + noise·spp/n), geometric means; time: the median ratio of "
-         "seconds per render to the faster classic's.", ""]
+         "seconds per render to the faster classic's. Relief: the relief contrast, the standard deviation "
+         "of the luminance's detail over the object (each image less its Gaussian blur of "
+         f"{RELIEF_BLUR * s['res']:.0f} px) over the truth's, both without noise (the covariance of the "
+         "two halves' details), geometric means; kept: cells within "
+         f"±{RELIEF_TOLERANCE:.0%} of the truth's; the truth rendered again at the methods' spp shows "
+         "what the instrument resolves.", ""]
     for name, row in report["summary"].items():
-        L += [f"## {name} ({row['cells']} cells, {row['resolved']} resolved; floor {TG.fmt(row['floor'])})", "",
-              "| method | relMSE | bias² | noise | ≤classic | equal time: relMSE | ≤classic | time |",
-              "|---|---|---|---|---|---|---|---|"]
+        again = row.get("again", {})
+        L += [f"## {name} ({row['cells']} cells, {row['resolved']} resolved; floor {TG.fmt(row['floor'])}; "
+              f"relief of the truth again {_relief(again.get('relief'))})", "",
+              "| method | relMSE | bias² | noise | ≤classic | equal time: relMSE | ≤classic | time | relief | kept |",
+              "|---|---|---|---|---|---|---|---|---|---|"]
         for k in keys:
             m = row["methods"][k]
             t = "–" if m["time_ratio"] is None else f"{m['time_ratio']:.2f}×"
+            kept = f"{m['relief_kept']}/{m['relief_cells']}" if "relief_kept" in m else "–"
             L.append(f"| {k} | {TG.fmt(m['rel_mse'])} | {TG.fmt(m['bias2'])} | {TG.fmt(m['noise'])} | "
                      f"{m['le_classic']}/{row['cells']} | {TG.fmt(m['equal_time_rel_mse'])} | "
-                     f"{m['equal_time_le_classic']}/{row['cells']} | {t} |")
+                     f"{m['equal_time_le_classic']}/{row['cells']} | {t} | {_relief(m.get('relief'))} | {kept} |")
         L.append("")
     L += ["## Per cell", "", "| cell | texels/px | floor | resolved | " + " | ".join(
           f"{k} relMSE (bias²)" for k in keys) + " |", "|---|---|---|---|" + "---|" * len(keys)]
@@ -235,6 +301,11 @@ def markdown(report: dict, keys: list) -> str:
         L.append(f"| {c['cell']} | {c['texels_per_pixel']:.0f} | {TG.fmt(c['floor'])} | "
                  f"{'yes' if c['resolved'] else 'no'} | " + " | ".join(
                      f"{TG.fmt(c['metrics'][k]['rel_mse'])} ({TG.fmt(c['metrics'][k]['bias2'])})" for k in keys) + " |")
+    L += ["", "## Relief contrast per cell", "", "| cell | truth again | " + " | ".join(keys) + " |",
+          "|---|---|" + "---|" * len(keys)]
+    for c in report["cells"]:
+        L.append(f"| {c['cell']} | {_relief(c['again'].get('relief'))} | "
+                 + " | ".join(_relief(c["metrics"][k].get("relief")) for k in keys) + " |")
     return "\n".join(L) + "\n"
 
 

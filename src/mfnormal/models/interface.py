@@ -77,6 +77,7 @@ class Model(Protocol):
     smooth_at_flat: bool
     tangent_facets: tuple
     refracts: bool
+    turns_at_rims: bool         # a camera below the shading plane sees it on the triangle (normals/macro.py)
 
     def eval_pdf(self, ctx, sp, wo, active, want_value=True, want_pdf=True) -> tuple: ...
 
@@ -128,6 +129,7 @@ class Analytic(_Deterministic):
     name = "analytic"
     smooth_at_flat = False
     refracts = False
+    turns_at_rims = False
 
     def eval_pdf(self, ctx, sp, wo, active, want_value=True, want_pdf=True):
         return analytic.eval_pdf(sp, wo, active, want_value, want_pdf)
@@ -143,6 +145,7 @@ class Faithful(_Deterministic):
     name = "faithful"
     smooth_at_flat = True
     refracts = True
+    turns_at_rims = True
 
     def __init__(self, tangent_facet, nested, source, walk_values, neighbourhood=0.0):
         super().__init__(tangent_facet, nested, source, walk_values)
@@ -189,6 +192,7 @@ class Walk:
     smooth_at_flat = False
     tangent_facets = TANGENT_FACETS
     refracts = False
+    turns_at_rims = False
     separable: bool             # the separable walk (:class:`SeparableWalk`), else the height-correlated one
 
     def __init__(self, tangent_facet, nested, source, values, neighbourhood=0.0):

@@ -1,7 +1,10 @@
 """The macro normal (``macro_normal``): the base frame the models work in.
 
 **The macro normal** (``macro_normal``): ``shading`` (default) keeps the base frame
-``si.sh_frame``. ``geometric`` makes the true triangle normal ``si.n`` (oriented to the shading
+``si.sh_frame``; for the default model, a camera on or below the shading plane that sees the
+triangle (at a coarse mesh's rim the interpolated normal can face away from a triangle the camera
+sees) sees the microsurface on the triangle instead, as ``geometric`` has it (:func:`turned_normal`;
+in radiance mode: light tracing drops those paths itself, below). ``geometric`` makes the true triangle normal ``si.n`` (oriented to the shading
 normal's side) the microsurface's macro normal, and the interpolated shading normal, with the
 map on top of it, the facet ω_p: the base frame G has n = si.n and s, t = ``sh_frame``'s s, t
 turned by the smallest rotation that takes the shading normal to n (:class:`Macro`). Then
@@ -37,6 +40,10 @@ MACRO_NORMALS = ("shading", "geometric")
 #: ``eval`` in light tracing is the adjoint times ⟨b,n_s⟩⟨a,n_g⟩/(⟨a,n_s⟩⟨b,n_g⟩), capped here
 #: (the ratio is ``ptracer``'s correction inverted; it only exceeds this within ~1e-6 of a horizon).
 ADJOINT_MAX = 1e6
+#: A camera below the shading plane sees the microsurface on the triangle where its cosine to the
+#: triangle's normal is above this (:func:`turned_normal`): not where the two normals are the same but
+#: for rounding (a plane's, cos ~1e-7), nor within 0.006° of the triangle's plane.
+TURN_MIN_COS = 1e-4
 #: si.n whose squared length is at most this (or not finite) is degenerate.
 NORMAL_MIN2 = 1e-12
 
@@ -126,16 +133,58 @@ class Macro:
         return bs, self.weigh(ctx, sp, weight, bs.wo, wo_m)
 
 
+def turned_normal(si):
+    """(n, turned): with ``macro_normal="shading"``, the macro normal a camera at ``si.wi`` sees the
+    microsurface on, in the shading frame: the shading normal (0, 0, 1), except where the camera is
+    on or below the shading plane while the triangle faces it (cosine above TURN_MIN_COS: a coarse
+    mesh's interpolated normal
+    can face away from a triangle the camera sees, at an object's rim): there the triangle's normal
+    (:func:`triangle_normal`), as ``macro_normal="geometric"`` has it. ``turned``: where it is."""
+    n_g = triangle_normal(si)
+    turned = (si.wi.z <= 0.0) & (dr.dot(si.wi, n_g) > TURN_MIN_COS)
+    return dr.select(turned, n_g, mi.Vector3f(0, 0, 1)), turned
+
+
 class ShadingMacro:
     """``macro_normal="shading"``: the microsurface in ``si.sh_frame`` (its macro frame the null
-    :class:`~mfnormal.surface.shading.ShadingFrame`)."""
+    :class:`~mfnormal.surface.shading.ShadingFrame`); for a model that ``turns`` (the default's), a
+    camera below the shading plane that sees the triangle sees the microsurface on the triangle
+    (:func:`turned_normal`), where it would see nothing. In radiance
+    mode: light tracing's ``ptracer`` drops the paths whose camera side lies below the shading plane
+    and above the triangle whatever the BSDF returns (module docstring), so the adjoint is unchanged.)"""
 
     name = "shading"
 
+    def __init__(self, turns: bool = False):
+        self.turns = turns
+
+    def turning(self):
+        """This macro normal for a model that sees the triangle from below the shading plane
+        (``Model.turns_at_rims``)."""
+        return ShadingMacro(turns=True)
+
     def shading_point(self, source, nested, ctx, si, active, nudge=None):
         wp, rotation, attached = source.facet_normal(si, active, nudge)
-        return ShadingPoint(nested, ctx, si, wp, map_rotation=rotation, attached=attached,
-                            nudged=nudge is not None)
+        if not self.turns or ctx.mode != mi.TransportMode.Radiance:
+            return ShadingPoint(nested, ctx, si, wp, map_rotation=rotation, attached=attached,
+                                nudged=nudge is not None)
+        n, turned = turned_normal(si)
+        macro = Macro(n)
+        g = macro.frame()
+        si_m = mi.SurfaceInteraction3f(si)
+        frame = si.sh_frame
+        si_m.sh_frame = mi.Frame3f(*(dr.select(turned, si.to_world(a), b)
+                                     for a, b in ((g.s, frame.s), (g.t, frame.t), (g.n, frame.n))))
+        si_m.wi = dr.select(turned, macro.to_macro(si.wi), si.wi)
+        if rotation is not None:
+            # (The map's tangent as decoded, in the shading plane, turned with it: no second lookup.)
+            tx, ty, sign, ok = rotation
+            turned_rotation = tangent_rotation(si_m.sh_frame, frame.to_world(mi.Vector3f(tx, ty, 0.0)), sign)
+            rotation = tuple(dr.select(turned, a, b) for a, b in zip(turned_rotation[:3], rotation[:3])) + (
+                ok & dr.select(turned, turned_rotation[3], True),)
+        wp = dr.select(turned, to_upper_hemisphere(macro.to_macro(wp)), wp)
+        return ShadingPoint(nested, ctx, si_m, wp, map_rotation=rotation, attached=attached,
+                            nudged=nudge is not None, macro=macro)
 
 
 class GeometricMacro:
@@ -143,6 +192,10 @@ class GeometricMacro:
     ω_p, the interpolated normal with the map on top of it, turned into its frame G."""
 
     name = "geometric"
+
+    def turning(self):
+        """Itself: a camera that sees the triangle is above this macro normal."""
+        return self
 
     def shading_point(self, source, nested, ctx, si, active, nudge=None):
         wp, rotation, _ = source.facet_normal(si, active)

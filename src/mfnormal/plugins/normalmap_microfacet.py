@@ -30,7 +30,10 @@ Microfacet-based normal mapping (:monosp:`normalmap_microfacet`)
  * - macro_normal
    - |string|
    - ``shading`` (default): the microsurface's macro normal is the shading
-     normal ``si.sh_frame.n``. ``geometric``: it is the true triangle normal
+     normal ``si.sh_frame.n``; for ``faithful``, where a camera below it sees
+     the triangle (a coarse mesh's rim), the triangle's normal, as
+     ``geometric`` has it (the paper's models show nothing there).
+     ``geometric``: it is the true triangle normal
      ``si.n``, and ω_p is the interpolated shading normal with the map (if any)
      applied on top of it. Without a map this is the shadow-terminator fix for
      smooth-shaded low-poly meshes (``eval`` then returns f·⟨ω_o, si.n⟩;
@@ -281,6 +284,8 @@ class NormalMapMicrofacet:
         self.nested, self.source, self.macro, self.strength = from_properties(props)
         self.normalmap = self.source.texture if isinstance(self.source, NormalMap) else None
         self.model = interface.from_properties(props, self.nested, self.source)
+        if self.model.turns_at_rims:
+            self.macro = self.macro.turning()
         self._flat_texels = self.source.flat_texels()
 
         # The models refract only where the nested BSDF transmits (the paper's models refuse it:
