@@ -137,21 +137,31 @@ def turned_normal(si):
     """(n, turned): with ``macro_normal="shading"``, the macro normal a camera at ``si.wi`` sees the
     microsurface on, in the shading frame: the shading normal (0, 0, 1), except where the camera is
     on or below the shading plane while the triangle faces it (cosine above TURN_MIN_COS: a coarse
-    mesh's interpolated normal
-    can face away from a triangle the camera sees, at an object's rim): there the triangle's normal
-    (:func:`triangle_normal`), as ``macro_normal="geometric"`` has it. ``turned``: where it is."""
+    mesh's interpolated normal can face away from a triangle the camera sees, at an object's rim):
+    there the triangle's normal (:func:`triangle_normal`), as ``macro_normal="geometric"`` has it.
+    ``turned``: where it is."""
     n_g = triangle_normal(si)
     turned = (si.wi.z <= 0.0) & (dr.dot(si.wi, n_g) > TURN_MIN_COS)
     return dr.select(turned, n_g, mi.Vector3f(0, 0, 1)), turned
+
+
+def _derivatives(sp, si) -> bool:
+    """Whether the shading point ``sp`` at ``si`` carries derivatives (the map's, ``strength``'s, the
+    nested BSDF's parameters', or the hit's). There the microsurface stays on the shading plane
+    (:class:`ShadingMacro`): Dr.Jit 1.5 compiles ``mfnormal_prb``'s and Mitsuba's ``prb``'s
+    forward-mode derivatives through the turned frame into invalid LLVM IR ("invalid redefinition
+    of function")."""
+    return sp.attached or dr.grad_enabled(si.wi, si.n, si.sh_frame.n) or sp.nested_attached()
 
 
 class ShadingMacro:
     """``macro_normal="shading"``: the microsurface in ``si.sh_frame`` (its macro frame the null
     :class:`~mfnormal.surface.shading.ShadingFrame`); for a model that ``turns`` (the default's), a
     camera below the shading plane that sees the triangle sees the microsurface on the triangle
-    (:func:`turned_normal`), where it would see nothing. In radiance
-    mode: light tracing's ``ptracer`` drops the paths whose camera side lies below the shading plane
-    and above the triangle whatever the BSDF returns (module docstring), so the adjoint is unchanged.)"""
+    (:func:`turned_normal`), where it would see nothing; in radiance mode only (light tracing's
+    ``ptracer`` drops the paths whose camera side lies below the shading plane and above the
+    triangle whatever the BSDF returns: module docstring, so the adjoint is unchanged), and where
+    nothing carries derivatives (:func:`_derivatives`)."""
 
     name = "shading"
 
@@ -165,9 +175,9 @@ class ShadingMacro:
 
     def shading_point(self, source, nested, ctx, si, active, nudge=None):
         wp, rotation, attached = source.facet_normal(si, active, nudge)
-        if not self.turns or ctx.mode != mi.TransportMode.Radiance:
-            return ShadingPoint(nested, ctx, si, wp, map_rotation=rotation, attached=attached,
-                                nudged=nudge is not None)
+        plain = ShadingPoint(nested, ctx, si, wp, map_rotation=rotation, attached=attached, nudged=nudge is not None)
+        if not self.turns or ctx.mode != mi.TransportMode.Radiance or _derivatives(plain, si):
+            return plain
         n, turned = turned_normal(si)
         macro = Macro(n)
         g = macro.frame()
