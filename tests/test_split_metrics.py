@@ -47,7 +47,6 @@ def test_the_floor_of_the_truth_again_is_its_standard_error():
     assert abs(m["bias2"]) < 4 * m["bias2_se"] and m["bias2_se"] < 0.02 * m["noise"]
 
 
-
 def _shaded_disk(rng, relief_scale, slope, sd, n=128):
     """Two halves of a disk (the rest black) shaded by a smooth ramp of ``slope`` across it, with a
     relief of fine bumps (amplitude 0.1, period 6 px) times ``relief_scale`` on top, and noise of

@@ -245,8 +245,8 @@ def summarise(cells: list, keys: list) -> dict:
                 "equal_time_rel_mse": TG.geomean([m.get("equal_time_rel_mse") for m in ms]),
                 "time_ratio": float(np.median([m["time_ratio"] for m in ms])) if ms and "time_ratio" in ms[0] else None,
                 "equal_time_le_classic": sum(m.get("equal_time_le_classic", False) for m in ms),
-                **relief_summary([m.get("relief", math.nan) for m in ms])}
-        row["again"] = relief_summary([c["again"].get("relief", math.nan) for c in rs])
+                **relief_summary([m["relief"] for m in ms])}
+        row["again"] = relief_summary([c["again"]["relief"] for c in rs])
         out[name] = row
     return out
 
@@ -260,7 +260,7 @@ def relief_summary(contrasts) -> dict:
 
 
 def _relief(value) -> str:
-    return "–" if value is None or not math.isfinite(value) else f"{value:.2f}"
+    return f"{value:.2f}" if math.isfinite(value) else "–"
 
 
 def markdown(report: dict, keys: list) -> str:
@@ -282,18 +282,18 @@ def markdown(report: dict, keys: list) -> str:
          f"±{RELIEF_TOLERANCE:.0%} of the truth's; the truth rendered again at the methods' spp shows "
          "what the instrument resolves.", ""]
     for name, row in report["summary"].items():
-        again = row.get("again", {})
         L += [f"## {name} ({row['cells']} cells, {row['resolved']} resolved; floor {TG.fmt(row['floor'])}; "
-              f"relief of the truth again {_relief(again.get('relief'))})", "",
-              "| method | relMSE | bias² | noise | ≤classic | equal time: relMSE | ≤classic | time | relief | kept |",
+              f"relief of the truth again {_relief(row['again']['relief'])})", "",
+              "| method | relMSE | bias² | noise | ≤classic | equal time: relMSE | ≤classic | time "
+              "| relief | kept |",
               "|---|---|---|---|---|---|---|---|---|---|"]
         for k in keys:
             m = row["methods"][k]
             t = "–" if m["time_ratio"] is None else f"{m['time_ratio']:.2f}×"
-            kept = f"{m['relief_kept']}/{m['relief_cells']}" if "relief_kept" in m else "–"
+            kept = f"{m['relief_kept']}/{m['relief_cells']}"
             L.append(f"| {k} | {TG.fmt(m['rel_mse'])} | {TG.fmt(m['bias2'])} | {TG.fmt(m['noise'])} | "
                      f"{m['le_classic']}/{row['cells']} | {TG.fmt(m['equal_time_rel_mse'])} | "
-                     f"{m['equal_time_le_classic']}/{row['cells']} | {t} | {_relief(m.get('relief'))} | {kept} |")
+                     f"{m['equal_time_le_classic']}/{row['cells']} | {t} | {_relief(m['relief'])} | {kept} |")
         L.append("")
     L += ["## Per cell", "", "| cell | texels/px | floor | resolved | " + " | ".join(
           f"{k} relMSE (bias²)" for k in keys) + " |", "|---|---|---|---|" + "---|" * len(keys)]
@@ -304,8 +304,8 @@ def markdown(report: dict, keys: list) -> str:
     L += ["", "## Relief contrast per cell", "", "| cell | truth again | " + " | ".join(keys) + " |",
           "|---|---|" + "---|" * len(keys)]
     for c in report["cells"]:
-        L.append(f"| {c['cell']} | {_relief(c['again'].get('relief'))} | "
-                 + " | ".join(_relief(c["metrics"][k].get("relief")) for k in keys) + " |")
+        L.append(f"| {c['cell']} | {_relief(c['again']['relief'])} | "
+                 + " | ".join(_relief(c["metrics"][k]["relief"]) for k in keys) + " |")
     return "\n".join(L) + "\n"
 
 

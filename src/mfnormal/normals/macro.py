@@ -4,10 +4,11 @@
 ``si.sh_frame``; for the default model, a camera on or below the shading plane that sees the
 triangle (at a coarse mesh's rim the interpolated normal can face away from a triangle the camera
 sees) sees the microsurface on the triangle instead, as ``geometric`` has it (:func:`turned_normal`;
-in radiance mode: light tracing drops those paths itself, below). ``geometric`` makes the true triangle normal ``si.n`` (oriented to the shading
-normal's side) the microsurface's macro normal, and the interpolated shading normal, with the
-map on top of it, the facet ω_p: the base frame G has n = si.n and s, t = ``sh_frame``'s s, t
-turned by the smallest rotation that takes the shading normal to n (:class:`Macro`). Then
+in radiance mode: light tracing drops those paths itself, below). ``geometric`` makes the true
+triangle normal ``si.n`` (oriented to the shading normal's side) the microsurface's macro normal,
+and the interpolated shading normal, with the map on top of it, the facet ω_p: the base frame G
+has n = si.n and s, t = ``sh_frame``'s s, t turned by the smallest rotation that takes the
+shading normal to n (:class:`Macro`). Then
 
 - ``eval`` returns f·⟨ω_o, si.n⟩: the cosine of the surface the light actually falls on. Mitsuba's
   path tracer multiplies the throughput by ``eval`` as is, so radiance is right with it;
@@ -133,6 +134,16 @@ class Macro:
         return bs, self.weigh(ctx, sp, weight, bs.wo, wo_m)
 
 
+def on_macro(si, macro: Macro, wp):
+    """(si seen in G: its shading frame G, ω_i in G; ω_p turned into G) for the macro frame
+    ``macro``."""
+    g = macro.frame()
+    si_g = mi.SurfaceInteraction3f(si)
+    si_g.sh_frame = mi.Frame3f(si.to_world(g.s), si.to_world(g.t), si.to_world(g.n))
+    si_g.wi = macro.to_macro(si.wi)
+    return si_g, to_upper_hemisphere(macro.to_macro(wp))
+
+
 def turned_normal(si):
     """(n, turned): with ``macro_normal="shading"``, the macro normal a camera at ``si.wi`` sees the
     microsurface on, in the shading frame: the shading normal (0, 0, 1), except where the camera is
@@ -175,24 +186,25 @@ class ShadingMacro:
 
     def shading_point(self, source, nested, ctx, si, active, nudge=None):
         wp, rotation, attached = source.facet_normal(si, active, nudge)
-        plain = ShadingPoint(nested, ctx, si, wp, map_rotation=rotation, attached=attached, nudged=nudge is not None)
+        plain = ShadingPoint(nested, ctx, si, wp, map_rotation=rotation, attached=attached,
+                             nudged=nudge is not None)
         if not self.turns or ctx.mode != mi.TransportMode.Radiance or _derivatives(plain, si):
             return plain
         n, turned = turned_normal(si)
         macro = Macro(n)
-        g = macro.frame()
+        si_g, wp_g = on_macro(si, macro, wp)
         si_m = mi.SurfaceInteraction3f(si)
-        frame = si.sh_frame
-        si_m.sh_frame = mi.Frame3f(*(dr.select(turned, si.to_world(a), b)
+        frame, g = si.sh_frame, si_g.sh_frame
+        si_m.sh_frame = mi.Frame3f(*(dr.select(turned, a, b)
                                      for a, b in ((g.s, frame.s), (g.t, frame.t), (g.n, frame.n))))
-        si_m.wi = dr.select(turned, macro.to_macro(si.wi), si.wi)
+        si_m.wi = dr.select(turned, si_g.wi, si.wi)
         if rotation is not None:
             # (The map's tangent as decoded, in the shading plane, turned with it: no second lookup.)
             tx, ty, sign, ok = rotation
             turned_rotation = tangent_rotation(si_m.sh_frame, frame.to_world(mi.Vector3f(tx, ty, 0.0)), sign)
             rotation = tuple(dr.select(turned, a, b) for a, b in zip(turned_rotation[:3], rotation[:3])) + (
                 ok & dr.select(turned, turned_rotation[3], True),)
-        wp = dr.select(turned, to_upper_hemisphere(macro.to_macro(wp)), wp)
+        wp = dr.select(turned, wp_g, wp)
         return ShadingPoint(nested, ctx, si_m, wp, map_rotation=rotation, attached=attached,
                             nudged=nudge is not None, macro=macro)
 
@@ -210,15 +222,11 @@ class GeometricMacro:
     def shading_point(self, source, nested, ctx, si, active, nudge=None):
         wp, rotation, _ = source.facet_normal(si, active)
         macro = Macro(triangle_normal(si))
-        g = macro.frame()
-        si_g = mi.SurfaceInteraction3f(si)
-        si_g.sh_frame = mi.Frame3f(si.to_world(g.s), si.to_world(g.t), si.to_world(g.n))
-        si_g.wi = macro.to_macro(si.wi)
+        si_g, wp_g = on_macro(si, macro, wp)
         if source.tangents is not None and rotation is not None:
             tangent, sign = source.tangents.lookup(si, active)
             rotation = tangent_rotation(si_g.sh_frame, tangent, sign)
-        return ShadingPoint(nested, ctx, si_g, to_upper_hemisphere(macro.to_macro(wp)), map_rotation=rotation,
-                            macro=macro)
+        return ShadingPoint(nested, ctx, si_g, wp_g, map_rotation=rotation, macro=macro)
 
 
 def macro_normal(name: str):
