@@ -269,7 +269,7 @@ def _table_directions(cos_min: float):
     return tuple(rows)
 
 
-def _table_row(row, a_i, sigma1: float, sigma2: float, derivatives: bool):
+def _table_row(row, a_i, sigma1: float, sigma2: float, derivatives: bool, work):
     """One θ_p row of :func:`blocked_table`: (B, ∂B/∂σ1, ∂B/∂σ2) over (φ_j, G1), ``a_i`` = 1 + Λ_i
     (TABLE_G × 1) of the G1 axis. B = (1 − cosθ_p)/2 + (1/π)∫_lune ⟨ω,ω_p⟩ (1 − S) dω: the share of
     the facet's lobe below the macro plane in closed form, and what the neighbours block above it,
@@ -278,20 +278,25 @@ def _table_row(row, a_i, sigma1: float, sigma2: float, derivatives: bool):
     exactly (B = 0 at θ_p = 0), and no sum of weights stands in for the lune's measure.
 
     The integrands are formed in float32 (half the time of float64's divisions) and summed in
-    float64: each term's relative rounding is 6e-8, the sums' 3e-9 at most."""
+    float64: each term's relative rounding is 6e-8, the sums' 3e-9 at most. ``work``: three
+    buffers of shape (TABLE_PHI, TABLE_G, n), float32, float32 and float64, reused from row to row
+    (fresh arrays of a few MB per row cost more in page faults than their arithmetic)."""
     d, weights, below = row
     parts = smith_lambda_np(d, sigma1, sigma2, derivatives=derivatives)
     lam, *dls = (x.astype(np.float32) for x in (parts if derivatives else (parts,)))
     a_i = a_i.astype(np.float32)[None]                  # (1, TABLE_G, 1) against (TABLE_PHI, 1, n)
+    den, hidden, wide = work
     out = np.zeros((3, TABLE_PHI, TABLE_G))
-    den = a_i + lam[:, None, :]
-    hidden = np.divide(lam[:, None, :], den)
-    out[0] = below + hidden.astype(np.float64) @ weights
+    np.add(a_i, lam[:, None, :], out=den)
+    np.divide(lam[:, None, :], den, out=hidden)
+    np.copyto(wide, hidden)
+    out[0] = below + wide @ weights
     if derivatives:
         np.subtract(1.0, hidden, out=hidden)
         np.divide(hidden, den, out=hidden)              # a_i/(a_i + Λ)²
         for n, dl in enumerate(dls, 1):
-            out[n] = np.multiply(hidden, dl[:, None, :], out=den).astype(np.float64) @ weights
+            np.copyto(wide, np.multiply(hidden, dl[:, None, :], out=den))
+            out[n] = wide @ weights
     return out
 
 
@@ -333,7 +338,10 @@ def blocked_table(sigma1: float, sigma2: float, cos_min: float, derivatives: boo
         return _scaled_tables(sigma1, sigma2, cos_min, derivatives, scales)
     g = np.linspace(0.0, 1.0, TABLE_G) ** 3
     lam_i = np.where(g > 0, 1.0 / np.maximum(g, 1e-30) - 1.0, 1e30)[:, None]
-    rows = [_table_row(row, 1.0 + lam_i, sigma1, sigma2, derivatives) for row in _table_directions(cos_min)]
+    directions = _table_directions(cos_min)
+    shape = (TABLE_PHI, TABLE_G, directions[0][0].shape[1])
+    work = (np.empty(shape, np.float32), np.empty(shape, np.float32), np.empty(shape, np.float64))
+    rows = [_table_row(row, 1.0 + lam_i, sigma1, sigma2, derivatives, work) for row in directions]
     table, d1, d2 = np.stack(rows, 1)
     out = (np.clip(table, 0.0, 1.0).astype(np.float32), d1.astype(np.float32), d2.astype(np.float32))
     for a in out:
