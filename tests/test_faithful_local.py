@@ -345,3 +345,56 @@ def test_neighbourhood_must_be_a_number_of_texels():
     for bad in (-1.0, float("inf"), float("nan")):
         with pytest.raises(Exception, match="neighbourhood must be a finite number of texels"):
             bsdf_on(half_smooth_map(8), WHITE, neighbourhood=bad)
+
+
+def ramped_bumps():
+    """Bumps whose slopes grow 3.3× from u = 0 to u = 1: k from 0.34 to 1.7 over the map."""
+    n = 2.0 * bumps_normalmap(64, 8, 0.45) - 1.0
+    n[..., :2] *= np.linspace(0.3, 1.0, 64)[None, :, None]
+    return 0.5 * n / np.linalg.norm(n, axis=-1, keepdims=True) + 0.5
+
+
+@pytest.mark.parametrize("bumps", ["even", "ramped"])
+def test_only_the_scales_a_lookup_reads_are_computed(bumps):
+    """The table B is computed only at the neighbourhood scales the map's k spans
+    (neighbourhood.needed_scales; the others hold a copy that no lookup reads): eval, pdf and the
+    texels' derivatives (forward mode, along a random direction of the texels) are bit for bit
+    those with the tables computed at every scale, at 2^15 random queries over the whole map, on
+    even bumps (scales 2–7 of 0–8) and on bumps whose slopes grow across the map (1–8); with
+    fewer scales than the map needs they are not (checked: the span's two ends alone)."""
+    from mfnormal.models.neighbourhood import blocked_table, kernel_array, local_scales, needed_scales
+    rng = np.random.default_rng(31)
+    rgb = bumps_normalmap(64, 8, 0.45) if bumps == "even" else ramped_bumps()
+    n = 1 << 15
+    wi, wo = random_hemisphere(rng, n, 0.02), random_hemisphere(rng, n, 0.02)
+    si = dr.zeros(mi.SurfaceInteraction3f, n)
+    si.uv = mi.Point2f(*(rng.random((2, n)).astype(np.float32)))
+    si.sh_frame = mi.Frame3f(mi.Vector3f(1, 0, 0), mi.Vector3f(0, 1, 0), mi.Vector3f(0, 0, 1))
+    si.n = mi.Normal3f(0, 0, 1)
+    si.wi = vec3(wi)
+    b = bsdf_on(rgb, {"type": "roughplastic", "alpha": 0.15})     # (B weights the diffuse fill)
+    params = mi.traverse(b)
+    dr.enable_grad(params["normalmap.data"])
+    params.update()
+    core = b.model.core
+    fields = core.local[0]
+    span = needed_scales([np.array(fields[0]), np.array(fields[3])], local_scales())
+    assert span is not None and 2 < len(span) < len(local_scales())
+    seed = mi.TensorXf(rng.normal(size=rgb.shape).astype(np.float32))
+
+    def values(needed):
+        """eval, pdf and their forward derivatives with the tables of the scales ``needed``."""
+        table, t1, t2 = blocked_table(*core.slopes[:2], core.cos_min, True, local_scales(), needed)
+        core.table = kernel_array(mi.Float, table.ravel())
+        core.d_tables = (kernel_array(mi.Float, t1.ravel()), kernel_array(mi.Float, t2.ravel()))
+        dr.make_opaque(core.table, *core.d_tables)
+        v, p = b.eval_pdf(mi.BSDFContext(), si, vec3(wo))
+        dr.set_grad(params["normalmap.data"], seed)
+        # (The edges from the texels to the map's statistics are kept for the next call.)
+        dv, dp = dr.forward_to(v[0] + v[1] + v[2], p, flags=dr.ADFlag.ClearInterior | dr.ADFlag.ClearInput)
+        return np3(v), np1(p), np1(dv), np1(dp)
+    part, full = values(span), values(None)
+    for a, c in zip(part, full):
+        assert np.array_equal(a, c)
+    ends = values((span[0], span[-1]))
+    assert not all(np.array_equal(a, c) for a, c in zip(ends, full))

@@ -300,29 +300,51 @@ def _table_row(row, a_i, sigma1: float, sigma2: float, derivatives: bool, work):
     return out
 
 
-def _scaled_tables(sigma1: float, sigma2: float, cos_min: float, derivatives: bool, scales):
+def _scaled_tables(sigma1: float, sigma2: float, cos_min: float, derivatives: bool, scales, needed):
     """:func:`blocked_table` for each neighbourhood scale k of ``scales``, stacked on axis 2 (the
-    derivatives with respect to the map's σ: k times the scaled neighbourhood's). The scales'
-    tables are independent numpy work that releases the GIL: one thread each, up to the cores."""
+    derivatives with respect to the map's σ: k times the scaled neighbourhood's). Only the scales
+    ``needed`` (indices) are computed; each other index holds the nearest needed one's table,
+    which no lookup reads. The scales' tables are independent numpy work that releases the GIL:
+    one thread each, up to the cores."""
     def one(k):
         t = blocked_table(k * sigma1, k * sigma2, cos_min, derivatives)
         return t if derivatives else (t,)
-    workers = min(len(scales), os.cpu_count() or 1)
+    needed = range(len(scales)) if needed is None else needed
+    workers = min(len(needed), os.cpu_count() or 1)
     if workers > 1:
         with concurrent.futures.ThreadPoolExecutor(workers) as pool:
-            parts = list(pool.map(one, scales))
+            parts = dict(zip(needed, pool.map(one, [scales[i] for i in needed])))
     else:
-        parts = [one(k) for k in scales]
+        parts = {i: one(scales[i]) for i in needed}
+    source = [min(needed, key=lambda j: abs(j - i)) for i in range(len(scales))]
     # ∂B/∂σ of the map = k·∂B/∂σ of the scaled neighbourhood.
-    out = tuple(np.ascontiguousarray(np.stack([p[n] * (k if n else 1.0) for p, k in zip(parts, scales)], 2))
-                for n in range(len(parts[0])))
+    out = tuple(np.ascontiguousarray(np.stack([parts[j][n] * (scales[j] if n else 1.0) for j in source], 2))
+                for n in range(len(parts[needed[0]])))
     for a in out:
         a.setflags(write=False)
     return out if derivatives else out[0]
 
 
+def needed_scales(k_grids, scales) -> tuple | None:
+    """The indices of ``scales`` (:func:`local_scales`) that lookups can read, for neighbourhood
+    scales k whose values lie between the least and the largest of the grids ``k_grids`` (the
+    window's and the finer window's k: a texel's k is interpolated from them and capped at the
+    last scale), with one scale to spare on each side; None (all of them) where a grid is not
+    finite."""
+    values = np.concatenate([np.asarray(g, np.float64).ravel() for g in k_grids])
+    if values.size == 0 or not np.all(np.isfinite(values)):
+        return None
+    k_lo, k_hi = max(float(values.min()), 0.0), min(float(values.max()), scales[-1])
+    steps = len(scales) - 1
+
+    def node(k):
+        return int(math.floor(min(k / (1.0 + k) / LOCAL_U_MAX, 1.0) * steps))
+    return tuple(range(max(node(k_lo) - 1, 0), min(node(max(k_hi, k_lo)) + 2, steps) + 1))
+
+
 @functools.lru_cache(maxsize=32)
-def blocked_table(sigma1: float, sigma2: float, cos_min: float, derivatives: bool = False, scales=None):
+def blocked_table(sigma1: float, sigma2: float, cos_min: float, derivatives: bool = False, scales=None,
+                  needed=None):
     """B[i, j, k]: 1 − ∫ (1/π)⟨ω,ω_p⟩ S(ω|ω_i) dω for a white Lambertian facet at θ_p = θ_i
     (TABLE_COS steps from 0 to acos(``cos_min``)), azimuth φ_j (TABLE_PHI steps over [0, π/2])
     in the slopes' principal frame, and G1(ω_i) = g_k³ (g_k: TABLE_G steps from 0 to 1).
@@ -333,9 +355,11 @@ def blocked_table(sigma1: float, sigma2: float, cos_min: float, derivatives: boo
 
     ``scales`` (a tuple, :func:`local_scales`): one table for each neighbourhood whose slopes are the
     map's times a scale k, shape (TABLE_COS, TABLE_PHI, len(scales), TABLE_G), read by :func:`lookup`
-    with its ``k``; the derivatives are still with respect to the map's σ1, σ2."""
+    with its ``k``; the derivatives are still with respect to the map's σ1, σ2. ``needed`` (a tuple
+    of indices, :func:`needed_scales`; None: all): the scales a lookup can read, the only ones
+    computed."""
     if scales is not None:
-        return _scaled_tables(sigma1, sigma2, cos_min, derivatives, scales)
+        return _scaled_tables(sigma1, sigma2, cos_min, derivatives, scales, needed)
     g = np.linspace(0.0, 1.0, TABLE_G) ** 3
     lam_i = np.where(g > 0, 1.0 / np.maximum(g, 1e-30) - 1.0, 1e30)[:, None]
     directions = _table_directions(cos_min)

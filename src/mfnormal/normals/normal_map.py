@@ -23,6 +23,7 @@ import numpy as np
 from mfnormal.surface.microsurface import SIN_P_EPS, decode_normal, spread
 from mfnormal.models.neighbourhood import kernel_array
 from mfnormal.surface.shading import from_tangent_frame, tangent_rotation
+from mfnormal.normals.pyramid import SlopePyramid, footprint_texels, slope_moments
 from mfnormal.normals.strength import fail
 from mfnormal.normals.tangents import VertexTangents
 from mfnormal.normals.uv import check_uv_transforms, finite_uv
@@ -112,6 +113,7 @@ class NormalMap:
 
     def __init__(self, texture, strength, directx: bool, tangents: VertexTangents | None):
         self.texture, self.strength, self.directx, self.tangents = texture, strength, directx, tangents
+        self._pyramid = None
         self._uv_checked = check_uv_transforms(texture, "normalmap")
         message = channels_message(texture) or srgb_message(texture)
         if message:
@@ -325,7 +327,48 @@ class NormalMap:
         n = decode_normal(self.texture.eval_3(s1), self.strength.value, self.directx)
         return [n.x, n.y, n.z]
 
+    def pyramid(self) -> SlopePyramid | None:
+        """The map's slope-moment pyramid (:class:`~mfnormal.normals.pyramid.SlopePyramid`; None for
+        a texture that is not a bitmap): built at the first call, from the texels as they are then
+        (their derivatives included), and kept across renders until the map or ``strength`` changes."""
+        if self._pyramid is None and dr.is_jit_v(mi.Float):
+            params = mi.traverse(self.texture)
+            if "data" in params.keys() and len(params["data"].shape) == 3:
+                self._pyramid = SlopePyramid(params["data"], self.strength.value, self.directx)
+        return self._pyramid
+
+    def footprint_moments(self, si, active=True):
+        """The slope moments (:data:`~mfnormal.normals.pyramid.MOMENTS`) of the map over the footprint
+        that ``si`` carries (``si.duv_dx``, ``si.duv_dy``: its axes in uv; none: the texel at
+        ``si.uv``), from the pyramid; None without one. The map's uv transform applies to the
+        footprint's axes as to the point."""
+        pyramid = self.pyramid()
+        if pyramid is None:
+            return None
+        rgb = self.map_rgb(si, active)
+        point = slope_moments(decode_normal(rgb, spread(self.strength.value, dr.width(rgb)), self.directx))
+        axes = mi.SurfaceInteraction3f(si)
+        linear = self._linear_uv()
+        if linear is not None:
+            m00, m01, m10, m11 = linear
+            axes.duv_dx = mi.Vector2f(m00 * si.duv_dx.x + m01 * si.duv_dx.y, m10 * si.duv_dx.x + m11 * si.duv_dx.y)
+            axes.duv_dy = mi.Vector2f(m00 * si.duv_dy.x + m01 * si.duv_dy.y, m10 * si.duv_dy.x + m11 * si.duv_dy.y)
+        width = footprint_texels(axes, pyramid.width, pyramid.height)
+        return pyramid.lookup(self.map_uv(si), width, point)
+
+    def _linear_uv(self):
+        """The linear part (m00, m01, m10, m11) of the map's uv transform, None for none."""
+        params = mi.traverse(self.texture)
+        if "to_uv" not in params.keys():
+            return None
+        m = np.array(params["to_uv"].matrix, dtype=np.float64)
+        if m.shape != (3, 3) or np.array_equal(m[:2, :2], np.eye(2)):
+            return None
+        return float(m[0, 0]), float(m[0, 1]), float(m[1, 0]), float(m[1, 1])
+
     def parameters_changed(self, keys):
+        if not keys or any(k == "strength" or k.startswith("normalmap") for k in keys):
+            self._pyramid = None
         if not keys or any(k.startswith("normalmap") for k in keys):
             self._uv_checked = check_uv_transforms(self.texture, "normalmap", self._uv_checked)
             self.hoist_uv_transform()

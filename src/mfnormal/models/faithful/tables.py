@@ -17,7 +17,7 @@ import mitsuba as mi
 import numpy as np
 
 from mfnormal.surface.microsurface import replace_grad, spread
-from mfnormal.models.neighbourhood import blocked_table, field_lookup, kernel_array, local_scales, lookup
+from mfnormal.models.neighbourhood import blocked_table, field_lookup, kernel_array, local_scales, lookup, needed_scales
 from mfnormal.surface.shading import from_tangent_rotation
 
 #: With local statistics, the neighbourhood's rms slope (k times the map's) from which its k is the
@@ -122,11 +122,13 @@ class MapStatistics:
         self._set_wall(wall)
         s1, s2, phi_e = (float(x) for x in slopes)
         self.flat = s1 == 0.0 and s2 == 0.0         # every texel flat (or strength 0)
-        self.local, scales = None, None
+        self.local, scales, needed = None, None, None
         if local is not None:
             scales = local_scales()
             self.k_max = scales[-1]
             self.local = _local_grids(local)
+            fields = local[0]
+            needed = needed_scales([fields[0]] + list(fields[3:]), scales)
         self.slopes = (s1, s2, phi_e)
         self.sigma1, self.sigma2 = mi.Float(s1), mi.Float(s2)
         self.cos_e, self.sin_e = mi.Float(math.cos(phi_e)), mi.Float(math.sin(phi_e))
@@ -137,11 +139,11 @@ class MapStatistics:
             phi = phi + (dr.opaque(mi.Float, phi_e) - dr.detach(phi))
             self.sigma1, self.sigma2 = replace_grad(self.sigma1, a1), replace_grad(self.sigma2, a2)
             self.cos_e, self.sin_e = replace_grad(self.cos_e, dr.cos(phi)), replace_grad(self.sin_e, dr.sin(phi))
-            table, t1, t2 = blocked_table(s1, s2, self.cos_min, derivatives=True, scales=scales)
+            table, t1, t2 = blocked_table(s1, s2, self.cos_min, derivatives=True, scales=scales, needed=needed)
             self.d_tables = (kernel_array(mi.Float, t1), kernel_array(mi.Float, t2))
             dr.make_opaque(*self.d_tables)
         else:
-            table = blocked_table(s1, s2, self.cos_min, scales=scales)
+            table = blocked_table(s1, s2, self.cos_min, scales=scales, needed=needed)
         table = table.ravel()
         if dr.is_jit_v(mi.Float):
             self.table = kernel_array(mi.Float, table)

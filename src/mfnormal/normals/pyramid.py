@@ -1,0 +1,188 @@
+"""A normal map's slope moments, prefiltered for a pixel's footprint (LEAN mapping: Olano and
+Baker, *LEAN mapping*, I3D 2010; LEADR mapping: Dupuy, Heitz, Iehl, Poulin, Neyret and
+Ostromoukhov, SIGGRAPH Asia 2013).
+
+A texel's decoded normal n (:func:`~mfnormal.surface.microsurface.decode_normal`, ``strength``
+and the channel convention applied) is the slope s = (−n_x/n_z, −n_y/n_z) of its facet. What a
+footprint covering many texels shows is the distribution of their slopes: its mean E[s] (the
+mean facet) and its covariance E[s·sᵀ] − E[s]·E[s]ᵀ (the spread a filtered BSDF must add). Both
+follow from five moments, (s_x, s_y, s_x², s_y², s_x·s_y), which average linearly, so a footprint's
+moments are a mip-map's.
+
+:class:`SlopePyramid` holds them. Level 0 is the map itself: its moments are a texel's own (a
+point: no covariance), read from the map's lookup where they are needed, and not stored. Level
+ℓ ≥ 1 is a grid ⌈w/2^ℓ⌉ × ⌈h/2^ℓ⌉, each entry the mean of the 2 × 2 entries of level ℓ − 1 below
+it (at an odd edge the last row or column counts twice), down to 1 × 1. Five channels over a third
+of the texels: 0.56 floats per texel beside a float map's three (:meth:`SlopePyramid.memory_ratio`).
+
+It is built with Dr.Jit gathers from the map's texels (the bitmap's ``data``), so a texel's
+derivative reaches every level above it (inverse rendering of the map through a filtered lookup),
+and evaluated once: a render reads the stored levels, it does not rebuild them. :meth:`lookup`
+reads the level of a footprint ``width`` texels wide, trilinearly: bilinear within the two levels
+about log2(width) (wrapping, as a ``repeat`` bitmap does) and linear between them, level 0 being
+the point lookup it is given.
+"""
+
+from __future__ import annotations
+
+import math
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from mfnormal.surface.microsurface import decode_normal
+
+#: The moments, in the order of :attr:`SlopePyramid.levels`' channels.
+MOMENTS = ("s_x", "s_y", "s_xx", "s_yy", "s_xy")
+
+
+def slope_moments(n):
+    """The five moments (s_x, s_y, s_x², s_y², s_x·s_y) of unit normals ``n`` (a Vector3f whose
+    z is ≥ COS_P_MIN, as decoded normals are)."""
+    inv = dr.rcp(n.z)
+    sx, sy = -n.x * inv, -n.y * inv
+    return [sx, sy, sx * sx, sy * sy, sx * sy]
+
+
+def level_sizes(width: int, height: int) -> list:
+    """The (width, height) of levels 1, 2, … down to 1 × 1 of a map ``width`` × ``height``."""
+    sizes = []
+    while width > 1 or height > 1:
+        width, height = (width + 1) // 2, (height + 1) // 2
+        sizes.append((width, height))
+    return sizes
+
+
+def _halve(channels, width: int, height: int):
+    """A level's channels (each row-major, ``width`` × ``height``) averaged over 2 × 2 blocks."""
+    w2, h2 = (width + 1) // 2, (height + 1) // 2
+    idx = dr.arange(mi.UInt32, w2 * h2)
+    x, y = idx % w2, idx // w2
+    out = []
+    for c in channels:
+        acc = mi.Float(0.0)
+        for dy in (0, 1):
+            for dx in (0, 1):
+                xs = dr.minimum(2 * x + dx, width - 1)
+                ys = dr.minimum(2 * y + dy, height - 1)
+                acc += dr.gather(mi.Float, c, ys * width + xs)
+        out.append(acc * 0.25)
+    return out, w2, h2
+
+
+class SlopePyramid:
+    """The slope moments of a map's levels 1, 2, … (the module docstring), each channel of all
+    levels in one array (level ℓ at ``offsets[ℓ]``, row-major, ``sizes[ℓ]`` = (width, height))."""
+
+    def __init__(self, texels, strength, directx: bool):
+        """From the map's texels (a TensorXf of shape (height, width, ≥ 3), as a bitmap's
+        ``data``; derivatives kept), decoded with ``strength`` (a Float) and the convention."""
+        height, width, channels = (int(x) for x in texels.shape)
+        idx = dr.arange(mi.UInt32, width * height) * channels
+        rgb = mi.Color3f(*(dr.gather(mi.Float, texels.array, idx + c) for c in range(3)))
+        moments = slope_moments(decode_normal(rgb, strength, directx))
+        self.width, self.height, self.map_floats = width, height, width * height * channels
+        self.sizes, self.offsets, parts = [(width, height)], [0], [[] for _ in MOMENTS]
+        w, h, total = width, height, 0
+        while w > 1 or h > 1:
+            moments, w, h = _halve(moments, w, h)
+            dr.eval(*moments)
+            self.sizes.append((w, h))
+            self.offsets.append(total)
+            total += w * h
+            for part, m in zip(parts, moments):
+                part.append(m)
+        self.channels = [_concat(part) for part in parts] if total else []
+        dr.eval(*self.channels)
+
+    @property
+    def top(self) -> int:
+        """The coarsest level's index (1 × 1; 0 for a 1 × 1 map)."""
+        return len(self.sizes) - 1
+
+    def memory_ratio(self) -> float:
+        """The stored levels' floats over the map's (its texels × channels)."""
+        return sum(w * h for w, h in self.sizes[1:]) * len(MOMENTS) / self.map_floats
+
+    def level(self, index: int) -> np.ndarray:
+        """Level ``index`` ≥ 1 as numpy, shape (height, width, 5)."""
+        (w, h), start = self.sizes[index], self.offsets[index]
+        return np.stack([np.array(c, np.float64)[start:start + w * h].reshape(h, w) for c in self.channels], -1)
+
+    def _bilinear(self, level, uv, active):
+        """The five moments of ``level`` (a UInt32 per lane, ≥ 1) at ``uv``, bilinear over its
+        texel centres, wrapping (a ``repeat`` bitmap's lookup on that grid); 0 where not ``active``."""
+        scale = mi.UInt32(1) << level
+        w = (self.width + scale - 1) // scale                 # ⌈width / 2^ℓ⌉, as the levels were built
+        h = (self.height + scale - 1) // scale
+        offset = dr.gather(mi.UInt32, self._offsets(), level, active)
+        x = uv.x * mi.Float(w) - 0.5
+        y = uv.y * mi.Float(h) - 0.5
+        x0, y0 = dr.floor(x), dr.floor(y)
+        fx, fy = x - x0, y - y0
+        xi, yi = _wrap(x0, w), _wrap(y0, h)
+        out = [mi.Float(0.0) for _ in MOMENTS]
+        for dy, wy in ((0, 1.0 - fy), (1, fy)):
+            row = dr.select(yi + dy == h, 0, yi + dy)
+            for dx, wx in ((0, 1.0 - fx), (1, fx)):
+                col = dr.select(xi + dx == w, 0, xi + dx)
+                index = offset + row * w + col
+                for n, c in enumerate(self.channels):
+                    out[n] = dr.fma(wx * wy, dr.gather(mi.Float, c, index, active), out[n])
+        return out
+
+    def _offsets(self):
+        if not hasattr(self, "_offset_array"):
+            self._offset_array = mi.UInt32(np.array(self.offsets, np.uint32))
+        return self._offset_array
+
+    def lookup(self, uv, width, point):
+        """The five moments of a footprint ``width`` texels of the map wide (a Float; ≤ 1: the
+        point) centred at ``uv`` (a Point2f): trilinear between the levels ⌊log2 width⌋ and the
+        next, ``point`` (the five moments of the map's own lookup at ``uv``) standing for level 0."""
+        if self.top == 0:
+            return list(point)
+        lod = dr.clip(dr.log2(dr.maximum(width, 1.0)), 0.0, float(self.top))
+        lower = dr.minimum(mi.UInt32(dr.floor(lod)), self.top - 1)
+        f = lod - mi.Float(lower)
+        coarse = self._bilinear(lower + 1, uv, f > 0)
+        fine = self._bilinear(dr.maximum(lower, 1), uv, lower > 0)
+        fine = [dr.select(lower == 0, p, m) for p, m in zip(point, fine)]
+        return [dr.select(f > 0, dr.lerp(a, b, f), a) for a, b in zip(fine, coarse)]
+
+    @staticmethod
+    def covariance(moments):
+        """(var_x, var_y, cov_xy) of the five moments, clamped to a positive semidefinite matrix
+        (float rounding of E[s²] − E[s]² can go below 0)."""
+        sx, sy, sxx, syy, sxy = moments
+        vx = dr.maximum(sxx - sx * sx, 0.0)
+        vy = dr.maximum(syy - sy * sy, 0.0)
+        bound = dr.sqrt(vx * vy)
+        return vx, vy, dr.clip(sxy - sx * sy, -bound, bound)
+
+
+def _wrap(i, n):
+    """The integer-valued Float ``i`` modulo ``n`` (a UInt32 per lane), as a UInt32 in [0, n)."""
+    nf = mi.Float(n)
+    return dr.minimum(mi.UInt32(dr.maximum(i - nf * dr.floor(i / nf), 0.0)), n - 1)
+
+
+def _concat(arrays):
+    """One Float array of ``arrays`` in order (a gather from each, by a scatter into one)."""
+    out = dr.zeros(mi.Float, sum(dr.width(a) for a in arrays))
+    start = 0
+    for a in arrays:
+        dr.scatter(out, a, dr.arange(mi.UInt32, dr.width(a)) + start)
+        start += dr.width(a)
+    return out
+
+
+def footprint_texels(si, width: int, height: int):
+    """The footprint's width in texels of a ``width`` × ``height`` map: the longer of its uv
+    axes (``si.duv_dx``, ``si.duv_dy``, each the step across the whole footprint) in texels;
+    0 without a footprint."""
+    def texels(d):
+        return dr.sqrt(dr.square(d.x * width) + dr.square(d.y * height))
+    return dr.maximum(texels(si.duv_dx), texels(si.duv_dy))
+
