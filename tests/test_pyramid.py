@@ -168,6 +168,26 @@ def test_a_footprint_is_read_at_its_level():
     assert np.allclose([float(x[0]) for x in SlopePyramid.covariance([mi.Float(float(x)) for x in got[-4]])], 0, atol=1e-6)
 
 
+def test_bad_texels_and_footprints_give_finite_moments():
+    """NaN, infinite and zero texels decode to the flat normal (its moments 0); a footprint whose
+    axes are NaN or infinite reads the texel itself; uv far outside the unit square wraps."""
+    rng = np.random.default_rng(7)
+    texels = random_texels(rng, 8, 8)
+    texels[1, 2] = np.nan
+    texels[3, 4] = np.inf
+    texels[5, 6] = 0.5                                   # (0, 0, 0): no direction
+    bsdf = plugin(texels)
+    u = np.array([2.5 / 8, 4.5 / 8, 6.5 / 8, 0.3, 0.3, 0.3, 1e6 + 0.25, -1e5 - 0.6])
+    v = np.array([1.5 / 8, 3.5 / 8, 5.5 / 8, 0.7, 0.7, 0.7, 0.5, 0.25])
+    du = np.array([0.0, 0.0, 0.0, np.nan, np.inf, -np.inf, 0.5, 0.25])
+    got = as_np(lookups(bsdf, u, v, du))
+    assert np.all(np.isfinite(got))
+    np.testing.assert_array_equal(got[:3], 0.0)
+    point = as_np(lookups(bsdf, u[3:4], v[3:4], [0.0]))
+    np.testing.assert_array_equal(got[3:6], np.repeat(point, 3, axis=0))
+    assert np.all(np.isfinite(bsdf.source.pyramid().level(1)))
+
+
 def test_the_footprint_follows_the_maps_uv_transform():
     """A map scaled 4× in uv (``to_uv``): a footprint 1/64 wide in the mesh's uv covers 4/64 of
     the map, 4 of its 64 texels: level 2."""

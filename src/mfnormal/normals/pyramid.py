@@ -139,10 +139,12 @@ class SlopePyramid:
 
     def lookup(self, uv, width, point):
         """The five moments of a footprint ``width`` texels of the map wide (a Float; ≤ 1: the
-        point) centred at ``uv`` (a Point2f): trilinear between the levels ⌊log2 width⌋ and the
-        next, ``point`` (the five moments of the map's own lookup at ``uv``) standing for level 0."""
+        point; not finite: the point) centred at ``uv`` (a Point2f): trilinear between the levels
+        ⌊log2 width⌋ and the next, ``point`` (the five moments of the map's own lookup at ``uv``)
+        standing for level 0."""
         if self.top == 0:
             return list(point)
+        width = dr.select(dr.isfinite(width), width, 0.0)      # (no footprint where it is not finite)
         lod = dr.clip(dr.log2(dr.maximum(width, 1.0)), 0.0, float(self.top))
         lower = dr.minimum(mi.UInt32(dr.floor(lod)), self.top - 1)
         f = lod - mi.Float(lower)
