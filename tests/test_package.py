@@ -95,7 +95,7 @@ def test_the_command_line_prints_the_same_message_as_one_line(tmp_path):
 HARNESSES = ("validation.run", "validation.true_geometry", "validation.real_assets", "validation.real_assets_split",
              "validation.dielectric", "validation.furnace_glass", "validation.normal_sources",
              "validation.inverse_rendering", "validation.inverse_water", "benchmarks.run", "benchmarks.backward",
-             "benchmarks.cost_floor", "benchmarks.experiments", "benchmarks.normal_sources")
+             "benchmarks.cost_floor", "benchmarks.experiments", "benchmarks.normal_sources", "benchmarks.lean")
 
 DEFAULT_OUTS = """
 import argparse, runpy, sys
