@@ -11,7 +11,10 @@ shaded classically (the nested BSDF in its own frame, ⟨ω_o, n⟩ included, no
 
 - **texels**: the mean of the nested f·cos over 2^16 points of the map (bilinear lookups);
 - **LEAN**: the nested BSDF with α' on the mean slope's facet, its moments read from the top
-  level of the map's slope-moment pyramid (:mod:`mfnormal.normals.pyramid`).
+  level of the map's slope-moment pyramid (:mod:`mfnormal.normals.pyramid`);
+- **with a flat share**: two such lobes, one for the texels whose slope is within α of flat and
+  one for the rest, each on its own mean slope with its own variance, weighted by their shares (a
+  candidate for maps whose slopes are not one Gaussian).
 
 Two maps, each at ``strength`` 0.3 and 1: ``bumps``, spherical caps on a grid with flat ground
 between them (a panel with rivets, a tiled floor), and ``noise``, a smooth Gaussian random
@@ -88,7 +91,8 @@ def nested_value(alpha, normals, wi, wo):
 
 
 def case(rgb, strength, alpha, wi, wo):
-    """(texels, LEAN) for one map, strength, α and direction pair."""
+    """(texels, LEAN, LEAN with a flat share, rms slope per axis) for one map, strength, α and
+    direction pair."""
     texture = mi.load_dict({"type": "bitmap", "bitmap": mi.Bitmap(rgb.astype(np.float32)), "raw": True})
     rng = np.random.default_rng(0)
     si = dr.zeros(mi.SurfaceInteraction3f, QUERIES)
@@ -97,9 +101,33 @@ def case(rgb, strength, alpha, wi, wo):
     pyramid = SlopePyramid(mi.traverse(texture)["data"], mi.Float(strength), False)
     sx, sy, sxx, syy, sxy = pyramid.level(pyramid.top)[0, 0]
     spread = max(sxx - sx * sx, 0.0) + max(syy - sy * sy, 0.0)
-    mean = dr.normalize(mi.Vector3f(-float(sx), -float(sy), 1.0))
-    lean = nested_value(math.sqrt(alpha * alpha + spread), mean, wi, wo)
-    return texels, lean, math.sqrt(spread / 2.0)
+    lean = _lobe(alpha, (sx, sy), spread, wi, wo)
+    return texels, lean, _flat_share(texture, strength, alpha, wi, wo), math.sqrt(spread / 2.0)
+
+
+def _lobe(alpha, mean, spread, wi, wo):
+    """The nested f·cos on the facet of slope ``mean`` with α widened by the slope ``spread``."""
+    facet = dr.normalize(mi.Vector3f(-float(mean[0]), -float(mean[1]), 1.0))
+    return nested_value(math.sqrt(alpha * alpha + spread), facet, wi, wo)
+
+
+def _flat_share(texture, strength, alpha, wi, wo):
+    """Two lobes instead of one: the texels whose slope is within α of flat and the others, each
+    as LEAN's one Gaussian (its mean slope, α widened by its variance), weighted by their shares."""
+    si = dr.zeros(mi.SurfaceInteraction3f, SIZE * SIZE)
+    centres = (np.arange(SIZE) + 0.5) / SIZE
+    u, v = np.meshgrid(centres, centres)
+    si.uv = mi.Point2f(u.ravel().astype(np.float32), v.ravel().astype(np.float32))
+    n = decode_normal(texture.eval_3(si), strength, False)
+    s = -np.stack([np.array(n.x), np.array(n.y)], -1) / np.array(n.z)[:, None]
+    flat = np.hypot(s[:, 0], s[:, 1]) < alpha
+    value = 0.0
+    for part in (flat, ~flat):
+        if part.any():
+            mean = s[part].mean(0)
+            spread = float(np.sum(s[part].var(0)))
+            value += part.mean() * _lobe(alpha, mean, spread, wi, wo)
+    return value
 
 
 def measure() -> list:
@@ -111,9 +139,9 @@ def measure() -> list:
             for alpha in (0.05, 0.3):
                 for label, (wi, wo) in DIRECTIONS.items():
                     wi_n, wo_n = (tuple(float(x) for x in np.array(w) / np.linalg.norm(w)) for w in (wi, wo))
-                    texels, lean, sigma = case(rgb, strength, alpha, wi_n, wo_n)
+                    texels, lean, two, sigma = case(rgb, strength, alpha, wi_n, wo_n)
                     rows.append({"map": name, "strength": strength, "sigma": sigma, "alpha": alpha,
-                                 "directions": label, "texels": texels, "lean": lean})
+                                 "directions": label, "texels": texels, "lean": lean, "flat_share": two})
     return rows
 
 
@@ -125,11 +153,11 @@ def main(argv=None):
     out = args.out
     out.mkdir(parents=True, exist_ok=True)
     rows = measure()
-    print("| map | strength | rms slope per axis | α | directions | texels | LEAN | LEAN / texels |")
+    print("| map | strength | rms slope per axis | α | directions | texels | LEAN / texels | with a flat share / texels |")
     print("|---|---|---|---|---|---|---|---|")
     for r in rows:
         print(f"| {r['map']} | {r['strength']} | {r['sigma']:.3f} | {r['alpha']} | {r['directions']} "
-              f"| {r['texels']:.4g} | {r['lean']:.4g} | {r['lean'] / r['texels']:.3g} |")
+              f"| {r['texels']:.4g} | {r['lean'] / r['texels']:.3g} | {r['flat_share'] / r['texels']:.3g} |")
     (out / "lean.json").write_text(json.dumps(rows, indent=1))
     print(f"wrote {out / 'lean.json'}")
 

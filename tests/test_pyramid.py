@@ -267,11 +267,12 @@ def test_one_gaussian_of_the_slopes_keeps_a_gaussian_maps_highlight_but_not_a_fl
     """``python -m benchmarks.lean`` (docs/normal_sources.md §5): LEAN's one facet with widened
     roughness against the texels it stands for, a footprint over the whole map. On the Gaussian
     noise map its mirror highlight is within 0.65–1.0 of the texels' (measured 0.70–0.95); on bumps
-    with flat ground between them it loses that ground's highlight (measured ≤ 0.24 of it)."""
+    with flat ground between them it loses that ground's highlight (measured ≤ 0.24 of it), which
+    two lobes split at a slope of α keep (measured 0.79–1.89)."""
     from benchmarks.lean import measure
     rows = measure()
     assert len(rows) == 24
     for r in rows:
         if r["directions"].startswith("mirror"):
-            ratio = r["lean"] / r["texels"]
-            assert (0.65 <= ratio <= 1.0) if r["map"] == "noise" else ratio <= 0.25, r
+            lean, two = r["lean"] / r["texels"], r["flat_share"] / r["texels"]
+            assert (0.65 <= lean <= 1.0) if r["map"] == "noise" else (lean <= 0.25 and 0.75 <= two <= 2.0), r
