@@ -12,11 +12,11 @@ shaded classically (the nested BSDF in its own frame, ⟨ω_o, n⟩ included, no
 - **texels**: the mean of the nested f·cos over 2^16 points of the map (bilinear lookups);
 - **LEAN**: the nested BSDF with α' on the mean slope's facet, its moments read from the top
   level of the map's slope-moment pyramid (:mod:`mfnormal.normals.pyramid`);
-- **with a flat share**: two such lobes, one for the texels whose slope is within α of flat and
+- **with a flat share**: two such lobes, one for the texels whose slope is within α/2 of flat and
   one for the rest, each on its own mean slope with its own variance, weighted by their shares (a
   candidate for maps whose slopes are not one Gaussian).
 
-Two maps, each at ``strength`` 0.3 and 1: ``bumps``, spherical caps on a grid with flat ground
+Two 256² maps, each at ``strength`` 0.3 and 1: ``bumps``, spherical caps on a grid with flat ground
 between them (a panel with rivets, a tiled floor), and ``noise``, a smooth Gaussian random
 height field (slopes close to Gaussian, what LEAN assumes). Directions: the mirror
 configuration at 30° and 60° from the normal (the flat ground's highlight), and an off-specular
@@ -39,7 +39,7 @@ import numpy as np
 from mfnormal.normals.pyramid import SlopePyramid
 from mfnormal.surface.microsurface import decode_normal
 
-SIZE = 64
+SIZE = 256
 QUERIES = 1 << 16
 DIRECTIONS = {           # (ω_i, ω_o), unnormalised
     "mirror 30°": ((0.0, -0.5, 0.866), (0.0, 0.5, 0.866)),
@@ -112,7 +112,7 @@ def _lobe(alpha, mean, spread, wi, wo):
 
 
 def _flat_share(texture, strength, alpha, wi, wo):
-    """Two lobes instead of one: the texels whose slope is within α of flat and the others, each
+    """Two lobes instead of one: the texels whose slope is within α/2 of flat and the others, each
     as LEAN's one Gaussian (its mean slope, α widened by its variance), weighted by their shares."""
     si = dr.zeros(mi.SurfaceInteraction3f, SIZE * SIZE)
     centres = (np.arange(SIZE) + 0.5) / SIZE
@@ -120,7 +120,7 @@ def _flat_share(texture, strength, alpha, wi, wo):
     si.uv = mi.Point2f(u.ravel().astype(np.float32), v.ravel().astype(np.float32))
     n = decode_normal(texture.eval_3(si), strength, False)
     s = -np.stack([np.array(n.x), np.array(n.y)], -1) / np.array(n.z)[:, None]
-    flat = np.hypot(s[:, 0], s[:, 1]) < alpha
+    flat = np.hypot(s[:, 0], s[:, 1]) < 0.5 * alpha
     value = 0.0
     for part in (flat, ~flat):
         if part.any():
