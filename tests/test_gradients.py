@@ -331,3 +331,35 @@ def test_reverse_mode_sums_each_map_wide_adjoint_once(key):
     wide = [k for k in history if k.get("type") == dr.KernelType.JIT and k.get("size") == n]
     assert g != 0.0 and np.isfinite(g), g
     assert 1 <= len(wide) <= 8, f"{len(wide)} kernels of the queries' width in one backward pass"
+
+
+@pytest.mark.xfail(strict=True, reason="the map-wide statistics' derivatives are built once per "
+                   "params.update(); a backward pass clears their edges, so a second backward pass "
+                   "(or a forward one) before the next update misses them")
+def test_a_second_backward_pass_after_one_update_gives_the_same_gradient():
+    """The default model, d/d strength of a mean of eval + pdf over 2^12 queries on a 16² bump map:
+    two reverse passes after one ``params.update()`` (as in a multi-view loop that calls
+    ``dr.backward`` per view before the optimiser's step) agree within 1e-4 relative. Measured:
+    the first pass 0.1006 (central differences 0.1012–0.1022 at h 1e-3 to 1e-2), the second 0.0842
+    (−16 %), as is a forward pass after a backward one; a new value and update before each pass
+    gives the right derivative again (an optimiser's loop: within 2 % of the central differences at
+    strength 1, 0.95, 0.9, 0.85)."""
+    from helpers import bumps_normalmap, make_si, random_hemisphere, vec3
+    rng = np.random.default_rng(41)
+    n = 1 << 12
+    rgb = bumps_normalmap(16, 4, 0.45)
+    b = mi.load_dict({"type": "normalmap_microfacet", "bsdf": {"type": "roughconductor", "alpha": 0.15},
+                      "normalmap": {"type": "bitmap", "bitmap": mi.Bitmap(rgb.astype(np.float32)), "raw": True}})
+    si = make_si(random_hemisphere(rng, n, 0.05), 1)
+    si.uv = mi.Point2f(*(rng.random((2, n)).astype(np.float32)))
+    wo = vec3(random_hemisphere(rng, n, 0.05))
+    params = mi.traverse(b)
+    dr.enable_grad(params["strength"])
+    params.update()
+    grads = []
+    for _ in range(2):
+        v, p = b.eval_pdf(mi.BSDFContext(), si, wo)
+        dr.backward(dr.mean(v[0] + v[1] + v[2] + p))
+        grads.append(float(dr.grad(params["strength"])[0]))
+        dr.clear_grad(params["strength"])
+    assert grads[1] == pytest.approx(grads[0], rel=1e-4), grads
