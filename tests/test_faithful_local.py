@@ -367,11 +367,8 @@ def test_only_the_scales_a_lookup_reads_are_computed(bumps):
     rgb = bumps_normalmap(64, 8, 0.45) if bumps == "even" else ramped_bumps()
     n = 1 << 15
     wi, wo = random_hemisphere(rng, n, 0.02), random_hemisphere(rng, n, 0.02)
-    si = dr.zeros(mi.SurfaceInteraction3f, n)
+    si = make_si(wi)
     si.uv = mi.Point2f(*(rng.random((2, n)).astype(np.float32)))
-    si.sh_frame = mi.Frame3f(mi.Vector3f(1, 0, 0), mi.Vector3f(0, 1, 0), mi.Vector3f(0, 0, 1))
-    si.n = mi.Normal3f(0, 0, 1)
-    si.wi = vec3(wi)
     b = bsdf_on(rgb, {"type": "roughplastic", "alpha": 0.15})     # (B weights the diffuse fill)
     params = mi.traverse(b)
     dr.enable_grad(params["normalmap.data"])

@@ -30,6 +30,7 @@ from variant import VARIANT  # noqa: E402
 mi.set_variant(VARIANT)
 mfnormal.register()
 
+from helpers import encode, sph  # noqa: E402
 from mfnormal.normals.pyramid import MOMENTS, SlopePyramid  # noqa: E402
 
 pytestmark = pytest.mark.skipif(not dr.is_jit_v(mi.Float), reason="the pyramid is built in JIT variants")
@@ -37,10 +38,8 @@ pytestmark = pytest.mark.skipif(not dr.is_jit_v(mi.Float), reason="the pyramid i
 
 def random_texels(rng, height, width, max_tilt=60.0):
     """Texels of unit normals tilted up to ``max_tilt`` degrees, encoded as a normal map's RGB."""
-    theta = np.radians(rng.uniform(0.0, max_tilt, (height, width)))
-    phi = rng.uniform(0.0, 2.0 * np.pi, (height, width))
-    n = np.stack([np.sin(theta) * np.cos(phi), np.sin(theta) * np.sin(phi), np.cos(theta)], -1)
-    return (0.5 * n + 0.5).astype(np.float32)
+    tilts, azimuths = rng.uniform(0.0, max_tilt, (height, width)), rng.uniform(0.0, 2.0 * np.pi, (height, width))
+    return encode(sph(tilts, azimuths))
 
 
 def plugin(texels, strength=1.0, **bitmap):

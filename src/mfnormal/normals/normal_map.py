@@ -313,13 +313,19 @@ class NormalMap:
         si = finite_uv(si)
         if self.uv is not None:
             return _affine_uv(self.uv, si.uv)
+        affine = self._uv_affine()
+        return si.uv if affine is None else _affine_uv(affine, si.uv)
+
+    def _uv_affine(self):
+        """The map's uv transform (a bitmap's ``to_uv``) as (m00, m01, m02, m10, m11, m12), None
+        where it has none or it is the identity."""
         params = mi.traverse(self.texture)
         if "to_uv" not in params.keys():
-            return si.uv
+            return None
         m = np.array(params["to_uv"].matrix, dtype=np.float64)
         if m.shape != (3, 3) or np.array_equal(m, np.eye(3)):
-            return si.uv
-        return _affine_uv([float(m[i, j]) for i in range(2) for j in range(3)], si.uv)
+            return None
+        return tuple(float(m[i, j]) for i in range(2) for j in range(3))
 
     def _scalar_normal(self, x, y):
         s1 = mi.SurfaceInteraction3f()
@@ -348,23 +354,15 @@ class NormalMap:
         rgb = self.map_rgb(si, active)
         point = slope_moments(decode_normal(rgb, spread(self.strength.value, dr.width(rgb)), self.directx))
         axes = mi.SurfaceInteraction3f(si)
-        linear = self._linear_uv()
-        if linear is not None:
-            m00, m01, m10, m11 = linear
-            axes.duv_dx = mi.Vector2f(m00 * si.duv_dx.x + m01 * si.duv_dx.y, m10 * si.duv_dx.x + m11 * si.duv_dx.y)
-            axes.duv_dy = mi.Vector2f(m00 * si.duv_dy.x + m01 * si.duv_dy.y, m10 * si.duv_dy.x + m11 * si.duv_dy.y)
+        affine = self._uv_affine()
+        if affine is not None:
+            m00, m01, _, m10, m11, _ = affine
+
+            def linear(d):
+                return mi.Vector2f(m00 * d.x + m01 * d.y, m10 * d.x + m11 * d.y)
+            axes.duv_dx, axes.duv_dy = linear(si.duv_dx), linear(si.duv_dy)
         width = footprint_texels(axes, pyramid.width, pyramid.height)
         return pyramid.lookup(self.map_uv(si), width, point)
-
-    def _linear_uv(self):
-        """The linear part (m00, m01, m10, m11) of the map's uv transform, None for none."""
-        params = mi.traverse(self.texture)
-        if "to_uv" not in params.keys():
-            return None
-        m = np.array(params["to_uv"].matrix, dtype=np.float64)
-        if m.shape != (3, 3) or np.array_equal(m[:2, :2], np.eye(2)):
-            return None
-        return float(m[0, 0]), float(m[0, 1]), float(m[1, 0]), float(m[1, 1])
 
     def parameters_changed(self, keys):
         if not keys or any(k == "strength" or k.startswith("normalmap") for k in keys):

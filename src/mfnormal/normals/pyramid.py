@@ -25,15 +25,13 @@ the point lookup it is given.
 
 from __future__ import annotations
 
-import math
-
 import drjit as dr
 import mitsuba as mi
 import numpy as np
 
 from mfnormal.surface.microsurface import decode_normal
 
-#: The moments, in the order of :attr:`SlopePyramid.levels`' channels.
+#: The moments, in the order of :attr:`SlopePyramid.channels`.
 MOMENTS = ("s_x", "s_y", "s_xx", "s_yy", "s_xy")
 
 
@@ -45,28 +43,18 @@ def slope_moments(n):
     return [sx, sy, sx * sx, sy * sy, sx * sy]
 
 
-def level_sizes(width: int, height: int) -> list:
-    """The (width, height) of levels 1, 2, … down to 1 × 1 of a map ``width`` × ``height``."""
-    sizes = []
-    while width > 1 or height > 1:
-        width, height = (width + 1) // 2, (height + 1) // 2
-        sizes.append((width, height))
-    return sizes
-
-
 def _halve(channels, width: int, height: int):
     """A level's channels (each row-major, ``width`` × ``height``) averaged over 2 × 2 blocks."""
     w2, h2 = (width + 1) // 2, (height + 1) // 2
     idx = dr.arange(mi.UInt32, w2 * h2)
     x, y = idx % w2, idx // w2
+    below = [dr.minimum(2 * y + dy, height - 1) * width + dr.minimum(2 * x + dx, width - 1)
+             for dy in (0, 1) for dx in (0, 1)]
     out = []
     for c in channels:
         acc = mi.Float(0.0)
-        for dy in (0, 1):
-            for dx in (0, 1):
-                xs = dr.minimum(2 * x + dx, width - 1)
-                ys = dr.minimum(2 * y + dy, height - 1)
-                acc += dr.gather(mi.Float, c, ys * width + xs)
+        for index in below:
+            acc += dr.gather(mi.Float, c, index)
         out.append(acc * 0.25)
     return out, w2, h2
 
@@ -94,6 +82,7 @@ class SlopePyramid:
             for part, m in zip(parts, moments):
                 part.append(m)
         self.channels = [_concat(part) for part in parts] if total else []
+        self._offset_array = mi.UInt32(np.array(self.offsets, np.uint32))
         dr.eval(*self.channels)
 
     @property
@@ -116,7 +105,7 @@ class SlopePyramid:
         scale = mi.UInt32(1) << level
         w = (self.width + scale - 1) // scale                 # ⌈width / 2^ℓ⌉, as the levels were built
         h = (self.height + scale - 1) // scale
-        offset = dr.gather(mi.UInt32, self._offsets(), level, active)
+        offset = dr.gather(mi.UInt32, self._offset_array, level, active)
         x = uv.x * mi.Float(w) - 0.5
         y = uv.y * mi.Float(h) - 0.5
         x0, y0 = dr.floor(x), dr.floor(y)
@@ -131,11 +120,6 @@ class SlopePyramid:
                 for n, c in enumerate(self.channels):
                     out[n] = dr.fma(wx * wy, dr.gather(mi.Float, c, index, active), out[n])
         return out
-
-    def _offsets(self):
-        if not hasattr(self, "_offset_array"):
-            self._offset_array = mi.UInt32(np.array(self.offsets, np.uint32))
-        return self._offset_array
 
     def lookup(self, uv, width, point):
         """The five moments of a footprint ``width`` texels of the map wide (a Float; ≤ 1: the
