@@ -14,6 +14,7 @@ import shutil
 import pytest
 
 import mfnormal  # noqa: F401
+import crash_rerun
 from tiers import FULL, slow_reason
 from variant import VARIANT, check
 
@@ -22,6 +23,9 @@ def pytest_configure(config):
     error = check()
     if error is not None:
         raise pytest.UsageError(error)
+    # A test whose worker process dies runs again alone at the end (tests/crash_rerun.py).
+    if not config.pluginmanager.has_plugin("crash_rerun"):
+        config.pluginmanager.register(crash_rerun, "crash_rerun")
 
 
 def pytest_report_header(config):
@@ -74,7 +78,8 @@ def worker():
 # MFNORMAL_NO_FAST_EXIT=1 .venv/bin/python -m pytest -q   (rc 139 after "N passed").
 
 def pytest_sessionfinish(session, exitstatus):
-    session.config._mfnormal_exitstatus = int(exitstatus)
+    # (session.exitstatus: crash_rerun's run of the crashed tests may have changed it.)
+    session.config._mfnormal_exitstatus = int(session.exitstatus)
 
 
 @pytest.hookimpl(trylast=True)
