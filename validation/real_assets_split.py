@@ -246,7 +246,10 @@ def summarise(cells: list, keys: list) -> dict:
                 "time_ratio": float(np.median([m["time_ratio"] for m in ms])) if ms and "time_ratio" in ms[0] else None,
                 "equal_time_le_classic": sum(m.get("equal_time_le_classic", False) for m in ms),
                 **relief_summary([m["relief"] for m in ms])}
-        row["again"] = relief_summary([c["again"]["relief"] for c in rs])
+        row["again"] = {**relief_summary([c["again"]["relief"] for c in rs]),
+                        "rel_mse": TG.geomean([c["again"]["rel_mse"] for c in rs]),
+                        "bias2": float(np.mean([c["again"]["bias2"] for c in rs])),
+                        "noise": TG.geomean([c["again"]["noise"] for c in rs])}
         out[name] = row
     return out
 
@@ -280,13 +283,21 @@ def markdown(report: dict, keys: list) -> str:
          f"{RELIEF_BLUR * s['res']:.0f} px) over the truth's, both without noise (the covariance of the "
          "two halves' details), geometric means; kept: cells within "
          f"±{RELIEF_TOLERANCE:.0%} of the truth's; the truth rendered again at the methods' spp shows "
-         "what the instrument resolves.", ""]
+         "what the instrument resolves, and its noise (its bias² is 0 up to the floor) the noise of a "
+         "method that drew the truth exactly at that spp.", ""]
     for name, row in report["summary"].items():
         L += [f"## {name} ({row['cells']} cells, {row['resolved']} resolved; floor {TG.fmt(row['floor'])}; "
               f"relief of the truth again {_relief(row['again']['relief'])})", "",
               "| method | relMSE | bias² | noise | ≤classic | equal time: relMSE | ≤classic | time "
               "| relief | kept |",
               "|---|---|---|---|---|---|---|---|---|---|"]
+        again = row["again"]
+        if "noise" in again:
+            # (The truth rendered again at the methods' spp: its bias² is 0 up to the floor, its noise
+            # that of a method that drew the truth exactly.)
+            L.append(f"| *the truth again* | {TG.fmt(again['rel_mse'])} | {TG.fmt(again['bias2'])} | "
+                     f"{TG.fmt(again['noise'])} | – | – | – | – "
+                     f"| {_relief(again['relief'])} | {again['relief_kept']}/{again['relief_cells']} |")
         for k in keys:
             m = row["methods"][k]
             t = "–" if m["time_ratio"] is None else f"{m['time_ratio']:.2f}×"
@@ -295,11 +306,11 @@ def markdown(report: dict, keys: list) -> str:
                      f"{m['le_classic']}/{row['cells']} | {TG.fmt(m['equal_time_rel_mse'])} | "
                      f"{m['equal_time_le_classic']}/{row['cells']} | {t} | {_relief(m['relief'])} | {kept} |")
         L.append("")
-    L += ["## Per cell", "", "| cell | texels/px | floor | resolved | " + " | ".join(
-          f"{k} relMSE (bias²)" for k in keys) + " |", "|---|---|---|---|" + "---|" * len(keys)]
+    L += ["## Per cell", "", "| cell | texels/px | floor | resolved | the truth's noise | " + " | ".join(
+          f"{k} relMSE (bias²)" for k in keys) + " |", "|---|---|---|---|---|" + "---|" * len(keys)]
     for c in report["cells"]:
         L.append(f"| {c['cell']} | {c['texels_per_pixel']:.0f} | {TG.fmt(c['floor'])} | "
-                 f"{'yes' if c['resolved'] else 'no'} | " + " | ".join(
+                 f"{'yes' if c['resolved'] else 'no'} | {TG.fmt(c['again']['noise'])} | " + " | ".join(
                      f"{TG.fmt(c['metrics'][k]['rel_mse'])} ({TG.fmt(c['metrics'][k]['bias2'])})" for k in keys) + " |")
     L += ["", "## Relief contrast per cell", "", "| cell | truth again | " + " | ".join(keys) + " |",
           "|---|---|" + "---|" * len(keys)]
