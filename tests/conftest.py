@@ -49,6 +49,34 @@ def pytest_collection_modifyitems(config, items):
             item.add_marker(skip)
 
 
+# -- Garbage collection between tests only ----------------------------------------------------------
+# Under pytest-xdist a test process has a second Python thread (execnet's, which receives the
+# controller's messages). Python's cyclic collector runs on whichever thread allocates past its
+# threshold: on that thread, or on the test's thread inside a Dr.Jit call that runs Python code (a
+# Python plugin traced into a kernel), it frees Mitsuba/Dr.Jit objects that earlier tests left in
+# reference cycles (scenes and their plugins) while Dr.Jit is busy on the test's thread. Worker
+# processes then segfaulted or aborted now and then, in a different test each time (a render of
+# Mitsuba's own bumpmap, a prb render), each passing when run again. So in the test processes the
+# collector runs only here, on the test's thread, between tests: the young generations after
+# every test, all of them every FULL_COLLECT_EVERY tests.
+FULL_COLLECT_EVERY = 25
+_tests_since_full_collect = [0]
+
+
+@pytest.fixture(autouse=True)
+def _collect_between_tests():
+    import gc
+
+    gc.disable()
+    yield
+    _tests_since_full_collect[0] += 1
+    if _tests_since_full_collect[0] >= FULL_COLLECT_EVERY:
+        _tests_since_full_collect[0] = 0
+        gc.collect()
+    else:
+        gc.collect(1)
+
+
 @pytest.fixture(autouse=True)
 def _suite_variant():
     import mitsuba as mi
