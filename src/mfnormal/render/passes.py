@@ -18,6 +18,7 @@ Two schedules use it:
 
 from __future__ import annotations
 
+import gc
 import signal
 import threading
 from contextlib import contextmanager
@@ -27,7 +28,8 @@ import numpy as np
 import mitsuba as mi
 
 __all__ = ["MAX_PASS_LANES", "pass_count", "pass_spp", "pass_seed", "schedule", "weighted_mean",
-           "average_passes", "render_scene", "film_image", "render_rgb", "signals_end_the_process"]
+           "average_passes", "render_scene", "film_image", "render_rgb", "signals_end_the_process",
+           "collector_paused"]
 
 #: A render pass traces at most this many paths at once (pixels × samples per pass),
 #: which bounds its memory; more samples take more passes.
@@ -128,8 +130,33 @@ def signals_end_the_process(enabled: bool = True):
             signal.signal(getattr(signal, n), handler)
 
 
+_PAUSED = [0, False]           # renders under collector_paused, and whether the collector was on
+_PAUSED_LOCK = threading.Lock()
+
+
+@contextmanager
+def collector_paused():
+    """Python's cyclic collector off while a render runs, as it was after the last overlapping
+    render ends. Run on another thread (a Dask worker's event loop) or inside the plugin's Python
+    code that Dr.Jit traces, it can free the Mitsuba/Dr.Jit objects of an earlier scene, left in
+    reference cycles, while Dr.Jit is busy with this one: the test suite's worker processes
+    crashed now and then that way (docs/development.md, "Worker crashes")."""
+    with _PAUSED_LOCK:
+        if _PAUSED[0] == 0:
+            _PAUSED[1] = gc.isenabled()
+            gc.disable()
+        _PAUSED[0] += 1
+    try:
+        yield
+    finally:
+        with _PAUSED_LOCK:
+            _PAUSED[0] -= 1
+            if _PAUSED[0] == 0 and _PAUSED[1]:
+                gc.enable()
+
+
 def _render(scene, spp: int, seed: int, killable: bool) -> np.ndarray:
-    with signals_end_the_process(killable):
+    with signals_end_the_process(killable), collector_paused():
         return np.array(mi.render(scene, spp=spp, seed=seed))
 
 

@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from mfnormal.render.bundle import SceneSpec, bundle_name
-from mfnormal.render.passes import MIN_THREADS, render_rgb, use_variant
+from mfnormal.render.passes import MIN_THREADS, collector_paused, render_rgb, use_variant
 
 __all__ = ["versions", "mismatch", "Env", "set_worker_variant", "render_chunk", "render_rgb_job",
            "variant_job", "worker_info", "held_files"]
@@ -170,7 +170,8 @@ def render_chunk(env: Env, spec: SceneSpec, files, spp: int, seed: int) -> tuple
     with _LOCK:
         mi = _prepare(env)
         scene = _scene(mi, spec, files)
-        return spp, np.array(mi.render(scene, spp=spp, seed=seed), dtype=np.float32), mi.variant()
+        with collector_paused():
+            return spp, np.array(mi.render(scene, spp=spp, seed=seed), dtype=np.float32), mi.variant()
 
 
 def render_rgb_job(env: Env, spec: SceneSpec, files, spp: int, seed: int, per_pass: int) -> tuple:
