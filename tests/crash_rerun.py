@@ -1,8 +1,8 @@
 """A test whose worker process dies runs again once, alone, in a fresh process at the run's end.
 
-Dr.Jit 1.5's LLVM backend now and then aborts or segfaults in a worker process that has compiled
-many kernels (docs/development.md, "Worker crashes"): a different test each time, one that passes
-when it runs again. pytest-xdist reports such a crash as a failure of the test that was running, and
+A worker process used to segfault or abort now and then inside Dr.Jit (docs/development.md, "Worker
+crashes", with the likely cause and its mitigation in tests/conftest.py): a different test each
+time, one that passed when it ran again. pytest-xdist reports such a crash as a failure of the test that was running, and
 with ``--dist loadfile`` (pyproject.toml) it cannot schedule that test again. So the controller
 records the test as **crashed** (a category of its own in the summary, letter ``C``, not a failure)
 and, when the run ends, runs every crashed test in one fresh ``pytest -n 0`` process, whose

@@ -240,18 +240,22 @@ def summarise(cells: list, keys: list) -> dict:
         for k in keys:
             ms = [c["metrics"][k] for c in rs if k in c["metrics"]]
             row["methods"][k] = {
-                "rel_mse": TG.geomean([m["rel_mse"] for m in ms]), "bias2": float(np.mean([m["bias2"] for m in ms])),
-                "noise": TG.geomean([m["noise"] for m in ms]), "le_classic": sum(m["le_classic"] for m in ms),
+                **_split_summary(ms), "le_classic": sum(m["le_classic"] for m in ms),
                 "equal_time_rel_mse": TG.geomean([m.get("equal_time_rel_mse") for m in ms]),
                 "time_ratio": float(np.median([m["time_ratio"] for m in ms])) if ms and "time_ratio" in ms[0] else None,
                 "equal_time_le_classic": sum(m.get("equal_time_le_classic", False) for m in ms),
                 **relief_summary([m["relief"] for m in ms])}
-        row["again"] = {**relief_summary([c["again"]["relief"] for c in rs]),
-                        "rel_mse": TG.geomean([c["again"]["rel_mse"] for c in rs]),
-                        "bias2": float(np.mean([c["again"]["bias2"] for c in rs])),
-                        "noise": TG.geomean([c["again"]["noise"] for c in rs])}
+        again = [c["again"] for c in rs]
+        row["again"] = {**relief_summary([a["relief"] for a in again]), **_split_summary(again)}
         out[name] = row
     return out
+
+
+def _split_summary(ms) -> dict:
+    """The geometric means of relMSE and noise over the split metrics ``ms`` and the mean of bias²
+    (an estimate that can be below 0 within the floor)."""
+    return {"rel_mse": TG.geomean([m["rel_mse"] for m in ms]), "bias2": float(np.mean([m["bias2"] for m in ms])),
+            "noise": TG.geomean([m["noise"] for m in ms])}
 
 
 def relief_summary(contrasts) -> dict:
@@ -291,13 +295,12 @@ def markdown(report: dict, keys: list) -> str:
               "| method | relMSE | bias² | noise | ≤classic | equal time: relMSE | ≤classic | time "
               "| relief | kept |",
               "|---|---|---|---|---|---|---|---|---|---|"]
+        # (The truth rendered again at the methods' spp: its bias² is 0 up to the floor, its noise
+        # that of a method that drew the truth exactly.)
         again = row["again"]
-        if "noise" in again:
-            # (The truth rendered again at the methods' spp: its bias² is 0 up to the floor, its noise
-            # that of a method that drew the truth exactly.)
-            L.append(f"| *the truth again* | {TG.fmt(again['rel_mse'])} | {TG.fmt(again['bias2'])} | "
-                     f"{TG.fmt(again['noise'])} | – | – | – | – "
-                     f"| {_relief(again['relief'])} | {again['relief_kept']}/{again['relief_cells']} |")
+        L.append(f"| *the truth again* | {TG.fmt(again['rel_mse'])} | {TG.fmt(again['bias2'])} | "
+                 f"{TG.fmt(again['noise'])} | – | – | – | – "
+                 f"| {_relief(again['relief'])} | {again['relief_kept']}/{again['relief_cells']} |")
         for k in keys:
             m = row["methods"][k]
             t = "–" if m["time_ratio"] is None else f"{m['time_ratio']:.2f}×"
