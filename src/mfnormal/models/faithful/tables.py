@@ -24,6 +24,12 @@ from mfnormal.surface.shading import from_tangent_rotation
 #: window's alone; below it k moves toward the finer window's (neighbourhood.FINE_WINDOW), all of it
 #: for a flat neighbourhood (MapStatistics.local_stats; how it was set: docs/faithful.md §8).
 MILD_SLOPE = 1.0
+#: A table with derivatives follows σ1, σ2 to first order (B + ∂B/∂σ1·Δσ1 + ∂B/∂σ2·Δσ2, from
+#: the tables of ∂B/∂σ it carries) while both stay within this relative distance of the σ it was
+#: built at; farther, it is built anew there (MapStatistics.set_slopes). An optimiser moves σ by
+#: 0.05–0.5 % a step; within 1 % the expansion is within 2e-5 of the table built at the new σ,
+#: below the quadrature's own 7e-5 (docs/faithful.md §6).
+TABLE_FOLLOW = 0.01
 
 
 class MapStatistics:
@@ -139,9 +145,7 @@ class MapStatistics:
             phi = phi + (dr.opaque(mi.Float, phi_e) - dr.detach(phi))
             self.sigma1, self.sigma2 = replace_grad(self.sigma1, a1), replace_grad(self.sigma2, a2)
             self.cos_e, self.sin_e = replace_grad(self.cos_e, dr.cos(phi)), replace_grad(self.sin_e, dr.sin(phi))
-            table, t1, t2 = blocked_table(s1, s2, self.cos_min, derivatives=True, scales=scales, needed=needed)
-            self.d_tables = (kernel_array(mi.Float, t1), kernel_array(mi.Float, t2))
-            dr.make_opaque(*self.d_tables)
+            table, self.d_tables = self._followed_table(s1, s2, scales, needed)
         else:
             table = blocked_table(s1, s2, self.cos_min, scales=scales, needed=needed)
         table = table.ravel()
@@ -150,6 +154,22 @@ class MapStatistics:
             dr.make_opaque(self.sigma1, self.sigma2, self.cos_e, self.sin_e, self.table)
         else:
             self.table = table
+
+    def _followed_table(self, s1, s2, scales, needed):
+        """(B at σ1 = ``s1``, σ2 = ``s2``, the tables of ∂B/∂σ1 and ∂B/∂σ2 as opaque kernel inputs) for
+        a map that carries derivatives: the last table built with derivatives, followed to first order
+        (TABLE_FOLLOW), where that one was built at the same scales (at least the ``needed`` ones) and
+        at a σ within TABLE_FOLLOW of these; else the table built here (blocked_table), from which the
+        next ones follow. So an optimiser's update, whose σ moves a little, builds no table: the σ a
+        table is followed from, and so its values to within 2e-5, depend on the updates before."""
+        built = getattr(self, "_built", None)
+        if built is not None and built.covers(self.cos_min, scales, needed, s1, s2):
+            return built.follow(s1, s2), built.d_tables
+        table, t1, t2 = blocked_table(s1, s2, self.cos_min, derivatives=True, scales=scales, needed=needed)
+        d_tables = (kernel_array(mi.Float, t1), kernel_array(mi.Float, t2))
+        dr.make_opaque(*d_tables)
+        self._built = _BuiltTable(self.cos_min, scales, needed, s1, s2, (table, t1, t2), d_tables)
+        return table, d_tables
 
     def _set_wall(self, wall):
         """The walls' share ψ_w and mean slope (w_x, w_y) as opaque kernel inputs, with their
@@ -174,6 +194,31 @@ class MapStatistics:
         s1, s2 = dr.detach(self.sigma1), dr.detach(self.sigma2)
         return replace_grad(value, value + lookup(self.d_tables[0], self.cos_min, cos_p, phi, g, k) * (self.sigma1 - s1)
                             + lookup(self.d_tables[1], self.cos_min, cos_p, phi, g, k) * (self.sigma2 - s2))
+
+
+class _BuiltTable:
+    """A table B built with its derivatives at σ1, σ2 (MapStatistics._followed_table): what the
+    tables of later σ near it follow from."""
+
+    def __init__(self, cos_min, scales, needed, s1, s2, tables, d_tables):
+        self.cos_min, self.scales, self.needed, self.s1, self.s2 = cos_min, scales, needed, s1, s2
+        self.tables, self.d_tables = tables, d_tables
+
+    def covers(self, cos_min, scales, needed, s1, s2) -> bool:
+        """Whether a table at σ1 = ``s1``, σ2 = ``s2`` (at the scales ``needed`` of ``scales``) may
+        follow from this one: the same axes, every needed scale computed here, each σ within
+        TABLE_FOLLOW of this one's (a flat map's σ of 0 only from itself)."""
+        if cos_min != self.cos_min or scales != self.scales:
+            return False
+        if self.needed is not None and (needed is None or not set(needed) <= set(self.needed)):
+            return False
+        return all(abs(s - own) <= TABLE_FOLLOW * own for s, own in ((s1, self.s1), (s2, self.s2)))
+
+    def follow(self, s1, s2):
+        """B at σ1 = ``s1``, σ2 = ``s2`` to first order from this table (in [0, 1], as built)."""
+        table, t1, t2 = self.tables
+        out = table + t1 * np.float32(s1 - self.s1) + t2 * np.float32(s2 - self.s2)
+        return np.clip(out, 0.0, 1.0, out=out)
 
 
 def _local_grids(local):
