@@ -7,7 +7,7 @@ rendered with the true map under three directional suns (the targets); then the 
 optimised with Adam from a flat map through Mitsuba's ``prb`` integrator, the same method
 rendering both. Mitsuba's built-in ``normalmap`` is run beside it for comparison. Prints the
 loss and the mean texel error (angle to the true normals) as it goes, and writes a figure:
-the loss curves, the error curves, and the true and recovered maps. About a minute on a
+the loss curves, the error curves, and the true and recovered maps. About half a minute on a
 laptop's CPU (llvm_ad_rgb) with the defaults. See ``validation.inverse`` for the pieces and
 ``validation/inverse_rendering.py`` for every model and the true-geometry target.
 """
