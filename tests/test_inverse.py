@@ -105,6 +105,25 @@ def test_encode_unit_keeps_the_direction_at_unit_length():
     assert np.abs(I.encode_unit(out) - out).max() < 1e-6
 
 
+def test_the_suns_scenes_share_one_bsdf():
+    """validation.inverse._plane_scenes: the per-sun scenes hold one BSDF object (every live instance
+    of a Python BSDF is traced in every render: one instance per sun made each render + backward
+    3.5× as long, docs/performance.md), and an update through any scene's parameters reaches it."""
+    import drjit as dr
+    import numpy as np
+    from validation import heightfield as H
+    setup = I.Setup(res=8, spp=2)
+    scenes = I._plane_scenes(setup, "faithful", H.encode_normals(I.true_normals(setup)))
+    bsdfs = [s.shapes()[0].bsdf() for s in scenes]
+    assert len(scenes) == 3 and all(b is bsdfs[0] for b in bsdfs)
+    params = mi.traverse(scenes[2])
+    key = next(k for k in params.keys() if k.endswith("normalmap.data"))
+    params[key] = dr.full(mi.TensorXf, 0.5, params[key].shape)
+    params.update()
+    first = mi.traverse(scenes[0])
+    assert np.array_equal(np.array(first[key]), np.full(first[key].shape, 0.5, np.float32))
+
+
 @pytest.mark.parametrize("slope_derivatives", [True, False])
 def test_slope_derivatives_switch(slope_derivatives):
     """Setup.slope_derivatives=False (validation/inverse_seeds.py --detached-slopes, a diagnostic)
