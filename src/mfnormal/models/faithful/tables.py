@@ -37,6 +37,7 @@ class MapStatistics:
     plugin instance (:meth:`set_slopes`), and what a texel reads of them."""
 
     wall = (0.0, 0.0, 0.0)      # the share of the map's relief that is walls and their mean slope (set_slopes)
+    _built = None               # the last table built with derivatives (_followed_table), or None
     #: The map-wide values a texel reads, one each (set_slopes): where they carry derivatives,
     #: :meth:`at_width` spreads them over a query's lanes.
     MAP_WIDE = ("sigma1", "sigma2", "cos_e", "sin_e", "wall_share", "wall_x", "wall_y")
@@ -162,7 +163,7 @@ class MapStatistics:
         at a σ within TABLE_FOLLOW of these; else the table built here (blocked_table), from which the
         next ones follow. So an optimiser's update, whose σ moves a little, builds no table: the σ a
         table is followed from, and so its values to within 2e-5, depend on the updates before."""
-        built = getattr(self, "_built", None)
+        built = self._built
         if built is not None and built.covers(self.cos_min, scales, needed, s1, s2):
             return built.follow(s1, s2), built.d_tables
         table, t1, t2 = blocked_table(s1, s2, self.cos_min, derivatives=True, scales=scales, needed=needed)
