@@ -1097,8 +1097,13 @@ def backward_section(results: dict, folder: Path) -> list:
         return L + [f"Not recorded: {b['error']}", ""]
     name = Path(b["md"]).name
     text = (folder / name).read_text() if (folder / name).exists() else ""
-    table = [ln for ln in text.splitlines() if ln.startswith("|")]
-    return L + [f"`{b['command']}` ({b['duration_s']:.0f} s), from [{name}]({name}):", ""] + table + [""]
+    lines = text.splitlines()
+    # Its tables and what stands between them (the optimiser's step has its own), as they are.
+    first = next((i for i, ln in enumerate(lines) if ln.startswith("|")), len(lines))
+    tables = lines[first:]
+    while tables and not tables[-1].strip():
+        tables.pop()
+    return L + [f"`{b['command']}` ({b['duration_s']:.0f} s), from [{name}]({name}):", ""] + tables + [""]
 
 
 def write_markdown(results: dict, path: Path):

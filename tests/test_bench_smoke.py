@@ -173,3 +173,17 @@ def test_water_profile_times_the_default_against_the_builtin_on_the_same_dielect
         (bsdf,) = [v for v in scene["water"].values() if isinstance(v, dict) and "bsdf" in v]
         assert bsdf["type"] == kind and bsdf["bsdf"]["type"] == "dielectric", bsdf
         assert R.mi.load_dict(scene) is not None
+
+
+def test_results_copy_every_table_of_the_backward_benchmark_apart(tmp_path):
+    """run.backward_section: RESULTS.md's copy of backward.md keeps both of its tables (the render +
+    backward and the optimiser's step) and the line between them, so that they stay two tables,
+    and nothing of the file's heading."""
+    run = run_module()
+    (tmp_path / "backward.md").write_text("# Reverse-mode cost\n\nWhat it measures.\n\n| a | b |\n|---|---|\n| 1 | 2 |\n"
+                                          "\nThe step.\n\n| c | d | e |\n|---|---|---|\n| 3 | 4 | 5 |\n\n")
+    lines = run.backward_section({"backward": {"command": "cmd", "duration_s": 3.0, "md": "backward.md"}}, tmp_path)
+    assert lines[0].startswith("## Backward pass") and "`cmd` (3 s)" in lines[2]
+    body = lines[4:]
+    assert body == ["| a | b |", "|---|---|", "| 1 | 2 |", "", "The step.", "", "| c | d | e |", "|---|---|---|",
+                    "| 3 | 4 | 5 |", ""]
