@@ -18,7 +18,8 @@ fresh subprocess (so that peak memory and the kernels traced are its own):
   them), the differentiable render, its loss's ``dr.backward`` and ``opt.step()``. The texels
   change every step. Reported: the medians over ``--steps`` warm steps (after two steps that
   compile) of the update, the render, the backward (with ``opt.step()``) and the whole step, each
-  phase waited for (``dr.sync_thread``) before the next starts, and the step's ratio to the
+  phase waited for (``dr.sync_thread``) before the next starts, the whole step's mean (which
+  counts the few updates that build the map's tables again), and the step's ratios to the
   built-in's, measured in the same run.
 
 The walks' loops are reversed with Dr.Jit's sum-style reverse mode (``max_iterations=-1``):
@@ -211,7 +212,8 @@ def write(args, rows, load=None):
 
 
 def step_table(rows, base, count) -> list:
-    """The optimiser step's lines: each phase's median and the step's ratio to the built-in's."""
+    """The optimiser step's lines: each phase's median, the whole step's mean, and their ratios to
+    the built-in's."""
     lines = ["", f"An optimiser's whole step (Adam on the texels, new texels every step; medians of {count} warm "
              "steps, and the whole step's mean): `params.update(opt)`, the differentiable render, its "
              "`dr.backward` with `opt.step()`.", "",
@@ -222,12 +224,12 @@ def step_table(rows, base, count) -> list:
         if "error" in r:
             continue
         rel = f"{r['step_s'] / base['step_s']:.1f}" if base else "–"
-        mean = r.get("step_mean_s")
-        rel_mean = f"{mean / base['step_mean_s']:.1f}" if base and mean and base.get("step_mean_s") else "–"
+        mean = r["step_mean_s"]
+        rel_mean = f"{mean / base['step_mean_s']:.1f}" if base else "–"
         rb = r["step_render_s"] + r["step_backward_s"]
         rel_rb = f"{rb / (base['step_render_s'] + base['step_backward_s']):.1f}" if base else "–"
         lines.append(f"| {r['method']} | {r['step_update_s']:.3f} | {r['step_render_s']:.3f} | "
-                     f"{r['step_backward_s']:.3f} | {r['step_s']:.3f} | {f'{mean:.3f}' if mean else '–'} | {rel} | "
+                     f"{r['step_backward_s']:.3f} | {r['step_s']:.3f} | {mean:.3f} | {rel} | "
                      f"{rel_mean} | {rel_rb} |")
     return lines
 
