@@ -16,8 +16,8 @@ on the calling thread (``--threads 0``, the default, as ``normal_sources.py``: o
 machine the work, not the waiting; exact on this thread); ``--threads N`` times the wall clock
 with N worker threads. The two images of a pair (same seed) must be equal up to
 the order in which the scene's Gaussian pixel filter accumulates its splats across threads
-(one scene rendered twice differs by that too; relative 1e-5): no BSDF reads the footprint
-yet (tests/test_footprint.py checks bit for bit, with a box filter). Writes
+(one scene rendered twice differs by that too; relative 1e-5): the demo's BSDFs do not read the
+footprint (``filter="none"``; tests/test_footprint.py checks bit for bit, with a box filter). Writes
 ``footprint.json`` into ``--out``.
 """
 

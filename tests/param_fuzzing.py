@@ -79,11 +79,17 @@ MAP[1, 2] = (0.7, 0.4, 0.9)
 NESTED = {"type": "diffuse"}
 
 
+def base_model(values: dict) -> str:
+    """The model a BSDF with ``values`` is loaded with unless they give one: ``separable`` (its
+    walk parameters are in effect), ``faithful`` for a ``filter`` (which needs it)."""
+    return "faithful" if values.get("filter", "none") != "none" else "separable"
+
+
 def plugin_dict(plugin: str, values: dict) -> dict:
     """``plugin`` with ``values``: the BSDF around a diffuse BSDF with a 4×4 normal map (model
-    ``separable`` unless given), an integrator alone."""
+    :func:`base_model` unless given), an integrator alone."""
     if plugin == "normalmap_microfacet":
-        base = {"model": "separable", "normalmap": {"type": "bitmap", "bitmap": mi.Bitmap(MAP), "raw": True},
+        base = {"model": base_model(values), "normalmap": {"type": "bitmap", "bitmap": mi.Bitmap(MAP), "raw": True},
                 "bsdf": NESTED}
         return {"type": plugin, **base, **values}
     return {"type": plugin, **values}
@@ -107,7 +113,7 @@ def plugin_xml(plugin: str, values: dict, map_file) -> str:
     """A scene holding ``plugin`` with ``values`` (the BSDF's normal map: the file ``map_file``)."""
     props = "".join(xml_property(k, v) for k, v in values.items())
     if plugin == "normalmap_microfacet":
-        model = "" if "model" in values else '<string name="model" value="separable"/>'
+        model = "" if "model" in values else f'<string name="model" value="{base_model(values)}"/>'
         texture = ("" if "normalmap" in values else
                    f'<texture type="bitmap" name="normalmap"><string name="filename" value="{map_file}"/>'
                    '<boolean name="raw" value="true"/></texture>')

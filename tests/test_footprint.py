@@ -21,7 +21,8 @@ ray cone carried from the camera, and its ellipse in uv that the BSDF receives i
 - The rule at each bounce, on a flat surface: glossy or diffuse → the cone of solid angle
   1/pdf (or the arriving one if wider), mirror → unchanged, refraction → β/η, null →
   unchanged, |β| ≤ π.
-- ``footprint`` false and true render the same image bit for bit (no BSDF reads it yet), and
+- ``footprint`` false and true render the same image bit for bit (none of the scene's BSDFs
+  reads it: ``normalmap_microfacet`` at its default ``filter="none"``), and
   false is ``path``; ``mfnormal_prb`` the same. A string for ``footprint`` is refused at load
   in one line naming it.
 - ``mfnormal_prb``: the footprint is the same in the primal and the differential phase (a

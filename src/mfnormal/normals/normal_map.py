@@ -14,6 +14,7 @@ from nudged normals (``nudge``, docs/model.md §9).
 
 from __future__ import annotations
 
+import math
 import re
 
 import drjit as dr
@@ -23,7 +24,8 @@ import numpy as np
 from mfnormal.surface.microsurface import SIN_P_EPS, decode_normal, spread
 from mfnormal.models.neighbourhood import kernel_array
 from mfnormal.surface.shading import from_tangent_frame, tangent_rotation
-from mfnormal.normals.pyramid import SlopePyramid, footprint_texels, slope_moments
+from mfnormal.normals.pyramid import (CLASS_BOUNDS, SlopePyramid, class_moments, footprint_texels, slope_moments,
+                                     texel_class)
 from mfnormal.normals.strength import fail
 from mfnormal.normals.tangents import VertexTangents
 from mfnormal.normals.uv import check_uv_transforms, finite_uv
@@ -37,6 +39,12 @@ NUDGES = ((0, 1.0), (0, -1.0), (1, 1.0), (1, -1.0))   # (axis, sign): ±x, ±y o
 # Local statistics (the faithful model's ``neighbourhood``) are measured on the map's texels up to
 # this resolution (a larger map is sampled at its texel centres on this grid).
 LOCAL_RES = 1024
+# A filtered lookup (``filter="lean"``) stands for a footprint's texels of a class by a Gaussian of
+# their slopes (mean μ, variance v = var(s_x) + var(s_y)) only where its mass beyond the class's
+# bound S (pyramid.CLASS_BOUNDS) is at most 1 %: v·ln(100) ≤ (S − |μ|)². Their slopes lie within
+# S; a wider Gaussian would send light where none of them does (a sharp nested lobe's off-specular
+# directions: 300-6000× the texels' mean without it, measured on a real asset's map).
+FILTER_TAIL = math.log(100.0)
 
 
 def channels_message(texture, what: str = "") -> str | None:
@@ -113,7 +121,8 @@ class NormalMap:
 
     def __init__(self, texture, strength, directx: bool, tangents: VertexTangents | None):
         self.texture, self.strength, self.directx, self.tangents = texture, strength, directx, tangents
-        self._pyramid = None
+        self._pyramid = {}          # the slope-moment pyramids, by ``classes`` (:meth:`pyramid`)
+        self.filtered = False       # ``filter="lean"``: ω_p is the footprint's mean facet (:meth:`footprint`)
         self._uv_checked = check_uv_transforms(texture, "normalmap")
         message = channels_message(texture) or srgb_message(texture)
         if message:
@@ -126,12 +135,17 @@ class NormalMap:
 
         ``nudge`` (derivatives at a flat normal): ``"strength"`` (``"strength2"``): ω_p at
         strength + STRENGTH_NUDGE (+ twice it), the texel detached; ``(axis, sign)``: ω_p tilted
-        by FLAT_NUDGE along ±x or ±y of the map's frame, the other axis detached."""
+        by FLAT_NUDGE along ±x or ±y of the map's frame, the other axis detached.
+
+        ``filtered``: ω_p is the facet of the footprint's mean slope (:meth:`footprint`), except
+        under the strength nudges (the texel's: the pyramid holds the slopes at one strength)."""
         rgb = self.map_rgb(si, active)
         strength = spread(self.strength.value, dr.width(rgb))
         if isinstance(nudge, str):          # "strength", "strength2": at STRENGTH_NUDGE, twice it
             rgb, strength = dr.detach(rgb), strength + STRENGTH_NUDGE * (2.0 if nudge == "strength2" else 1.0)
         wp = decode_normal(rgb, strength, self.directx)
+        if self.filtered and not isinstance(nudge, str):
+            wp = self.footprint(si, active, wp)[0]
         attached = dr.grad_enabled(wp)
         if nudge is not None and not isinstance(nudge, str):
             axis, sign = nudge
@@ -333,26 +347,72 @@ class NormalMap:
         n = decode_normal(self.texture.eval_3(s1), self.strength.value, self.directx)
         return [n.x, n.y, n.z]
 
-    def pyramid(self) -> SlopePyramid | None:
+    def pyramid(self, classes: bool = False) -> SlopePyramid | None:
         """The map's slope-moment pyramid (:class:`~mfnormal.normals.pyramid.SlopePyramid`; None for
         a texture that is not a bitmap): built at the first call, from the texels as they are then
-        (their derivatives included), and kept across renders until the map or ``strength`` changes."""
-        if self._pyramid is None and dr.is_jit_v(mi.Float):
+        (their derivatives included), and kept across renders until the map or ``strength`` changes.
+        ``classes``: the pyramid of the texel classes' moments
+        (:func:`~mfnormal.normals.pyramid.class_moments`), which a filtered lookup reads."""
+        if self._pyramid.get(classes) is None and dr.is_jit_v(mi.Float):
             params = mi.traverse(self.texture)
             if "data" in params.keys() and len(params["data"].shape) == 3:
-                self._pyramid = SlopePyramid(params["data"], self.strength.value, self.directx)
-        return self._pyramid
+                self._pyramid[classes] = SlopePyramid(params["data"], self.strength.value, self.directx,
+                                                      class_moments if classes else slope_moments)
+        return self._pyramid.get(classes)
+
+    def footprint(self, si, active=True, texel=None):
+        """(ω, v): what a filtered lookup shades at ``si`` (``filter="lean"``), in the map's frame.
+
+        Where the footprint that ``si`` carries is wider than a texel and the texel at ``si.uv``
+        is flat or mild (its class, :data:`~mfnormal.normals.pyramid.CLASS_BOUNDS`), the footprint's
+        texels of that class as one facet: ω the normal of their mean slope, v = var(s_x) +
+        var(s_y) their slopes' spread (the trace of their covariance), where the Gaussian of those
+        keeps within the class's bound (FILTER_TAIL). A steep texel is its own facet, as without a
+        filter, so that a footprint's walls are not averaged into its plains: a sample shades its
+        class's facet or its steep texel as the texel it lands on is one or the other, and the
+        pixel converges to that mixture. Elsewhere (at most a texel wide, no footprint, no pyramid,
+        a class too spread) the texel's own normal and 0. ``texel``: its decoded normal, if the
+        caller has it."""
+        if texel is None:
+            rgb = self.map_rgb(si, active)
+            texel = decode_normal(rgb, spread(self.strength.value, dr.width(rgb)), self.directx)
+        found = self._footprint_moments(si, active, texel, classes=True)
+        if found is None:
+            return texel, mi.Float(0.0)
+        moments, width = found
+        c = texel_class(slope_moments(texel))
+        flat = c == 0
+        m, sx, sy, sxx, syy = (dr.select(flat, a, b) for a, b in zip(moments[0:5], moments[6:11]))
+        bound = dr.select(flat, CLASS_BOUNDS[0], CLASS_BOUNDS[1])
+        share = dr.maximum(m, 1e-6)
+        mx, my = sx / share, sy / share
+        v = dr.maximum(sxx / share - mx * mx, 0.0) + dr.maximum(syy / share - my * my, 0.0)
+        # (The pyramid reads the point where the width is not finite.)
+        wide = dr.isfinite(width) & (width > 1.0) & (c < 2) & (m > 1e-6)
+        room = dr.maximum(bound - dr.sqrt(mx * mx + my * my), 0.0)
+        wide &= v * FILTER_TAIL <= room * room
+        mean = dr.normalize(mi.Vector3f(-mx, -my, 1.0))
+        return (mi.Vector3f(*(dr.select(wide, a, b) for a, b in zip(mean, texel))), dr.select(wide, v, 0.0))
 
     def footprint_moments(self, si, active=True):
         """The slope moments (:data:`~mfnormal.normals.pyramid.MOMENTS`) of the map over the footprint
         that ``si`` carries (``si.duv_dx``, ``si.duv_dy``: its axes in uv; none: the texel at
         ``si.uv``), from the pyramid; None without one. The map's uv transform applies to the
         footprint's axes as to the point."""
-        pyramid = self.pyramid()
-        if pyramid is None:
+        if self.pyramid() is None:
             return None
         rgb = self.map_rgb(si, active)
-        point = slope_moments(decode_normal(rgb, spread(self.strength.value, dr.width(rgb)), self.directx))
+        return self._footprint_moments(si, active, decode_normal(rgb, spread(self.strength.value, dr.width(rgb)),
+                                                                 self.directx))[0]
+
+    def _footprint_moments(self, si, active, texel, classes=False):
+        """(the moments of :meth:`footprint_moments`, or with ``classes`` the classes', and the
+        footprint's width in texels), the texel's decoded normal ``texel`` standing for level 0;
+        None without a pyramid."""
+        pyramid = self.pyramid(classes)
+        if pyramid is None:
+            return None
+        point = (class_moments if classes else slope_moments)(texel)
         axes = mi.SurfaceInteraction3f(si)
         affine = self._uv_affine()
         if affine is not None:
@@ -362,11 +422,11 @@ class NormalMap:
                 return mi.Vector2f(m00 * d.x + m01 * d.y, m10 * d.x + m11 * d.y)
             axes.duv_dx, axes.duv_dy = linear(si.duv_dx), linear(si.duv_dy)
         width = footprint_texels(axes, pyramid.width, pyramid.height)
-        return pyramid.lookup(self.map_uv(si), width, point)
+        return pyramid.lookup(self.map_uv(si), width, point), width
 
     def parameters_changed(self, keys):
         if not keys or any(k == "strength" or k.startswith("normalmap") for k in keys):
-            self._pyramid = None
+            self._pyramid = {}
         if not keys or any(k.startswith("normalmap") for k in keys):
             self._uv_checked = check_uv_transforms(self.texture, "normalmap", self._uv_checked)
             self.hoist_uv_transform()

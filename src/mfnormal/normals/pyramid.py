@@ -33,6 +33,18 @@ from mfnormal.surface.microsurface import decode_normal
 
 #: The moments, in the order of :attr:`SlopePyramid.channels`.
 MOMENTS = ("s_x", "s_y", "s_xx", "s_yy", "s_xy")
+#: The filter's classes of texels by slope |s|, each below its bound: flat, then mild (steeper
+#: texels are no class: a filtered lookup shades them as they are; normals/normal_map.py,
+#: ``NormalMap.footprint``). A footprint's texels of one class are shaded as one facet with a
+#: widened lobe. Flat texels are a class of their own, so that a map's flat ground keeps its sharp
+#: highlight beside bumps (caps on flat ground at strength 0.3, gold α 0.05, mirror at 30°: 0.69 of
+#: the texels' mean with one class, ``python -m benchmarks.filter``); at a mild bound of 0.5 the
+#: Gaussian that stands for the mild texels spread light where none of them sends it (the real
+#: assets' far views, docs/normal_sources.md §5).
+FLAT_FILTER_SLOPE, MILD_FILTER_SLOPE = 0.02, 0.3
+CLASS_BOUNDS = (FLAT_FILTER_SLOPE, MILD_FILTER_SLOPE)
+#: Per class (:data:`CLASS_BOUNDS`): its share m of the texels, then their five moments times m.
+CLASS_MOMENTS = tuple(f"{c}_{name}" for c in ("flat", "mild") for name in ("m",) + MOMENTS)
 
 
 def slope_moments(n):
@@ -41,6 +53,27 @@ def slope_moments(n):
     inv = dr.rcp(n.z)
     sx, sy = -n.x * inv, -n.y * inv
     return [sx, sy, sx * sx, sy * sy, sx * sy]
+
+
+def texel_class(moments):
+    """The class of the texel of these five moments (:data:`CLASS_BOUNDS`): 0 flat, 1 mild, 2 steep
+    (a UInt32 per lane)."""
+    s2 = moments[2] + moments[3]
+    return dr.select(s2 < FLAT_FILTER_SLOPE ** 2, mi.UInt32(0),
+                     dr.select(s2 < MILD_FILTER_SLOPE ** 2, mi.UInt32(1), mi.UInt32(2)))
+
+
+def class_moments(n):
+    """The twelve :data:`CLASS_MOMENTS` of unit normals ``n``: per class, m = 1 where the texel is of
+    it (else 0), then its five moments times m. A footprint's average of them is each class's share
+    and that share's moments; divided by the share, the class's mean moments."""
+    moments = slope_moments(n)
+    c = texel_class(moments)
+    out = []
+    for k in range(len(CLASS_BOUNDS)):
+        m = dr.select(c == k, 1.0, 0.0)
+        out += [m] + [m * x for x in moments]
+    return out
 
 
 def _halve(channels, width: int, height: int):
@@ -63,15 +96,17 @@ class SlopePyramid:
     """The slope moments of a map's levels 1, 2, … (the module docstring), each channel of all
     levels in one array (level ℓ at ``offsets[ℓ]``, row-major, ``sizes[ℓ]`` = (width, height))."""
 
-    def __init__(self, texels, strength, directx: bool):
-        """From the map's texels (a TensorXf of shape (height, width, ≥ 3), as a bitmap's
-        ``data``; derivatives kept), decoded with ``strength`` (a Float) and the convention."""
+    def __init__(self, texels, strength, directx: bool, moments_of=slope_moments):
+        """From the map's texels (a tensor of shape (height, width, ≥ 3), as a bitmap's ``data``:
+        floats, derivatives kept, or 8- and 16-bit integers, read as Mitsuba's bitmap reads them,
+        over 255 and 65535), decoded with ``strength`` (a Float) and the convention; ``moments_of``
+        the texel normals' channels (default: the five :data:`MOMENTS`; :func:`class_moments`)."""
         height, width, channels = (int(x) for x in texels.shape)
         idx = dr.arange(mi.UInt32, width * height) * channels
-        rgb = mi.Color3f(*(dr.gather(mi.Float, texels.array, idx + c) for c in range(3)))
-        moments = slope_moments(decode_normal(rgb, strength, directx))
+        rgb = mi.Color3f(*(dr.gather(mi.Float, _floats(texels), idx + c) for c in range(3)))
+        moments = moments_of(decode_normal(rgb, strength, directx))
         self.width, self.height, self.map_floats = width, height, width * height * channels
-        self.sizes, self.offsets, parts = [(width, height)], [0], [[] for _ in MOMENTS]
+        self.sizes, self.offsets, parts = [(width, height)], [0], [[] for _ in moments]
         w, h, total = width, height, 0
         while w > 1 or h > 1:
             moments, w, h = _halve(moments, w, h)
@@ -92,7 +127,7 @@ class SlopePyramid:
 
     def memory_ratio(self) -> float:
         """The stored levels' floats over the map's (its texels × channels)."""
-        return sum(w * h for w, h in self.sizes[1:]) * len(MOMENTS) / self.map_floats
+        return sum(w * h for w, h in self.sizes[1:]) * len(self.channels) / self.map_floats
 
     def level(self, index: int) -> np.ndarray:
         """Level ``index`` ≥ 1 as numpy, shape (height, width, 5)."""
@@ -111,7 +146,7 @@ class SlopePyramid:
         x0, y0 = dr.floor(x), dr.floor(y)
         fx, fy = x - x0, y - y0
         xi, yi = _wrap(x0, w), _wrap(y0, h)
-        out = [mi.Float(0.0) for _ in MOMENTS]
+        out = [mi.Float(0.0) for _ in self.channels]
         for dy, wy in ((0, 1.0 - fy), (1, fy)):
             row = dr.select(yi + dy == h, 0, yi + dy)
             for dx, wx in ((0, 1.0 - fx), (1, fx)):
@@ -146,6 +181,18 @@ class SlopePyramid:
         vy = dr.maximum(syy - sy * sy, 0.0)
         bound = dr.sqrt(vx * vy)
         return vx, vy, dr.clip(sxy - sx * sy, -bound, bound)
+
+
+def _floats(texels):
+    """A bitmap's ``data`` as one Float array, its 8- and 16-bit integers over their largest value."""
+    kind = dr.type_v(texels)
+    if kind in (dr.VarType.Float32, dr.VarType.Float64, dr.VarType.Float16):
+        return mi.Float(texels.array)
+    scale = {dr.VarType.UInt8: 255.0, dr.VarType.UInt16: 65535.0}.get(kind)
+    if scale is None:
+        raise ValueError(f"normalmap_microfacet: the normal map's texels are {kind}; use a float, "
+                         "8-bit or 16-bit bitmap")
+    return mi.Float(texels.array) * (1.0 / scale)
 
 
 def _wrap(i, n):

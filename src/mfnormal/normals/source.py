@@ -24,6 +24,10 @@ HEIGHT_SCALE = Number(PLUGIN, "height_scale", 1.0, "a finite number")
 TANGENTS = Text(PLUGIN, "tangents", MITSUBA_TANGENTS,
                 f"'{MITSUBA_TANGENTS}' or a vertex attribute name such as 'vertex_tangent'",
                 lambda name: name == MITSUBA_TANGENTS or name.startswith("vertex_"))
+#: ``filter``: what a lookup reads where the pixel's footprint covers many texels (``none``: the texel
+#: at the footprint's centre; ``lean``: the footprint's mean facet and slope spread, normals/normal_map.py).
+FILTERS = ("none", "lean")
+FILTER = Choice(PLUGIN, "filter", "none", FILTERS)
 #: A map given by name instead of as a texture: its file (loaded raw).
 MAP_FILES = {name: Text(PLUGIN, name, None, "a texture (a raw bitmap) or a file name", lambda f: f != "")
              for name in ("normalmap", "heightmap")}

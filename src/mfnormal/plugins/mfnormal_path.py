@@ -26,8 +26,8 @@ Path tracer calling each BSDF's eval_pdf_sample (:monosp:`mfnormal_path`)
    - |bool|
    - Carry the pixel's footprint along each path as a ray cone and give it to the BSDF at every
      surface hit, in uv (``si.duv_dx``, ``si.duv_dy``); false: those stay 0 ("no footprint"),
-     as with ``path``. Default: true. No BSDF of this package reads it yet, so images are the
-     same either way, bit for bit.
+     as with ``path``. Default: true. Only ``normalmap_microfacet`` with ``filter="lean"`` reads
+     it; with every other BSDF images are the same either way, bit for bit.
 
 Each parameter takes only its type (``<integer>``, ``<boolean>``; in Python an int, a bool) in
 its range: anything else, e.g. ``<string name="terminator_offset" value="false"/>`` or a

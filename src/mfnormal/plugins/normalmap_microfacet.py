@@ -108,6 +108,18 @@ Microfacet-based normal mapping (:monosp:`normalmap_microfacet`)
      density approximation. MIS stays unbiased either way. (Exposed, a kernel
      input.) Updates through ``mi.traverse`` are checked as at load: a value out
      of range raises the same one-line error and the values before it stay.
+ * - filter
+   - |string|
+   - ``faithful`` with a ``normalmap`` only: what a lookup reads where the pixel's footprint
+     (``si.duv_dx``, ``si.duv_dy``, which ``mfnormal_path`` and ``mfnormal_prb`` give with their
+     ``footprint`` on) covers more than a texel. ``none`` (default): the texel at its centre, as
+     without a footprint. ``lean``: where the texel is mild (slope below 0.3), the footprint's mild
+     texels as one facet, from the map's slope-moment pyramid: the normal of their mean slope
+     and, for a ``roughconductor`` with one uniform ``alpha``, its lobe widened by their slope
+     variance v, α' = √(α² + v) (LEAN mapping), its albedo kept; only where the Gaussian of their
+     slopes stays within that bound. A steep texel is shaded as it is. Filters diffuse nested
+     BSDFs and ``roughconductor``; others are shaded per texel (a warning says so). Derivatives
+     reach the texels through the pyramid. What it gains and loses: docs/normal_sources.md.
  * - normalmap_convention
    - |string|
    - ``opengl`` (default, +Y up, what Mitsuba's ``normalmap`` assumes) or
@@ -260,7 +272,8 @@ from mfnormal.surface.shading import off_horizon
 from mfnormal.normals.normal_map import NUDGES, NormalMap
 from mfnormal.normals import source
 from mfnormal.normals.source import MITSUBA_TANGENTS, from_properties
-from mfnormal.normals.strength import STRENGTH, STRENGTH_MAX
+from mfnormal.normals.strength import STRENGTH, STRENGTH_MAX, fail
+from mfnormal.plugins import widened
 from mfnormal.plugins.variant_class import variant_subclass
 
 __all__ = ["NormalMapMicrofacet", "bsdf_class", "MODELS", "DEFAULT_MODEL", "STRENGTH_MAX", "PARAMS"]
@@ -269,7 +282,7 @@ __all__ = ["NormalMapMicrofacet", "bsdf_class", "MODELS", "DEFAULT_MODEL", "STRE
 #: the exposed ones (``strength`` and the walk's) checked on ``mi.traverse`` updates.
 PARAMS = (source.MAP_FILES["normalmap"], source.MAP_FILES["heightmap"], source.HEIGHT_SCALE, source.MACRO_NORMAL,
           interface.MODEL, interface.NEIGHBOURHOOD_PARAM, interface.TANGENT_FACET, *interface.WALK_PARAMS,
-          source.CONVENTION, STRENGTH, source.TANGENTS)
+          source.CONVENTION, STRENGTH, source.TANGENTS, source.FILTER)
 
 
 class NormalMapMicrofacet:
@@ -287,12 +300,40 @@ class NormalMapMicrofacet:
         if self.model.turns_at_rims:
             self.macro = self.macro.turning()
         self._flat_texels = self.source.flat_texels()
+        self.filter = source.FILTER.read(props)
+        self.twin = self._filtered() if self.filter != "none" else None
 
         # The models refract only where the nested BSDF transmits (the paper's models refuse it:
         # interface.make); otherwise they report the nested BSDF's reflection components.
         keep = +mi.BSDFFlags.All if interface.transmits(self.nested) else ~mi.BSDFFlags.Transmission
         self.m_components = [self.nested.flags(i) & keep for i in range(self.nested.component_count())]
         self.m_flags = (self.nested.flags() & keep) | mi.BSDFFlags.FrontSide
+
+    def _filtered(self):
+        """Turn on the footprint filter (``filter="lean"``) where the nested BSDF allows it: the
+        map reads its footprint's mean facet, and a rough conductor's lobe is widened by the
+        footprint's spread (its twin, :mod:`~mfnormal.plugins.widened`, returned). A purely
+        diffuse nested BSDF needs no widening (None is returned); any other keeps the texel
+        (a warning says so): a glossy lobe left as narrow as a texel's would be too sharp on the
+        mean facet, and a smooth one would flatten the footprint to a mirror of its mean."""
+        if self.model.name != "faithful":
+            fail(f"filter='{self.filter}' needs model=\"faithful\" (the default); model='{self.model.name}' "
+                 "shades the texel as it is: use filter=\"none\" with it")
+        if self.normalmap is None:
+            fail(f"filter='{self.filter}' needs a 'normalmap' (its slope pyramid); use filter=\"none\" "
+                 "with a height map or without a map")
+        twin = widened.twin(self.nested)
+        flags = self.nested.flags()
+        diffuse_only = mi.has_flag(flags, mi.BSDFFlags.DiffuseReflection) and not any(
+            mi.has_flag(flags, f) for f in (mi.BSDFFlags.Glossy, mi.BSDFFlags.Delta, mi.BSDFFlags.Transmission))
+        if twin is None and not diffuse_only:
+            warnings.warn(f"normalmap_microfacet: filter='{self.filter}' filters diffuse nested BSDFs and "
+                          f"roughconductor with one uniform alpha; {self.nested.class_name()} is shaded per "
+                          "texel", stacklevel=2)
+            return None
+        self.source.filtered = True
+        self.source.pyramid(classes=True)  # (built here and on updates: a render's symbolic calls cannot)
+        return twin
 
     def traverse(self, callback):
         # None of them moves geometry, so none is discontinuous in Mitsuba's sense (visibility).
@@ -304,6 +345,8 @@ class NormalMapMicrofacet:
         self.model.traverse(callback)
 
     def parameters_changed(self, keys):
+        if self.twin is not None and (not keys or any(k.startswith("nested_bsdf") for k in keys)):
+            self.twin.follow()
         self.model.parameters_changed(keys)
         if "strength" in keys:
             self.strength.changed()
@@ -311,11 +354,18 @@ class NormalMapMicrofacet:
         if not keys or any(k == "strength" or k.startswith(("normalmap", "heightmap")) for k in keys):
             self._flat_texels = self.source.flat_texels()
             self.model.map_changed(self.source)
+            if getattr(self.source, "filtered", False):
+                self.source.pyramid(classes=True)
 
     def shading_point(self, ctx, si, active=True, nudge=None):
         """The microsurface at ``si``: ω_p from the normal source, in the macro normal's frame
-        (``nudge``: :meth:`mfnormal.normals.normal_map.NormalMap.facet_normal`)."""
-        return self.macro.shading_point(self.source, self.nested, ctx, si, active, nudge)
+        (``nudge``: :meth:`mfnormal.normals.normal_map.NormalMap.facet_normal`); with a widened
+        twin (``filter``), the twin on it and the footprint's slope spread for it."""
+        if self.twin is None:
+            return self.macro.shading_point(self.source, self.nested, ctx, si, active, nudge)
+        sp = self.macro.shading_point(self.source, self.twin, ctx, si, active, nudge)
+        sp.spread = self.source.footprint(si, active)[1]
+        return sp
 
     def _differentiable(self, ctx, si, active, fn):
         """``fn(sp)`` (a tuple of Dr.Jit arrays) at the microsurface of ``si``, with the
@@ -441,7 +491,8 @@ class NormalMapMicrofacet:
         return (f"NormalMapMicrofacet[model={m.name}, tangent_facet={m.tangent_facet}, rr_depth={m.ok[1]}, "
                 f"mis_boost_max={m.ok[2]}, strength={self.strength.value}, "
                 f"convention={'directx' if getattr(self.source, 'directx', False) else 'opengl'}, "
-                f"tangents={tangents.name if tangents else MITSUBA_TANGENTS}, macro_normal={self.macro.name},\n"
+                f"tangents={tangents.name if tangents else MITSUBA_TANGENTS}, macro_normal={self.macro.name}, "
+                f"filter={self.filter},\n"
                 + self.source.describe() + f"  bsdf={self.nested}]")
 
 

@@ -151,7 +151,7 @@ class ShadingPoint:
     """
 
     ARRAYS = ("si", "wi", "wp", "wt", "sin_p", "frame_p", "frame_t", "cot_p")
-    __slots__ = ARRAYS + ("nested", "ctx", "map_rotation", "attached", "nudged", "macro", "indirect")
+    __slots__ = ARRAYS + ("nested", "ctx", "map_rotation", "attached", "nudged", "macro", "indirect", "spread")
     nested: mi.BSDF                 # the nested BSDF, on both facets
     ctx: mi.BSDFContext
     si: mi.SurfaceInteraction3f     # the hit, its shading frame the base frame (ω_g = +z)
@@ -167,6 +167,7 @@ class ShadingPoint:
     nudged: bool                    # a nudged normal's point: evaluated only for a flat normal's derivatives
     macro: MacroFrame               # the base frame seen from the shading frame
     indirect: bool                  # nested-BSDF calls through a callable (:meth:`_nested`), else inlined
+    spread: mi.Float | None         # the footprint's slope variance, for a widened nested BSDF (:meth:`facet_si`)
 
     def __init__(self, nested, ctx, si, wp, map_rotation: tuple | None = None, attached: bool = False,
                  nudged: bool = False, macro: MacroFrame = SHADING_FRAME):
@@ -183,6 +184,7 @@ class ShadingPoint:
         self.cot_p = ms.cot_p(self.wp, self.sin_p)
         self.map_rotation, self.attached, self.nudged, self.macro = map_rotation, attached, nudged, macro
         self.indirect = False
+        self.spread = None
 
     def with_indirect_calls(self):
         """A copy of this point whose nested-BSDF calls are indirect (:meth:`_nested`)."""
@@ -254,11 +256,19 @@ class ShadingPoint:
 
     # The nested BSDF on a facet
     def facet_si(self, frame, wi):
-        """Copy of ``si`` whose shading frame is the facet's, lit/seen from ``wi``."""
+        """Copy of ``si`` whose shading frame is the facet's, lit/seen from ``wi``; with a
+        ``spread`` (a filtered footprint's slope variance), carrying it in ``duv_dx.x`` for the
+        nested BSDF's widened twin (:mod:`mfnormal.plugins.widened`) on the lanes whose ``frame``
+        is the texel's facet (``frame_p``): the footprint's facets are what it widens, not the
+        macro surface's nested lobe."""
         si = self.si
         si_f = mi.SurfaceInteraction3f(si)
         si_f.sh_frame = mi.Frame3f(si.to_world(frame.s), si.to_world(frame.t), si.to_world(frame.n))
         si_f.wi = frame.to_local(wi)
+        if self.spread is not None:
+            on_facet = (frame.n.x == self.frame_p.n.x) & (frame.n.y == self.frame_p.n.y) & \
+                (frame.n.z == self.frame_p.n.z)
+            si_f.duv_dx = mi.Vector2f(dr.select(on_facet, self.spread, 0.0), 0.0)
         return si_f
 
     def _facet_query(self, frame, wi, wo, active, si_f=None):
