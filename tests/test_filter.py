@@ -114,6 +114,8 @@ def test_the_footprints_facet_is_the_mean_slope_and_spread_of_its_texels_of_the_
                                        err_msg=f"seed {seed}, width {width}")
             np.testing.assert_allclose(np1(v), spread if filtered else 0.0, atol=1e-5)
     assert kept_blocks == [True, True, True, False]     # (a mild spread too wide for the bound is not filtered)
+    # The classes' pyramid: 10 channels over a third of the texels, 1.11× a 3-channel map's floats.
+    assert bsdf.source.pyramid(classes=True).memory_ratio() == pytest.approx(10 * 1365 / (3 * SIZE * SIZE))
 
 
 def test_without_a_footprint_the_filter_changes_nothing():

@@ -24,8 +24,8 @@ import numpy as np
 from mfnormal.surface.microsurface import SIN_P_EPS, decode_normal, spread
 from mfnormal.models.neighbourhood import kernel_array
 from mfnormal.surface.shading import from_tangent_frame, tangent_rotation
-from mfnormal.normals.pyramid import (CLASS_BOUNDS, SlopePyramid, class_moments, footprint_texels, slope_moments,
-                                     texel_class)
+from mfnormal.normals.pyramid import (CLASS_BOUNDS, SlopePyramid, class_moments, class_point, footprint_texels,
+                                     slope_moments, texel_class)
 from mfnormal.normals.strength import fail
 from mfnormal.normals.tangents import VertexTangents
 from mfnormal.normals.uv import check_uv_transforms, finite_uv
@@ -356,8 +356,9 @@ class NormalMap:
         if self._pyramid.get(classes) is None and dr.is_jit_v(mi.Float):
             params = mi.traverse(self.texture)
             if "data" in params.keys() and len(params["data"].shape) == 3:
-                self._pyramid[classes] = SlopePyramid(params["data"], self.strength.value, self.directx,
-                                                      class_moments if classes else slope_moments)
+                self._pyramid[classes] = (
+                    SlopePyramid(params["data"], self.strength.value, self.directx, class_moments, len(CLASS_BOUNDS))
+                    if classes else SlopePyramid(params["data"], self.strength.value, self.directx))
         return self._pyramid.get(classes)
 
     def footprint(self, si, active=True, texel=None):
@@ -379,11 +380,9 @@ class NormalMap:
         found = self._footprint_moments(si, active, texel, classes=True)
         if found is None:
             return texel, mi.Float(0.0)
-        moments, width = found
+        (m, sx, sy, sxx, syy), width = found
         c = texel_class(slope_moments(texel))
-        flat = c == 0
-        m, sx, sy, sxx, syy = (dr.select(flat, a, b) for a, b in zip(moments[0:5], moments[6:11]))
-        bound = dr.select(flat, CLASS_BOUNDS[0], CLASS_BOUNDS[1])
+        bound = dr.select(c == 0, CLASS_BOUNDS[0], CLASS_BOUNDS[1])
         share = dr.maximum(m, 1e-6)
         mx, my = sx / share, sy / share
         v = dr.maximum(sxx / share - mx * mx, 0.0) + dr.maximum(syy / share - my * my, 0.0)
@@ -412,7 +411,9 @@ class NormalMap:
         pyramid = self.pyramid(classes)
         if pyramid is None:
             return None
-        point = (class_moments if classes else slope_moments)(texel)
+        # (With classes, the group of the texel's own class; a steep texel's is not read.)
+        group = dr.minimum(texel_class(slope_moments(texel)), len(CLASS_BOUNDS) - 1) if classes else None
+        point = class_point(texel) if classes else slope_moments(texel)
         axes = mi.SurfaceInteraction3f(si)
         affine = self._uv_affine()
         if affine is not None:
@@ -422,7 +423,7 @@ class NormalMap:
                 return mi.Vector2f(m00 * d.x + m01 * d.y, m10 * d.x + m11 * d.y)
             axes.duv_dx, axes.duv_dy = linear(si.duv_dx), linear(si.duv_dy)
         width = footprint_texels(axes, pyramid.width, pyramid.height)
-        return pyramid.lookup(self.map_uv(si), width, point), width
+        return pyramid.lookup(self.map_uv(si), width, point, group), width
 
     def parameters_changed(self, keys):
         if not keys or any(k == "strength" or k.startswith("normalmap") for k in keys):

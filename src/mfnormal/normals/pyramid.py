@@ -43,8 +43,9 @@ MOMENTS = ("s_x", "s_y", "s_xx", "s_yy", "s_xy")
 #: assets' far views, docs/normal_sources.md §5).
 FLAT_FILTER_SLOPE, MILD_FILTER_SLOPE = 0.02, 0.3
 CLASS_BOUNDS = (FLAT_FILTER_SLOPE, MILD_FILTER_SLOPE)
-#: Per class (:data:`CLASS_BOUNDS`): its share m of the texels, then their five moments times m.
-CLASS_MOMENTS = tuple(f"{c}_{name}" for c in ("flat", "mild") for name in ("m",) + MOMENTS)
+#: Per class (:data:`CLASS_BOUNDS`): its share m of the texels, then their moments times m (s_x·s_y,
+#: which a filtered lookup does not read, left out).
+CLASS_MOMENTS = tuple(f"{c}_{name}" for c in ("flat", "mild") for name in ("m",) + MOMENTS[:4])
 
 
 def slope_moments(n):
@@ -64,16 +65,22 @@ def texel_class(moments):
 
 
 def class_moments(n):
-    """The twelve :data:`CLASS_MOMENTS` of unit normals ``n``: per class, m = 1 where the texel is of
-    it (else 0), then its five moments times m. A footprint's average of them is each class's share
-    and that share's moments; divided by the share, the class's mean moments."""
-    moments = slope_moments(n)
-    c = texel_class(moments)
+    """The ten :data:`CLASS_MOMENTS` of unit normals ``n``: per class, m = 1 where the texel is of
+    it (else 0), then its moments times m. A footprint's average of them is each class's share and
+    that share's moments; divided by the share, the class's mean moments."""
+    moments = slope_moments(n)[:4]
+    c = texel_class(slope_moments(n))
     out = []
     for k in range(len(CLASS_BOUNDS)):
         m = dr.select(c == k, 1.0, 0.0)
         out += [m] + [m * x for x in moments]
     return out
+
+
+def class_point(n):
+    """A texel's own moments in its class's group of :data:`CLASS_MOMENTS` (m = 1): what stands
+    for level 0 in a class lookup (:meth:`SlopePyramid.lookup` with ``group`` its class)."""
+    return [mi.Float(1.0)] + slope_moments(n)[:4]
 
 
 def _halve(channels, width: int, height: int):
@@ -94,13 +101,18 @@ def _halve(channels, width: int, height: int):
 
 class SlopePyramid:
     """The slope moments of a map's levels 1, 2, … (the module docstring), each channel of all
-    levels in one array (level ℓ at ``offsets[ℓ]``, row-major, ``sizes[ℓ]`` = (width, height))."""
+    levels in one array (level ℓ at ``offsets[ℓ]``, row-major, ``sizes[ℓ]`` = (width, height)).
 
-    def __init__(self, texels, strength, directx: bool, moments_of=slope_moments):
+    With ``groups`` G > 1 the channels are G groups of C (:data:`CLASS_MOMENTS`: a group per texel
+    class), stored interleaved: C arrays, group g of cell i at i·G + g, so that a lookup reads the
+    C channels of one group per lane (``group``), one gather each."""
+
+    def __init__(self, texels, strength, directx: bool, moments_of=slope_moments, groups: int = 1):
         """From the map's texels (a tensor of shape (height, width, ≥ 3), as a bitmap's ``data``:
         floats, derivatives kept, or 8- and 16-bit integers, read as Mitsuba's bitmap reads them,
         over 255 and 65535), decoded with ``strength`` (a Float) and the convention; ``moments_of``
-        the texel normals' channels (default: the five :data:`MOMENTS`; :func:`class_moments`)."""
+        the texel normals' channels (default: the five :data:`MOMENTS`; :func:`class_moments`, in
+        ``groups`` groups)."""
         height, width, channels = (int(x) for x in texels.shape)
         idx = dr.arange(mi.UInt32, width * height) * channels
         rgb = mi.Color3f(*(dr.gather(mi.Float, _floats(texels), idx + c) for c in range(3)))
@@ -117,6 +129,9 @@ class SlopePyramid:
             for part, m in zip(parts, moments):
                 part.append(m)
         self.channels = [_concat(part) for part in parts] if total else []
+        self.groups = groups
+        if groups > 1 and self.channels:
+            self.channels = _interleave(self.channels, groups)
         self._offset_array = mi.UInt32(np.array(self.offsets, np.uint32))
         dr.eval(*self.channels)
 
@@ -127,16 +142,19 @@ class SlopePyramid:
 
     def memory_ratio(self) -> float:
         """The stored levels' floats over the map's (its texels × channels)."""
-        return sum(w * h for w, h in self.sizes[1:]) * len(self.channels) / self.map_floats
+        return sum(dr.width(c) for c in self.channels) / self.map_floats
 
     def level(self, index: int) -> np.ndarray:
-        """Level ``index`` ≥ 1 as numpy, shape (height, width, 5)."""
+        """Level ``index`` ≥ 1 as numpy, shape (height, width, channels: group by group)."""
         (w, h), start = self.sizes[index], self.offsets[index]
-        return np.stack([np.array(c, np.float64)[start:start + w * h].reshape(h, w) for c in self.channels], -1)
+        g = self.groups
+        return np.stack([np.array(c, np.float64)[(start + np.arange(w * h)) * g + k].reshape(h, w)
+                         for k in range(g) for c in self.channels], -1)
 
-    def _bilinear(self, level, uv, active):
-        """The five moments of ``level`` (a UInt32 per lane, ≥ 1) at ``uv``, bilinear over its
-        texel centres, wrapping (a ``repeat`` bitmap's lookup on that grid); 0 where not ``active``."""
+    def _bilinear(self, level, uv, active, group=None):
+        """The channels of ``level`` (a UInt32 per lane, ≥ 1; of ``group``, a UInt32 per lane, with
+        groups) at ``uv``, bilinear over its texel centres, wrapping (a ``repeat`` bitmap's lookup on
+        that grid); 0 where not ``active``."""
         scale = mi.UInt32(1) << level
         w = (self.width + scale - 1) // scale                 # ⌈width / 2^ℓ⌉, as the levels were built
         h = (self.height + scale - 1) // scale
@@ -152,23 +170,25 @@ class SlopePyramid:
             for dx, wx in ((0, 1.0 - fx), (1, fx)):
                 col = dr.select(xi + dx == w, 0, xi + dx)
                 index = offset + row * w + col
+                if self.groups > 1:
+                    index = index * self.groups + group
                 for n, c in enumerate(self.channels):
                     out[n] = dr.fma(wx * wy, dr.gather(mi.Float, c, index, active), out[n])
         return out
 
-    def lookup(self, uv, width, point):
-        """The five moments of a footprint ``width`` texels of the map wide (a Float; ≤ 1: the
-        point; not finite: the point) centred at ``uv`` (a Point2f): trilinear between the levels
-        ⌊log2 width⌋ and the next, ``point`` (the five moments of the map's own lookup at ``uv``)
-        standing for level 0."""
+    def lookup(self, uv, width, point, group=None):
+        """The channels (with groups: of ``group``) of a footprint ``width`` texels of the map wide
+        (a Float; ≤ 1: the point; not finite: the point) centred at ``uv`` (a Point2f): trilinear
+        between the levels ⌊log2 width⌋ and the next, ``point`` (the channels of the map's own
+        lookup at ``uv``) standing for level 0."""
         if self.top == 0:
             return list(point)
         width = dr.select(dr.isfinite(width), width, 0.0)      # (no footprint where it is not finite)
         lod = dr.clip(dr.log2(dr.maximum(width, 1.0)), 0.0, float(self.top))
         lower = dr.minimum(mi.UInt32(dr.floor(lod)), self.top - 1)
         f = lod - mi.Float(lower)
-        coarse = self._bilinear(lower + 1, uv, f > 0)
-        fine = self._bilinear(dr.maximum(lower, 1), uv, lower > 0)
+        coarse = self._bilinear(lower + 1, uv, f > 0, group)
+        fine = self._bilinear(dr.maximum(lower, 1), uv, lower > 0, group)
         fine = [dr.select(lower == 0, p, m) for p, m in zip(point, fine)]
         return [dr.select(f > 0, dr.lerp(a, b, f), a) for a, b in zip(fine, coarse)]
 
@@ -193,6 +213,20 @@ def _floats(texels):
         raise ValueError(f"normalmap_microfacet: the normal map's texels are {kind}; use a float, "
                          "8-bit or 16-bit bitmap")
     return mi.Float(texels.array) * (1.0 / scale)
+
+
+def _interleave(channels, groups: int):
+    """``groups`` groups of C channels (each one array of the cells) as C arrays, group g of cell i
+    at i·groups + g."""
+    per = len(channels) // groups
+    out = []
+    for c in range(per):
+        cells = dr.width(channels[c])
+        merged = dr.zeros(mi.Float, cells * groups)
+        for g in range(groups):
+            dr.scatter(merged, channels[g * per + c], dr.arange(mi.UInt32, cells) * groups + g)
+        out.append(merged)
+    return out
 
 
 def _wrap(i, n):
