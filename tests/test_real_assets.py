@@ -46,3 +46,23 @@ def test_quick_run_bakes_verifies_and_scores_every_method(tmp_path):
         assert m["classic"]["rel_mse"] <= 0.5 * m["nomap"]["rel_mse"], cell["cell"]
     saved = json.loads((tmp_path / "real_assets_quick.json").read_text())
     assert saved["summary"]["all cells"]["cells"] == 2
+
+
+def test_the_far_figure_draws_four_panels_at_equal_time(tmp_path, capsys):
+    """``validation.far_figure`` on a small bake (300 triangles, 256²): the PNG is written, and the
+    methods after classic normal mapping get fewer samples (they cost more per sample); a cell
+    that is not one is refused before any work, naming the expected form."""
+    skip_without_real_assets()
+    import mitsuba as mi
+    from validation import far_figure
+
+    out = tmp_path / "far.png"
+    assert far_figure.main(["--res", "32", "--spp", "8", "--truth-spp", "16", "--faces", "300",
+                            "--map-size", "256", "--out", str(out)]) == 0
+    assert mi.Bitmap(str(out)).size()[0] > 400
+    lines = [line for line in capsys.readouterr().out.splitlines() if " spp (" in line]
+    spps = [int(line.split(": ")[1].split(" spp")[0]) for line in lines]
+    assert len(spps) == 3 and spps[0] == 8 and max(spps[1:]) <= 8
+    with pytest.raises(SystemExit):
+        far_figure.main(["--cell", "bunny/gold/far"])
+    assert "expected asset/material/lighting/view" in capsys.readouterr().err
