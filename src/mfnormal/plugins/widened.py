@@ -3,15 +3,15 @@
 A footprint over many texels shows their slopes' spread; LEAN mapping (Olano and Baker, I3D
 2010) shades it as one facet whose microfacet roughness is widened by it:
 α' = √(α² + σ_x² + σ_y²) (exact for a Beckmann distribution, whose slope variance per axis is
-α²/2; for GGX the same rule, as specular anti-aliasing uses it). Mitsuba's ``roughconductor`` and
-``roughdielectric`` read their roughness as a texture at the query, so the twin is the same
-plugin with the same parameters, its ``alpha`` a :class:`WidenedAlpha` that adds the spread the
-query carries in ``si.duv_dx.x`` (a field these BSDFs do not read;
-:meth:`mfnormal.surface.shading.ShadingPoint.facet_si` writes it).
+α²/2; for GGX the same rule, as specular anti-aliasing uses it). Mitsuba's ``roughconductor`` reads
+its roughness as a texture at the query, so the twin is the same plugin with the same parameters,
+its ``alpha`` a :class:`WidenedAlpha` that adds the spread the query carries in ``si.duv_dx.x`` (a
+field it does not read; :meth:`mfnormal.surface.shading.ShadingPoint.facet_si` writes it), and its
+value times the albedo ratio that keeps white facets white (:class:`Twin`).
 
 The twin is made only where it reproduces the nested BSDF exactly at zero spread (checked at a
-few queries); other nested BSDFs (diffuse, plastic, an anisotropic or textured roughness, a
-spectral variant's material tables) are not widened: :func:`twin` returns None.
+few queries); other nested BSDFs (diffuse, plastic, a dielectric, an anisotropic or textured
+roughness, a spectral variant's material tables) are not widened: :func:`twin` returns None.
 """
 
 from __future__ import annotations
