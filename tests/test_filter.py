@@ -400,3 +400,53 @@ def test_a_far_view_converges_with_less_noise_and_to_the_unfiltered_image():
     converged = {f: far_plane(f, 1024, 3).mean() for f in ("none", "lean")}
     assert means["lean"] == pytest.approx(converged["none"], rel=0.03)
     assert converged["lean"] == pytest.approx(converged["none"], rel=0.005)
+
+
+def far_prb_scene(filter):
+    """A far gold plane under a sun (direct light only: ``max_depth`` 2), a 64² map of rms slope
+    0.06 tiled 16 times, ``mfnormal_prb`` (which gives the BSDF its footprint), 24² px."""
+    rng = np.random.default_rng(0)
+    h = rng.standard_normal((64, 64))
+    f = np.fft.fftfreq(64)
+    h = np.real(np.fft.ifft2(np.fft.fft2(h) * np.exp(-0.5 * np.add.outer(f * f, f * f) * (6 * np.pi) ** 2)))
+    gx, gy = (np.roll(h, -1, 1) - np.roll(h, 1, 1)) / 2, (np.roll(h, -1, 0) - np.roll(h, 1, 0)) / 2
+    scale = 0.06 / np.sqrt((gx ** 2 + gy ** 2).mean() / 2)
+    normal = np.stack([-gx * scale, gy * scale, np.ones_like(gx)], -1)
+    normal /= np.linalg.norm(normal, axis=-1, keepdims=True)
+    tex = {"type": "bitmap", "bitmap": mi.Bitmap(encode(normal.reshape(-1, 3)).reshape(64, 64, 3).astype(np.float32)),
+           "raw": True, "to_uv": mi.ScalarTransform4f().scale([16, 16, 1])}
+    return mi.load_dict({
+        "type": "scene", "integrator": {"type": "mfnormal_prb", "max_depth": 2},
+        "sensor": {"type": "perspective", "fov": 30,
+                   "to_world": mi.ScalarTransform4f().look_at([0, -4, 3], [0, 0, 0], [0, 0, 1]),
+                   "film": {"type": "hdrfilm", "width": 24, "height": 24, "rfilter": {"type": "box"}},
+                   "sampler": {"type": "independent"}},
+        "plane": {"type": "rectangle", "bsdf": {"type": "normalmap_microfacet", "normalmap": tex, "filter": filter,
+                                                "bsdf": {"type": "roughconductor", "material": "Au", "alpha": 0.15}}},
+        "sun": {"type": "directional", "direction": [0.0, -0.75, -0.6], "irradiance": 3.0}})
+
+
+def test_a_filtered_render_differentiates_strength_as_central_differences_do():
+    """d(mean pixel)/d``strength`` of the far plane under ``mfnormal_prb`` with ``filter="lean"``
+    (reverse mode, through the pyramid) against central differences of renders with the same seed,
+    at steps 1e-2 and 2e-2: within 3 %. (Smaller steps see the steps a texel makes as it crosses a
+    class's bound or the Gaussian's, where the footprint's facet jumps: at 5e-3 the difference
+    moves by 6 %.) Measured: AD −0.787, differences −0.793 and −0.799; unfiltered, AD −0.780
+    against −0.793."""
+    key = "plane.bsdf.strength"
+    scene = far_prb_scene("lean")
+    params = mi.traverse(scene)
+    dr.enable_grad(params[key])
+    params.update()
+    dr.backward(dr.mean(mi.render(scene, params, spp=8, seed=3), axis=None))
+    ad = float(np.array(dr.grad(params[key])).ravel()[0])
+    for h in (1e-2, 2e-2):
+        means = []
+        for sign in (1, -1):
+            moved = far_prb_scene("lean")
+            p = mi.traverse(moved)
+            p[key] = 1.0 + sign * h
+            p.update()
+            means.append(float(np.mean(np.array(mi.render(moved, spp=8, seed=3)))))
+        fd = (means[0] - means[1]) / (2 * h)
+        assert ad == pytest.approx(fd, rel=0.03), (ad, fd, h)
