@@ -359,29 +359,39 @@ def test_updates_rebuild_the_mild_pyramid_and_the_twin_follows_the_nested_alpha(
 SLOPE_RMS = 0.06     # the far plane's map: slopes of this rms per axis, mild (below CLASS_BOUNDS[1])
 
 
-def far_plane(filter, spp, seed):
-    """A gold plane under a sun whose highlight the camera sees, seen from afar with a 256²
-    smooth noise map (SLOPE_RMS) tiled 8 times (about 40 texels per pixel), ``mfnormal_path``
-    with its footprint."""
+def noise_texture(size, rms, tiles):
+    """A raw bitmap texture of a smooth Gaussian noise height field's normals (``size``², periodic,
+    fixed seed), slopes of ``rms`` per axis, tiled ``tiles`` times."""
     rng = np.random.default_rng(0)
-    h = rng.standard_normal((256, 256))
-    f = np.fft.fftfreq(256)
+    h = rng.standard_normal((size, size))
+    f = np.fft.fftfreq(size)
     h = np.real(np.fft.ifft2(np.fft.fft2(h) * np.exp(-0.5 * np.add.outer(f * f, f * f) * (6 * np.pi) ** 2)))
     gx, gy = (np.roll(h, -1, 1) - np.roll(h, 1, 1)) / 2, (np.roll(h, -1, 0) - np.roll(h, 1, 0)) / 2
-    scale = SLOPE_RMS / np.sqrt((gx ** 2 + gy ** 2).mean() / 2)
+    scale = rms / np.sqrt((gx ** 2 + gy ** 2).mean() / 2)
     normal = np.stack([-gx * scale, gy * scale, np.ones_like(gx)], -1)
     normal /= np.linalg.norm(normal, axis=-1, keepdims=True)
-    tex = {"type": "bitmap", "bitmap": mi.Bitmap(encode(normal.reshape(-1, 3)).reshape(256, 256, 3).astype(np.float32)),
-           "raw": True, "to_uv": mi.ScalarTransform4f().scale([8, 8, 1])}
-    scene = mi.load_dict({
-        "type": "scene", "integrator": {"type": "mfnormal_path", "max_depth": 3},
+    return {"type": "bitmap", "bitmap": mi.Bitmap(encode(normal.reshape(-1, 3)).reshape(size, size, 3).astype(np.float32)),
+            "raw": True, "to_uv": mi.ScalarTransform4f().scale([tiles, tiles, 1])}
+
+
+def far_scene(filter, integrator, texture, res, max_depth, alpha):
+    """A gold plane (α ``alpha``) with ``texture`` under a sun whose highlight the camera sees,
+    seen from afar, ``res``² px, box filter, independent sampler."""
+    return mi.load_dict({
+        "type": "scene", "integrator": {"type": integrator, "max_depth": max_depth},
         "sensor": {"type": "perspective", "fov": 30,
                    "to_world": mi.ScalarTransform4f().look_at([0, -4, 3], [0, 0, 0], [0, 0, 1]),
-                   "film": {"type": "hdrfilm", "width": 48, "height": 48, "rfilter": {"type": "box"}},
+                   "film": {"type": "hdrfilm", "width": res, "height": res, "rfilter": {"type": "box"}},
                    "sampler": {"type": "independent"}},
-        "plane": {"type": "rectangle", "bsdf": {"type": "normalmap_microfacet", "normalmap": tex, "filter": filter,
-                                                "bsdf": {"type": "roughconductor", "material": "Au", "alpha": 0.1}}},
+        "plane": {"type": "rectangle", "bsdf": {"type": "normalmap_microfacet", "normalmap": texture, "filter": filter,
+                                                "bsdf": {"type": "roughconductor", "material": "Au", "alpha": alpha}}},
         "sun": {"type": "directional", "direction": [0.0, -0.75, -0.6], "irradiance": 3.0}})
+
+
+def far_plane(filter, spp, seed):
+    """The far gold plane (α 0.1) with a 256² noise map (SLOPE_RMS) tiled 8 times (about 40 texels
+    per pixel), ``mfnormal_path`` with its footprint, 48² px, rendered."""
+    scene = far_scene(filter, "mfnormal_path", noise_texture(256, SLOPE_RMS, 8), 48, 3, 0.1)
     return np.array(mi.render(scene, spp=spp, seed=seed))
 
 
@@ -403,27 +413,9 @@ def test_a_far_view_converges_with_less_noise_and_to_the_unfiltered_image():
 
 
 def far_prb_scene(filter):
-    """A far gold plane under a sun (direct light only: ``max_depth`` 2), a 64² map of rms slope
-    0.06 tiled 16 times, ``mfnormal_prb`` (which gives the BSDF its footprint), 24² px."""
-    rng = np.random.default_rng(0)
-    h = rng.standard_normal((64, 64))
-    f = np.fft.fftfreq(64)
-    h = np.real(np.fft.ifft2(np.fft.fft2(h) * np.exp(-0.5 * np.add.outer(f * f, f * f) * (6 * np.pi) ** 2)))
-    gx, gy = (np.roll(h, -1, 1) - np.roll(h, 1, 1)) / 2, (np.roll(h, -1, 0) - np.roll(h, 1, 0)) / 2
-    scale = 0.06 / np.sqrt((gx ** 2 + gy ** 2).mean() / 2)
-    normal = np.stack([-gx * scale, gy * scale, np.ones_like(gx)], -1)
-    normal /= np.linalg.norm(normal, axis=-1, keepdims=True)
-    tex = {"type": "bitmap", "bitmap": mi.Bitmap(encode(normal.reshape(-1, 3)).reshape(64, 64, 3).astype(np.float32)),
-           "raw": True, "to_uv": mi.ScalarTransform4f().scale([16, 16, 1])}
-    return mi.load_dict({
-        "type": "scene", "integrator": {"type": "mfnormal_prb", "max_depth": 2},
-        "sensor": {"type": "perspective", "fov": 30,
-                   "to_world": mi.ScalarTransform4f().look_at([0, -4, 3], [0, 0, 0], [0, 0, 1]),
-                   "film": {"type": "hdrfilm", "width": 24, "height": 24, "rfilter": {"type": "box"}},
-                   "sampler": {"type": "independent"}},
-        "plane": {"type": "rectangle", "bsdf": {"type": "normalmap_microfacet", "normalmap": tex, "filter": filter,
-                                                "bsdf": {"type": "roughconductor", "material": "Au", "alpha": 0.15}}},
-        "sun": {"type": "directional", "direction": [0.0, -0.75, -0.6], "irradiance": 3.0}})
+    """The far gold plane (α 0.15) under its sun (direct light only: ``max_depth`` 2), a 64² map
+    of rms slope 0.06 tiled 16 times, ``mfnormal_prb`` (which gives the BSDF its footprint), 24² px."""
+    return far_scene(filter, "mfnormal_prb", noise_texture(64, 0.06, 16), 24, 2, 0.15)
 
 
 def test_a_filtered_render_differentiates_strength_as_central_differences_do():

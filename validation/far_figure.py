@@ -7,8 +7,9 @@
 The cell's scenes are :mod:`validation.real_assets_split`'s (the asset decimated to ``--faces``
 triangles, its map baked at ``--map-size``²), every one with ``mfnormal_path`` (its
 footprint on) and the independent sampler (any sample count, as asked). Each method's warm seconds
-per render at ``--spp`` are measured (:func:`validation.real_assets.timed_renders`, one scene alive
-at a time); classic normal mapping (Mitsuba's ``normalmap``, fixes off) renders at ``--spp``, the
+per render at ``--spp`` are measured as the harness measures them
+(:func:`validation.real_assets_split.method_seconds`: rounds over the methods, one scene alive at a
+time); classic normal mapping (Mitsuba's ``normalmap``, fixes off) renders at ``--spp``, the
 others at the spp they get in its time. The panels show the object's bounding box, exposed as the
 harness meters it (the truth's mean luminance over the object → 0.5) and tone-mapped as its contact
 sheets are; each title gives the method and its spp. It prints each one's relMSE against the truth
@@ -64,15 +65,6 @@ def parse_args(argv=None):
     return args
 
 
-def seconds_per_render(m, cell, prepared, target, half, res, spp, seed) -> float:
-    """The method's warm seconds per render at ``spp`` (the median of its timed renders)."""
-    s = RA.method_scene(m, cell, prepared, "mikktspace", target, half, res, spp, "independent", INTEGRATOR)
-    runs = RA.timed_renders(s, spp, seed, 2.0)
-    del s
-    gc.collect()
-    return float(np.median([r[0] for r in runs]))
-
-
 def figure(panels, path: Path, title: str):
     """The panels (title, image) side by side, with their titles, as a PNG."""
     import matplotlib
@@ -106,7 +98,8 @@ def main(argv=None):
     del truth_scene
     gc.collect()
     methods = [(H.method_from_spec(spec), label) for spec, label in METHODS]
-    seconds = {m.key: seconds_per_render(m, cell, prepared, target, half, res, spp, args.seed) for m, _ in methods}
+    seconds = S.method_seconds(cell, prepared, [m for m, _ in methods], "mikktspace", target, half, res, spp,
+                               args.seed, INTEGRATOR)
     k = H.EXPOSURE_MEAN / max(float(luminance(truth)[mask].mean()), 1e-12)
     rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
     box = (slice(max(rows[0] - 2, 0), rows[-1] + 3), slice(max(cols[0] - 2, 0), cols[-1] + 3))

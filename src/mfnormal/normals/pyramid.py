@@ -68,12 +68,12 @@ def class_moments(n):
     """The ten :data:`CLASS_MOMENTS` of unit normals ``n``: per class, m = 1 where the texel is of
     it (else 0), then its moments times m. A footprint's average of them is each class's share and
     that share's moments; divided by the share, the class's mean moments."""
-    moments = slope_moments(n)[:4]
-    c = texel_class(slope_moments(n))
+    moments = slope_moments(n)
+    c = texel_class(moments)
     out = []
     for k in range(len(CLASS_BOUNDS)):
         m = dr.select(c == k, 1.0, 0.0)
-        out += [m] + [m * x for x in moments]
+        out += [m] + [m * x for x in moments[:4]]
     return out
 
 
